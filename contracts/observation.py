@@ -1,0 +1,89 @@
+"""The observation contract: lidar beam convention, scan and target encoding, the k-frame window.
+
+The simulator produces, and the car's drivers deliver, observations in physical units (metres,
+radians). The functions here turn them into network inputs. The learner, the exporter and the
+onboard runtime all call these, so the encoding exists in exactly one place.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts.settings import check_range
+
+WINDOW_LENGTH = 5
+"""Observations per network input (the paper's k): the current one and the four before it."""
+
+TARGET_FEATURES = 3
+"""Per-step target features: distance to target, sin and cos of its bearing."""
+
+
+@dataclass(frozen=True)
+class LidarSpec:
+    """A planar lidar: `num_beams` beams equally spaced over [0, 2*pi), counter-clockwise, beam 0
+    pointing along the robot's heading (REP 103: x forward, y left)."""
+
+    SECTION = "lidar"
+
+    num_beams: int = 720
+    """Readings per scan (the paper's 720)."""
+    max_range_m: float = 20.0
+    """Longest reading; beyond it the lidar reports no return (+inf), as a ROS driver does."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "num_beams", self.num_beams, 1, 100_000)
+        check_range(self, "max_range_m", self.max_range_m, 1e-3, 1e4, exclusive_low=True)
+
+    @property
+    def angle_increment_rad(self) -> float:
+        """Angle between consecutive beams."""
+        return 2.0 * math.pi / self.num_beams
+
+    def beam_angles_rad(self) -> NDArray[np.float64]:
+        """Beam angles relative to the heading, in [0, 2*pi)."""
+        return np.arange(self.num_beams, dtype=np.float64) * self.angle_increment_rad
+
+
+def encode_scan(scan_m: NDArray[np.floating], max_range_m: float) -> NDArray[np.float32]:
+    """Scale ranges to [0, 1] as the paper does (divide by the maximum range).
+
+    No return (+inf or NaN) reads as the maximum range; negative readings read as 0.
+    """
+    scan = np.nan_to_num(np.asarray(scan_m, dtype=np.float32), nan=max_range_m, posinf=max_range_m)
+    return np.clip(scan, 0.0, max_range_m) / np.float32(max_range_m)
+
+
+def target_features(
+    pose: NDArray[np.floating], target_xy: NDArray[np.floating]
+) -> NDArray[np.float64]:
+    """(d_g, sin(phi), cos(phi)) for poses (..., 3) = (x, y, heading) and targets (..., 2).
+
+    d_g is the distance to the target in metres; phi is the target's bearing from the robot's
+    heading, counter-clockwise positive. At the target itself phi is taken as 0.
+    """
+    pose = np.asarray(pose, dtype=np.float64)
+    delta = np.asarray(target_xy, dtype=np.float64) - pose[..., :2]
+    cos_h, sin_h = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    ahead = cos_h * delta[..., 0] + sin_h * delta[..., 1]
+    left = -sin_h * delta[..., 0] + cos_h * delta[..., 1]
+    distance = np.hypot(ahead, left)
+    safe = np.where(distance > 0.0, distance, 1.0)
+    return np.stack(
+        [
+            distance,
+            np.where(distance > 0, left / safe, 0.0),
+            np.where(distance > 0, ahead / safe, 1.0),
+        ],
+        axis=-1,
+    )
+
+
+def encode_target(features: NDArray[np.floating], max_range_m: float) -> NDArray[np.float32]:
+    """Scale the target distance like the lidar (divide by the maximum range); sin and cos as is."""
+    encoded = np.array(features, dtype=np.float32, copy=True)
+    encoded[..., 0] /= np.float32(max_range_m)
+    return encoded

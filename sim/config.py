@@ -1,0 +1,341 @@
+"""World settings: every number of the paper's world, and a named setting for each gap it leaves.
+
+The paper's own values are the defaults wherever it gives one. Values it does not give were
+chosen as a roboticist would and calibrated so that a uniformly random agent reproduces the
+paper's Random rows (docs/simulator.md lists each choice and why).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+from contracts.errors import ConfigError
+from contracts.observation import LidarSpec
+from contracts.settings import check_range
+
+Wall = Literal["south", "east", "north", "west"]
+WALLS: tuple[Wall, ...] = ("south", "east", "north", "west")
+
+
+@dataclass(frozen=True)
+class Opening:
+    """A gap in one of the arena's four walls."""
+
+    SECTION = "arena.openings"
+
+    wall: Wall
+    """Which wall: south (y = 0), east (x = size), north (y = size) or west (x = 0)."""
+    centre_m: float
+    """Position of the gap's centre along the wall, from the wall's west or south end."""
+    width_m: float
+    """Width of the gap."""
+
+
+@dataclass(frozen=True)
+class ArenaConfig:
+    """The square room: walls all round, with a few small openings."""
+
+    SECTION = "arena"
+
+    size_m: float = 10.0
+    """Side of the square arena (paper: 10 x 10 m)."""
+    openings: tuple[Opening, ...] = (
+        Opening("south", 3.0, 0.8),
+        Opening("east", 6.5, 0.8),
+        Opening("north", 7.0, 0.8),
+        Opening("west", 3.5, 0.8),
+    )
+    """Gaps in the walls (paper: "few small openings"). Narrower than the robot, so lidar rays
+    escape through them but the robot cannot; obstacles bounce off them as off the wall."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "size_m", self.size_m, 1.0, 1000.0)
+        for opening in self.openings:
+            if opening.wall not in WALLS:
+                raise ConfigError(f"arena.openings wall {opening.wall!r}: choose one of {WALLS}")
+            half = opening.width_m / 2
+            check_range(opening, "width_m", opening.width_m, 0.0, self.size_m, exclusive_low=True)
+            check_range(
+                opening,
+                "centre_m",
+                opening.centre_m,
+                half,
+                self.size_m - half,
+                why="the opening must lie within its wall",
+            )
+
+
+@dataclass(frozen=True)
+class InertiaDynamics:
+    """A body with inertia and damping driven by force and torque (the paper's Tables I and II).
+
+    Forward applies the force whose steady speed is `max_speed_mps`; a turn applies the torque
+    whose steady rate is `max_turn_rate_radps` and no force, so the robot turns in place once its
+    speed has decayed. Velocities relax exponentially towards those steady values.
+    """
+
+    SECTION = "dynamics"
+
+    kind: Literal["inertia"] = "inertia"
+    """Dynamics model name."""
+    max_speed_mps: float = 0.5
+    """Steady forward speed under the forward action (paper: 0.5 m/s)."""
+    max_turn_rate_radps: float = 0.5
+    """Steady turn rate under a turn action (paper: 0.5 rad/s)."""
+    linear_time_constant_s: float = 0.5
+    """Mass over linear damping: the time to reach 63% of a speed change (paper: not given)."""
+    angular_time_constant_s: float = 0.5
+    """Inertia over angular damping: the time to reach 63% of a turn-rate change (not given)."""
+    physics_dt_s: float = 0.05
+    """Integration step inside one control period; velocities are integrated exactly."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "max_speed_mps", self.max_speed_mps, 0.0, 10.0, exclusive_low=True)
+        check_range(
+            self, "max_turn_rate_radps", self.max_turn_rate_radps, 0.0, 10.0, exclusive_low=True
+        )
+        check_range(
+            self,
+            "linear_time_constant_s",
+            self.linear_time_constant_s,
+            0.0,
+            100.0,
+            exclusive_low=True,
+        )
+        check_range(
+            self,
+            "angular_time_constant_s",
+            self.angular_time_constant_s,
+            0.0,
+            100.0,
+            exclusive_low=True,
+        )
+        check_range(self, "physics_dt_s", self.physics_dt_s, 0.0, 1.0, exclusive_low=True)
+
+
+@dataclass(frozen=True)
+class IncrementDynamics:
+    """Every action moves the body by a constant step, no velocity memory (Tables III-IV)."""
+
+    SECTION = "dynamics"
+
+    kind: Literal["increment"] = "increment"
+    """Dynamics model name."""
+    forward_step_m: float = 0.2
+    """Distance moved by one forward action (paper: 0.2 m)."""
+    turn_step_rad: float = 0.2
+    """Rotation by one turn action (paper: 0.2 rad)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "forward_step_m", self.forward_step_m, 0.0, 10.0, exclusive_low=True)
+        check_range(self, "turn_step_rad", self.turn_step_rad, 0.0, math.pi, exclusive_low=True)
+
+
+Dynamics = InertiaDynamics | IncrementDynamics
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """Spheres moving in straight lines at constant speed, bouncing off the walls."""
+
+    SECTION = "obstacles"
+
+    count: int = 0
+    """Number of moving obstacles (paper: 0 or 5)."""
+    radius_m: float = 0.4
+    """Sphere radius; the lidar plane cuts it at its centre (paper: not given)."""
+    speed_mean_mps: float = 1.0
+    """Mean of the speed's normal distribution (paper: 1.0 m/s)."""
+    speed_std_mps: float = 0.3
+    """Standard deviation of the speed (paper: 0.3 m/s)."""
+    speed_min_mps: float = 0.5
+    """Lower truncation of the speed (paper: 0.5 m/s)."""
+    speed_max_mps: float = 1.5
+    """Upper truncation of the speed (paper: 1.5 m/s)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "count", self.count, 0, 1000)
+        check_range(self, "radius_m", self.radius_m, 0.0, 100.0, exclusive_low=True)
+        check_range(self, "speed_std_mps", self.speed_std_mps, 0.0, 100.0)
+        check_range(self, "speed_min_mps", self.speed_min_mps, 0.0, 100.0)
+        check_range(
+            self,
+            "speed_max_mps",
+            self.speed_max_mps,
+            self.speed_min_mps,
+            100.0,
+            why="must be at least speed_min_mps",
+        )
+        check_range(
+            self,
+            "speed_mean_mps",
+            self.speed_mean_mps,
+            self.speed_min_mps,
+            self.speed_max_mps,
+            why="the mean must lie between the truncation limits",
+        )
+
+
+@dataclass(frozen=True)
+class SpawnConfig:
+    """Where the robot, the target and the obstacles are placed at the start of an episode."""
+
+    SECTION = "spawn"
+
+    wall_margin_m: float = 1.0
+    """Least distance from the robot's and target's spawn points to any wall (paper: not given)."""
+    target_min_distance_m: float = 0.5
+    """Least initial distance from robot to target (paper: not given)."""
+    target_max_distance_m: float = 3.0
+    """Greatest initial distance from robot to target (paper: not given; 20 m = no limit)."""
+    obstacle_clearance_m: float = 1.0
+    """Least initial gap between an obstacle's surface and the robot's centre (not given)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "wall_margin_m", self.wall_margin_m, 0.0, 500.0)
+        check_range(self, "target_min_distance_m", self.target_min_distance_m, 0.0, 1e4)
+        check_range(
+            self,
+            "target_max_distance_m",
+            self.target_max_distance_m,
+            self.target_min_distance_m,
+            1e4,
+            why="must be at least target_min_distance_m",
+        )
+        check_range(self, "obstacle_clearance_m", self.obstacle_clearance_m, 0.0, 500.0)
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """The paper's reward: +1 at the target, -1 on collision, else a shaping term (see `reward`)."""
+
+    SECTION = "reward"
+
+    success_reward: float = 1.0
+    """Reward for coming within the robot radius l of the target (ends the episode)."""
+    collision_reward: float = -1.0
+    """Reward when the nearest surface is closer than l (ends the episode)."""
+    c1: float = 0.01
+    """Weight of the penalty for coming closer than 2l to a surface (paper: 0.01)."""
+    c2: float = 0.002
+    """Weight of the penalty on distance to target (paper: 0.002)."""
+    c3_m: float = 10.0
+    """Distance beyond which the target penalty stops growing (paper: c3 = 10)."""
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """One scenario: arena, robot, sensor, dynamics, obstacles, spawning, reward, episode length."""
+
+    SECTION = ""
+
+    name: str = "walls-inertia"
+    """Scenario name, for logs and files."""
+    arena: ArenaConfig = field(default_factory=ArenaConfig)
+    """The room."""
+    lidar: LidarSpec | None = field(default_factory=LidarSpec)
+    """The planar lidar, or None for the toy car that has only motion-capture poses."""
+    robot_radius_m: float = 0.5
+    """The paper's l: reach radius for the target and the collision distance (lost in the paper)."""
+    control_period_s: float = 0.2
+    """Time between consecutive observations and decisions (paper: 0.2 s)."""
+    dynamics: Dynamics = field(default_factory=InertiaDynamics)
+    """How actions move the robot."""
+    obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
+    """The moving obstacles."""
+    spawn: SpawnConfig = field(default_factory=SpawnConfig)
+    """Initial placement."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    """The reward."""
+    max_episode_steps: int = 200
+    """Steps before an episode is truncated (paper: 200 in training, 500 in tests)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "robot_radius_m", self.robot_radius_m, 0.0, 100.0, exclusive_low=True)
+        check_range(self, "control_period_s", self.control_period_s, 0.0, 60.0, exclusive_low=True)
+        check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10_000_000)
+        size = self.arena.size_m
+        free = size - 2 * self.spawn.wall_margin_m
+        check_range(
+            self.spawn,
+            "wall_margin_m",
+            self.spawn.wall_margin_m,
+            self.robot_radius_m,
+            (size - 1e-3) / 2,
+            why="the robot must spawn clear of the walls and inside the arena",
+        )
+        if self.spawn.target_min_distance_m > free * math.sqrt(2):
+            raise ConfigError(
+                f"spawn.target_min_distance_m = {self.spawn.target_min_distance_m} is out of "
+                "range: "
+                f"allowed [0, {free * math.sqrt(2):.3f}] (the spawn square's diagonal)"
+            )
+        if self.obstacles.count:
+            radius = self.obstacles.radius_m
+            check_range(
+                self.obstacles,
+                "radius_m",
+                radius,
+                0.0,
+                size / 4,
+                exclusive_low=True,
+                why="obstacles must be able to move inside the arena",
+            )
+            # Obstacles move in a square of side size - 2r; let them cover at most a quarter of it.
+            room = (size - 2 * radius) ** 2
+            most = int(0.25 * room / (math.pi * radius**2))
+            check_range(
+                self.obstacles,
+                "count",
+                self.obstacles.count,
+                0,
+                most,
+                why=f"more obstacles than fit: at most {most} of radius {radius} m "
+                f"in a {size} m arena",
+            )
+            keep_out = math.pi * (radius + self.spawn.obstacle_clearance_m) ** 2
+            if keep_out > 0.5 * room:
+                raise ConfigError(
+                    f"spawn.obstacle_clearance_m = {self.spawn.obstacle_clearance_m} is too large: "
+                    "the keep-out disc around the robot leaves no room to place obstacles"
+                )
+        for opening in self.arena.openings:
+            if opening.width_m >= 2 * self.robot_radius_m:
+                raise ConfigError(
+                    f"arena.openings width_m = {opening.width_m} is out of range: allowed "
+                    f"(0, {2 * self.robot_radius_m}) (the robot must not fit through an opening)"
+                )
+
+    @property
+    def has_lidar(self) -> bool:
+        """Whether observations include a scan."""
+        return self.lidar is not None
+
+
+SCENARIOS: dict[str, WorldConfig] = {
+    "walls-inertia": WorldConfig(name="walls-inertia"),
+    "obstacles-inertia": WorldConfig(name="obstacles-inertia", obstacles=ObstacleConfig(count=5)),
+    "walls-increment": WorldConfig(name="walls-increment", dynamics=IncrementDynamics()),
+    "obstacles-increment": WorldConfig(
+        name="obstacles-increment", dynamics=IncrementDynamics(), obstacles=ObstacleConfig(count=5)
+    ),
+    # The paper's toy car: motion-capture pose only, no lidar, so no obstacles it could see.
+    "toycar-inertia": WorldConfig(name="toycar-inertia", lidar=None),
+    "toycar-increment": WorldConfig(
+        name="toycar-increment", lidar=None, dynamics=IncrementDynamics()
+    ),
+}
+"""The paper's four scenarios (Tables I-IV) and the lidar-less variants for the toy car."""
+
+
+def scenario(name: str, **changes: object) -> WorldConfig:
+    """The named scenario's settings, optionally with top-level fields replaced."""
+    try:
+        config = SCENARIOS[name]
+    except KeyError:
+        raise ConfigError(
+            f"unknown scenario {name!r}: choose one of {', '.join(SCENARIOS)}"
+        ) from None
+    return replace(config, **changes) if changes else config  # type: ignore[arg-type]

@@ -1,0 +1,147 @@
+"""The paper's test protocol: run a fixed list of episodes and count how each one ended.
+
+Episode g of an evaluation with seed s has the layout of (seed s, episode g), whichever world of
+the batch runs it, so results do not depend on the batch size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from contracts.actions import NUM_ACTIONS
+from contracts.settings import check_range
+from sim import rng
+from sim.config import WorldConfig
+from sim.task import Outcome
+from sim.world import Observation, observe, reset, scatter, step
+
+TEST_EPISODE_STEPS = 500
+"""Longest test episode of the paper's protocol."""
+
+_ACTION_STREAM = 101
+
+
+class Agent(Protocol):
+    """Something that acts in a batch of worlds."""
+
+    def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
+        """Episodes with these indices begin in these worlds: forget what came before there."""
+
+    def act(self, observation: Observation) -> NDArray[np.int64]:
+        """One action per world."""
+
+
+class RandomAgent:
+    """A uniformly random action at every step (the paper's Random rows).
+
+    Its draws depend only on (seed, episode, step), like the worlds' layouts.
+    """
+
+    def __init__(self, num_worlds: int, seed: int = 0) -> None:
+        self.seed = seed
+        self.keys = np.zeros(num_worlds, dtype=np.uint64)
+        self.steps = np.zeros(num_worlds, dtype=np.int64)
+
+    def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
+        self.keys[worlds] = rng.episode_keys(np.full(worlds.size, self.seed), episodes)
+        self.steps[worlds] = 0
+
+    def act(self, observation: Observation) -> NDArray[np.int64]:
+        draw = rng.uniform_at(self.keys, _ACTION_STREAM, self.steps)
+        self.steps += 1
+        return np.minimum((draw * NUM_ACTIONS).astype(np.int64), NUM_ACTIONS - 1)
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """How to run the test protocol."""
+
+    SECTION = "eval"
+
+    episodes: int = 200
+    """Test episodes (paper: 200; use 1000 or more to tell hundredths apart)."""
+    max_episode_steps: int = TEST_EPISODE_STEPS
+    """Steps before a test episode counts as unfinished (paper: 500)."""
+    num_worlds: int = 64
+    """Worlds stepped together."""
+    seed: int = 12345
+    """Seed of the test layouts; training uses other seeds."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "episodes", self.episodes, 1, 10_000_000)
+        check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10_000_000)
+        check_range(self, "num_worlds", self.num_worlds, 1, 100_000)
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    """Fractions of test episodes by outcome, as the paper's tables give them."""
+
+    success: float
+    """Fraction that reached the target."""
+    collision: float
+    """Fraction that ended in a collision."""
+    unfinished: float
+    """Fraction still running after the step limit."""
+    episodes: int
+    """Number of episodes."""
+    mean_steps: float
+    """Mean episode length in steps."""
+
+    def standard_error(self, fraction: float) -> float:
+        """Binomial sampling error of one of the fractions."""
+        return math.sqrt(max(fraction * (1 - fraction), 1e-12) / self.episodes)
+
+
+def evaluate(
+    config: WorldConfig, agent: Agent, settings: EvalSettings, progress: bool = False
+) -> EvalResult:
+    """Run `settings.episodes` episodes and count outcomes."""
+    config = replace(config, max_episode_steps=settings.max_episode_steps)
+    worlds = min(settings.num_worlds, settings.episodes)
+    episode = np.arange(worlds, dtype=np.int64)
+    seed = np.full(worlds, settings.seed, dtype=np.int64)
+    state = reset(config, seed, episode)
+    observation = observe(config, state)
+    agent.start(np.arange(worlds), episode)
+    active = np.ones(worlds, dtype=bool)
+    outcomes = np.full(settings.episodes, -1, dtype=np.int64)
+    lengths = np.zeros(settings.episodes, dtype=np.int64)
+    next_episode = worlds
+    with tqdm(
+        total=settings.episodes, desc=f"eval {config.name}", unit="ep", disable=not progress
+    ) as bar:
+        while active.any():
+            state, next_observation, transition = step(config, state, agent.act(observation))
+            observation = next_observation
+            done = (transition.terminated | transition.truncated) & active
+            if not done.any():
+                continue
+            index = np.flatnonzero(done)
+            outcomes[episode[index]] = transition.outcome[index]
+            lengths[episode[index]] = state.steps[index]
+            bar.update(index.size)
+            count = min(index.size, settings.episodes - next_episode)
+            active[index[count:]] = False
+            index = index[:count]
+            if count:
+                episode[index] = np.arange(next_episode, next_episode + count)
+                next_episode += count
+                fresh = reset(config, seed[index], episode[index])
+                state = scatter(state, index, fresh)
+                observation = scatter(observation, index, observe(config, fresh))
+                agent.start(index, episode[index])
+    total = settings.episodes
+    return EvalResult(
+        success=float(np.mean(outcomes == Outcome.SUCCESS)),
+        collision=float(np.mean(outcomes == Outcome.COLLISION)),
+        unfinished=float(np.mean(outcomes == Outcome.RUNNING)),
+        episodes=total,
+        mean_steps=float(lengths.mean()),
+    )

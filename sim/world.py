@@ -1,0 +1,258 @@
+"""The world as pure functions over a batch of N worlds: reset, step and observe.
+
+State is a tuple of arrays; functions return new state and never mutate their inputs. A thin
+stateful shell, `BatchedWorld`, adds automatic resets for the learner, the evaluator and the
+gymnasium interface.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts.errors import ConfigError
+from contracts.observation import target_features
+from sim import rng
+from sim.config import IncrementDynamics, WorldConfig
+from sim.dynamics import move_obstacles, step_increment, step_inertia
+from sim.geometry import cast_lidar, clearance
+from sim.task import Outcome, outcome, reward
+
+F64 = NDArray[np.float64]
+
+_CANDIDATES = 64
+"""Rejection-sampling candidates per placement; all failing has probability below 1e-30 here."""
+
+# Random streams of an episode's key (one per quantity drawn at reset).
+_ROBOT, _TARGET, _OBSTACLE_XY, _OBSTACLE_HEADING, _OBSTACLE_SPEED = range(1, 6)
+
+
+class WorldState(NamedTuple):
+    """Everything that evolves in N worlds."""
+
+    pose: F64
+    """(N, 3) robot x, y in metres and heading in radians, in [-pi, pi)."""
+    velocity: F64
+    """(N, 2) forward speed (m/s) and turn rate (rad/s); zero under increment dynamics."""
+    target_xy: F64
+    """(N, 2) target position."""
+    obstacle_xy: F64
+    """(N, M, 2) obstacle centres."""
+    obstacle_velocity: F64
+    """(N, M, 2) obstacle velocities."""
+    steps: NDArray[np.int64]
+    """(N,) steps taken in the current episode."""
+    seed: NDArray[np.int64]
+    """(N,) each world's seed."""
+    episode: NDArray[np.int64]
+    """(N,) each world's episode counter, which with the seed fixes the episode's layout."""
+
+
+class Observation(NamedTuple):
+    """What the robot senses, in physical units, plus the exact clearance used by the task."""
+
+    pose: F64
+    """(N, 3) robot pose, as a motion-capture system reports it."""
+    target_xy: F64
+    """(N, 2) target position."""
+    scan_m: NDArray[np.float32] | None
+    """(N, B) lidar ranges in metres, +inf for no return; None without a lidar."""
+    clearance_m: F64
+    """(N,) distance to the nearest surface (the paper's closest lidar reading d_l)."""
+
+    def target_features(self) -> F64:
+        """(N, 3) distance to target and sin, cos of its bearing."""
+        return target_features(self.pose, self.target_xy)
+
+    def take(self, index: NDArray[np.intp] | NDArray[np.bool_]) -> Observation:
+        """The observations of some worlds."""
+        scan = None if self.scan_m is None else self.scan_m[index]
+        return Observation(self.pose[index], self.target_xy[index], scan, self.clearance_m[index])
+
+
+class Transition(NamedTuple):
+    """What one step produced in each world."""
+
+    reward: F64
+    """(N,) reward of the step."""
+    outcome: NDArray[np.int8]
+    """(N,) Outcome of the step (RUNNING, SUCCESS or COLLISION)."""
+    terminated: NDArray[np.bool_]
+    """(N,) the episode ended at the target or in a collision."""
+    truncated: NDArray[np.bool_]
+    """(N,) the episode ran out of steps without ending."""
+
+
+def reset(
+    config: WorldConfig, seed: NDArray[np.integer], episode: NDArray[np.integer]
+) -> WorldState:
+    """Start one episode in each world; its layout depends only on (seed, episode) of that world."""
+    seeds = np.asarray(seed, dtype=np.int64)
+    episodes = np.asarray(episode, dtype=np.int64)
+    n = seeds.shape[0]
+    keys = rng.episode_keys(seeds, episodes)
+    size, margin = config.arena.size_m, config.spawn.wall_margin_m
+    robot = rng.uniform(keys, _ROBOT, (3,))
+    robot_xy = margin + (size - 2 * margin) * robot[:, :2]
+    heading = 2 * math.pi * robot[:, 2] - math.pi
+
+    target_candidates = margin + (size - 2 * margin) * rng.uniform(keys, _TARGET, (_CANDIDATES, 2))
+    distance = np.linalg.norm(target_candidates - robot_xy[:, None, :], axis=-1)
+    lo, hi = config.spawn.target_min_distance_m, config.spawn.target_max_distance_m
+    target_xy = _first_valid(target_candidates, (distance >= lo) & (distance <= hi))
+
+    m = config.obstacles.count
+    radius = config.obstacles.radius_m
+    obstacle_candidates = radius + (size - 2 * radius) * rng.uniform(
+        keys, _OBSTACLE_XY, (m, _CANDIDATES, 2)
+    )
+    gap = np.linalg.norm(obstacle_candidates - robot_xy[:, None, None, :], axis=-1) - radius
+    obstacle_xy = _first_valid(
+        obstacle_candidates.reshape(n * m, _CANDIDATES, 2),
+        (gap >= config.spawn.obstacle_clearance_m).reshape(n * m, _CANDIDATES),
+    ).reshape(n, m, 2)
+    direction = 2 * math.pi * rng.uniform(keys, _OBSTACLE_HEADING, (m,))
+    speed = _truncated_normal(keys, config, m)
+    obstacle_velocity = np.stack([np.cos(direction), np.sin(direction)], axis=-1) * speed[..., None]
+    return WorldState(
+        pose=np.concatenate([robot_xy, heading[:, None]], axis=1),
+        velocity=np.zeros((n, 2)),
+        target_xy=target_xy,
+        obstacle_xy=obstacle_xy,
+        obstacle_velocity=obstacle_velocity,
+        steps=np.zeros(n, dtype=np.int64),
+        seed=seeds,
+        episode=episodes,
+    )
+
+
+def _first_valid(candidates: F64, valid: NDArray[np.bool_]) -> F64:
+    """candidates (N, K, D), valid (N, K) -> (N, D): the first valid candidate (else the first)."""
+    choice = np.argmax(valid, axis=1)
+    return np.take_along_axis(candidates, choice[:, None, None], axis=1)[:, 0, :]
+
+
+def _truncated_normal(keys: NDArray[np.uint64], config: WorldConfig, m: int) -> F64:
+    """Obstacle speeds ~ Normal(mean, std) truncated to [min, max], by rejection."""
+    params = config.obstacles
+    u = rng.uniform(keys, _OBSTACLE_SPEED, (m, _CANDIDATES, 2))
+    normal = np.sqrt(-2.0 * np.log1p(-u[..., 0])) * np.cos(2 * math.pi * u[..., 1])
+    speed = params.speed_mean_mps + params.speed_std_mps * normal
+    valid = (speed >= params.speed_min_mps) & (speed <= params.speed_max_mps)
+    choice = np.argmax(valid, axis=-1)
+    chosen = np.take_along_axis(speed, choice[..., None], axis=-1)[..., 0]
+    return np.clip(chosen, params.speed_min_mps, params.speed_max_mps)
+
+
+def observe(config: WorldConfig, state: WorldState) -> Observation:
+    """The observation in each world."""
+    radius = config.obstacles.radius_m
+    scan = None
+    if config.lidar is not None:
+        scan = cast_lidar(state.pose, config.lidar, config.arena, state.obstacle_xy, radius)
+    gap = clearance(state.pose[:, :2], config.arena, state.obstacle_xy, radius)
+    return Observation(state.pose, state.target_xy, scan, gap)
+
+
+def step(
+    config: WorldConfig, state: WorldState, action: NDArray[np.integer]
+) -> tuple[WorldState, Observation, Transition]:
+    """Apply one action per world for one control period."""
+    action = np.asarray(action)
+    if isinstance(config.dynamics, IncrementDynamics):
+        pose, velocity = step_increment(state.pose, state.velocity, action, config.dynamics)
+    else:
+        pose, velocity = step_inertia(
+            state.pose, state.velocity, action, config.dynamics, config.control_period_s
+        )
+    obstacle_xy, obstacle_velocity = move_obstacles(
+        state.obstacle_xy,
+        state.obstacle_velocity,
+        config.obstacles.radius_m,
+        config.arena.size_m,
+        config.control_period_s,
+    )
+    new_state = state._replace(
+        pose=pose,
+        velocity=velocity,
+        obstacle_xy=obstacle_xy,
+        obstacle_velocity=obstacle_velocity,
+        steps=state.steps + 1,
+    )
+    observation = observe(config, new_state)
+    distance = np.linalg.norm(state.target_xy - pose[:, :2], axis=1)
+    result = outcome(distance, observation.clearance_m, config.robot_radius_m)
+    terminated = result != Outcome.RUNNING
+    truncated = ~terminated & (new_state.steps >= config.max_episode_steps)
+    transition = Transition(
+        reward=reward(distance, observation.clearance_m, config.robot_radius_m, config.reward),
+        outcome=result,
+        terminated=terminated,
+        truncated=truncated,
+    )
+    return new_state, observation, transition
+
+
+class StepResult(NamedTuple):
+    """One step of a `BatchedWorld`."""
+
+    observation: Observation
+    """What to act on next: the first observation of a new episode where one just ended."""
+    next_observation: Observation
+    """The observation the step led to, before any automatic reset (for bootstrapping)."""
+    transition: Transition
+    """Reward, outcome, terminated and truncated of the step."""
+
+
+class BatchedWorld:
+    """N worlds stepped together, each starting its next episode as soon as one ends.
+
+    World i uses seed `seed + i`; its k-th episode is the same as the k-th episode of a lone
+    world with that seed.
+    """
+
+    def __init__(self, config: WorldConfig, num_worlds: int, seed: int = 0) -> None:
+        if num_worlds < 1:
+            raise ConfigError(f"num_worlds = {num_worlds} is out of range: allowed [1, inf)")
+        self.config = config
+        self.num_worlds = num_worlds
+        self.state = reset(config, seed + np.arange(num_worlds), np.zeros(num_worlds, np.int64))
+
+    def reset(self, seed: int | None = None) -> Observation:
+        """Start new episodes everywhere (with fresh seeds if given) and observe them."""
+        n = self.num_worlds
+        seeds = self.state.seed if seed is None else seed + np.arange(n, dtype=np.int64)
+        episodes = self.state.episode + 1 if seed is None else np.zeros(n, np.int64)
+        self.state = reset(self.config, seeds, episodes)
+        return observe(self.config, self.state)
+
+    def step(self, action: NDArray[np.integer]) -> StepResult:
+        """Step every world; worlds whose episode ended start the next one."""
+        self.state, next_observation, transition = step(self.config, self.state, action)
+        done = transition.terminated | transition.truncated
+        observation = next_observation
+        if done.any():
+            index = np.flatnonzero(done)
+            fresh = reset(self.config, self.state.seed[index], self.state.episode[index] + 1)
+            self.state = scatter(self.state, index, fresh)
+            observation = scatter(next_observation, index, observe(self.config, fresh))
+        return StepResult(observation, next_observation, transition)
+
+
+Rows = TypeVar("Rows", WorldState, Observation)
+
+
+def scatter(whole: Rows, index: NDArray[np.intp], part: Rows) -> Rows:
+    """A copy of `whole` (arrays with one row per world) whose rows `index` come from `part`."""
+    fields: list[Any] = []
+    for array, rows in zip(whole, part, strict=True):
+        if array is None or rows is None:
+            fields.append(None)
+            continue
+        merged = np.array(array, copy=True)
+        merged[index] = rows
+        fields.append(merged)
+    return type(whole)(*fields)
