@@ -90,6 +90,15 @@ def _coerce(cls: type, name: str, annotation: Any, value: Any, path: str) -> Any
         if is_none and type(None) in args:
             return None
         non_none = [a for a in args if a is not type(None)]
+        if isinstance(value, dict) and "kind" in value:
+            # Tagged sections (dynamics models): the option whose `kind` matches decides.
+            tagged = [a for a in non_none if _kind_of(a) == value["kind"]]
+            if not tagged:
+                kinds = [_kind_of(a) for a in non_none]
+                raise ConfigError(f"{path}.kind = {value['kind']!r}: choose one of {kinds}")
+            non_none = tagged
+        if len(non_none) == 1:
+            return _coerce(cls, name, non_none[0], value, path)
         errors = []
         for option in non_none:
             try:
@@ -122,6 +131,13 @@ def _coerce(cls: type, name: str, annotation: Any, value: Any, path: str) -> Any
         except (TypeError, ValueError):
             raise ConfigError(f"{path} must be {annotation.__name__}, got {value!r}") from None
     return value
+
+
+def _kind_of(option: Any) -> object:
+    fields = (
+        {f.name: f for f in dataclasses.fields(option)} if dataclasses.is_dataclass(option) else {}
+    )
+    return fields["kind"].default if "kind" in fields else None
 
 
 def from_dict(cls: type[T], values: dict[str, Any], path: str = "") -> T:
@@ -192,8 +208,87 @@ def load_toml(path: Path) -> dict[str, Any]:
 def _deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
     merged = dict(base)
     for key, value in update.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = _deep_merge(merged[key], value)
+        current = merged.get(key)
+        # A section of another `kind` (say, other dynamics) replaces the section whole.
+        if (
+            isinstance(value, dict)
+            and isinstance(current, dict)
+            and value.get("kind", current.get("kind")) == current.get("kind")
+        ):
+            merged[key] = _deep_merge(current, value)
         else:
             merged[key] = value
     return merged
+
+
+def to_toml(settings: object) -> str:
+    """Settings as a TOML document with each field's documentation as a comment above it."""
+    return "\n".join(_toml_section(settings, "")).lstrip() + "\n"
+
+
+def _is_settings(value: object) -> bool:
+    return dataclasses.is_dataclass(value) and not isinstance(value, type)
+
+
+def _toml_section(settings: object, prefix: str) -> list[str]:
+    docs = field_docs(type(settings))
+    lines = [f"[{prefix}]"] if prefix else []
+    nested = []
+    for f in dataclasses.fields(settings):  # type: ignore[arg-type]
+        value = getattr(settings, f.name)
+        if _is_settings(value):
+            nested.append((f.name, value))
+            continue
+        if f.name in docs:
+            lines.append(f"# {docs[f.name]}")
+        if isinstance(value, tuple):
+            value = [to_dict(v) if _is_settings(v) else v for v in value]
+        lines.append(f"{f.name} = {_toml_value(value)}")
+    for name, value in nested:
+        lines += ["", *_toml_section(value, f"{prefix}.{name}" if prefix else name)]
+    return lines
+
+
+def _toml_value(value: Any) -> str:
+    if value is None:
+        return '"none"'
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def to_markdown(settings: object) -> str:
+    """Settings as a Markdown table: dotted name, value, documentation."""
+    rows = ["| setting | value | meaning |", "|---|---|---|"]
+    rows += [
+        f"| `{name}` | {'(section)' if value is _SECTION else f'`{_toml_value(value)}`'} | {doc} |"
+        for name, value, doc in _flatten(settings, "")
+    ]
+    return "\n".join(rows) + "\n"
+
+
+_SECTION = object()
+
+
+def _flatten(settings: object, prefix: str) -> list[tuple[str, Any, str]]:
+    docs = field_docs(type(settings))
+    rows: list[tuple[str, Any, str]] = []
+    for f in dataclasses.fields(settings):  # type: ignore[arg-type]
+        value = getattr(settings, f.name)
+        name = f"{prefix}{f.name}"
+        if _is_settings(value):
+            rows.append((name, _SECTION, docs.get(f.name, "")))
+            rows += _flatten(value, f"{name}.")
+        elif isinstance(value, tuple) and value and _is_settings(value[0]):
+            rows.append((name, [to_dict(v) for v in value], docs.get(f.name, "")))
+        else:
+            rows.append((name, value, docs.get(f.name, "")))
+    return rows

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Literal
 
 from contracts.errors import ConfigError
 from contracts.observation import LidarSpec
-from contracts.settings import check_range
+from contracts.settings import check_range, load_toml, parse_assignments, with_overrides
 
 Wall = Literal["south", "east", "north", "west"]
 WALLS: tuple[Wall, ...] = ("south", "east", "north", "west")
@@ -273,6 +274,15 @@ class WorldConfig:
                 f"allowed [0, {free * math.sqrt(2):.3f}] (the spawn square's diagonal)"
             )
         if self.obstacles.count:
+            check_range(
+                self.spawn,
+                "obstacle_clearance_m",
+                self.spawn.obstacle_clearance_m,
+                self.robot_radius_m,
+                size,
+                exclusive_low=True,
+                why="an episode must not start in a collision",
+            )
             radius = self.obstacles.radius_m
             check_range(
                 self.obstacles,
@@ -339,3 +349,15 @@ def scenario(name: str, **changes: object) -> WorldConfig:
             f"unknown scenario {name!r}: choose one of {', '.join(SCENARIOS)}"
         ) from None
     return replace(config, **changes) if changes else config  # type: ignore[arg-type]
+
+
+def load_world(
+    name: str, settings_file: Path | None = None, assignments: list[str] | None = None
+) -> WorldConfig:
+    """A scenario's settings, changed by a TOML file and then by `section.field=value` strings."""
+    config = scenario(name)
+    if settings_file is not None:
+        config = with_overrides(config, load_toml(settings_file))
+    if assignments:
+        config = with_overrides(config, parse_assignments(assignments))
+    return config

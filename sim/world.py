@@ -24,7 +24,9 @@ from sim.task import Outcome, outcome, reward
 F64 = NDArray[np.float64]
 
 _CANDIDATES = 64
-"""Rejection-sampling candidates per placement; all failing has probability below 1e-30 here."""
+"""Rejection-sampling candidates per placement. Each is accepted with probability 1/4 or more
+(a target seen from a corner of the spawn square), so all 64 fail with probability below 1e-8;
+then the first candidate is used, clipped into the square."""
 
 # Random streams of an episode's key (one per quantity drawn at reset).
 _ROBOT, _TARGET, _OBSTACLE_XY, _OBSTACLE_HEADING, _OBSTACLE_SPEED = range(1, 6)
@@ -99,10 +101,17 @@ def reset(
     robot_xy = margin + (size - 2 * margin) * robot[:, :2]
     heading = 2 * math.pi * robot[:, 2] - math.pi
 
-    target_candidates = margin + (size - 2 * margin) * rng.uniform(keys, _TARGET, (_CANDIDATES, 2))
-    distance = np.linalg.norm(target_candidates - robot_xy[:, None, :], axis=-1)
+    # Uniform over the part of the annulus dmin <= d <= dmax around the robot that lies in the
+    # spawn square: area-uniform draws in the annulus, keeping those inside the square.
     lo, hi = config.spawn.target_min_distance_m, config.spawn.target_max_distance_m
-    target_xy = _first_valid(target_candidates, (distance >= lo) & (distance <= hi))
+    draw = rng.uniform(keys, _TARGET, (_CANDIDATES, 2))
+    radius = np.sqrt(lo * lo + (hi * hi - lo * lo) * draw[..., 0])
+    angle = 2 * math.pi * draw[..., 1]
+    target_candidates = robot_xy[:, None, :] + radius[..., None] * np.stack(
+        [np.cos(angle), np.sin(angle)], axis=-1
+    )
+    inside = ((target_candidates >= margin) & (target_candidates <= size - margin)).all(-1)
+    target_xy = np.clip(_first_valid(target_candidates, inside), margin, size - margin)
 
     m = config.obstacles.count
     radius = config.obstacles.radius_m

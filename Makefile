@@ -1,0 +1,51 @@
+# Two commands do everything on a fresh machine with Python 3.11 and make:
+#   make demo   set up .venv and run the main job
+#   make test   set up .venv, lint, type-check and run the tests
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: install demo test test-slow lint typecheck pytest docker-lint bench-sim calibrate docs clean
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python -m qnav.demo
+
+test: lint typecheck docker-lint pytest
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+typecheck: $(STAMP)
+	$(BIN)/mypy .
+
+docker-lint: $(STAMP)
+	$(BIN)/hadolint --failure-threshold info Dockerfile
+
+pytest: $(STAMP)
+	$(BIN)/pytest
+
+# Long checks (many-episode evaluations, training runs): not part of `make test`.
+test-slow: $(STAMP)
+	$(BIN)/pytest -m slow
+
+bench-sim: $(STAMP)
+	$(BIN)/qnav bench sim
+
+calibrate: $(STAMP)
+	$(BIN)/qnav calibrate
+
+# Regenerate the settings reference from the settings classes.
+docs: $(STAMP)
+	$(BIN)/qnav settings --markdown > docs/settings.md
+
+clean:
+	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache out

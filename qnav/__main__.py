@@ -1,0 +1,3 @@
+from qnav.cli import main
+
+raise SystemExit(main())

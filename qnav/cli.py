@@ -1,0 +1,134 @@
+"""The `qnav` command: one verb per job, each with its own --help.
+
+Handlers are imported only when their verb runs, so `qnav --help` is instant and the onboard
+verbs never import the training stack.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from contracts.errors import ConfigError
+from qnav import __version__
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _lazy(target: str) -> Handler:
+    """A handler `module:function` imported when called."""
+
+    def run(args: argparse.Namespace) -> int:
+        module, function = target.split(":")
+        handler: Handler = getattr(importlib.import_module(module), function)
+        return handler(args)
+
+    return run
+
+
+def _world_options(parser: argparse.ArgumentParser, default: str = "walls-inertia") -> None:
+    parser.add_argument(
+        "--scenario",
+        default=default,
+        help=f"scenario name (`qnav scenarios` lists them; default {default})",
+    )
+    parser.add_argument(
+        "--world-config",
+        type=Path,
+        metavar="FILE",
+        help="TOML file of world settings applied over the scenario (`qnav settings` writes one)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="assignments",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="change one world setting, e.g. --set obstacles.count=3 (repeatable)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every verb."""
+    parser = argparse.ArgumentParser(
+        prog="qnav", description="Learn robot navigation in a fast simulator and run it on a car."
+    )
+    parser.add_argument("--version", action="version", version=f"qnav {__version__}")
+    verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
+
+    scenarios = verbs.add_parser("scenarios", help="list the built-in scenarios")
+    scenarios.set_defaults(handler=_lazy("sim.cli:scenarios"))
+
+    settings = verbs.add_parser(
+        "settings", help="print a scenario's world settings as a commented TOML file"
+    )
+    _world_options(settings)
+    settings.add_argument(
+        "--markdown", action="store_true", help="print a Markdown table instead (docs/settings.md)"
+    )
+    settings.set_defaults(handler=_lazy("sim.cli:settings"))
+
+    evaluate = verbs.add_parser(
+        "eval", help="run the paper's test protocol and print success, collision, unfinished"
+    )
+    _world_options(evaluate)
+    evaluate.add_argument(
+        "--agent", default="random", choices=["random"], help="who acts (default: random)"
+    )
+    evaluate.add_argument("--episodes", type=int, default=200, help="test episodes (default 200)")
+    evaluate.add_argument(
+        "--max-steps", type=int, default=500, help="steps before an episode is unfinished (500)"
+    )
+    evaluate.add_argument("--seed", type=int, default=12345, help="seed of the test layouts")
+    evaluate.add_argument("--num-worlds", type=int, default=64, help="worlds stepped together")
+    evaluate.add_argument("--json", action="store_true", help="print one JSON object")
+    evaluate.set_defaults(handler=_lazy("sim.cli:evaluate"))
+
+    calibrate = verbs.add_parser(
+        "calibrate", help="random agent in each of the paper's scenarios, beside the paper's rows"
+    )
+    calibrate.add_argument("--episodes", type=int, default=2000, help="episodes per scenario")
+    calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
+    calibrate.add_argument("--json", action="store_true", help="print one JSON object")
+    calibrate.set_defaults(handler=_lazy("sim.cli:calibrate"))
+
+    render = verbs.add_parser("render", help="draw an episode to PNG and animated GIF")
+    _world_options(render, "obstacles-inertia")
+    render.add_argument("--agent", default="random", choices=["random"], help="who acts")
+    render.add_argument("--seed", type=int, default=0, help="world seed (default 0)")
+    render.add_argument("--episode", type=int, default=0, help="episode index of that seed")
+    render.add_argument("--max-steps", type=int, default=None, help="cut the episode short")
+    render.add_argument("--rays", action="store_true", help="draw the lidar rays")
+    render.add_argument("--out", type=Path, default=Path("out/render"), help="output folder")
+    render.set_defaults(handler=_lazy("sim.cli:render"))
+
+    bench = verbs.add_parser("bench", help="benchmarks")
+    benches = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
+    bench_sim = benches.add_parser("sim", help="simulator env-steps per second on one core")
+    _world_options(bench_sim, "obstacles-inertia")
+    bench_sim.add_argument(
+        "--batches", default="1,16,64,256", help="comma-separated batch sizes (1,16,64,256)"
+    )
+    bench_sim.add_argument(
+        "--seconds", type=float, default=2.0, help="timed seconds per configuration (2)"
+    )
+    bench_sim.add_argument("--no-scaling", action="store_true", help="skip beam/obstacle scaling")
+    bench_sim.add_argument("--json", action="store_true", help="print one JSON object")
+    bench_sim.set_defaults(handler=_lazy("sim.cli:bench"))
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `qnav` console command."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.handler(args))
+    except ConfigError as error:
+        print(f"qnav {args.verb}: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"qnav {args.verb}: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,44 @@
+"""Rules of the package layout: contracts import nothing of ours; the car's side has no torch."""
+
+import ast
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OURS = {"qnav", "sim", "training", "controller", "firmware_bridge"}
+ONBOARD = ["contracts", "controller", "firmware_bridge"]
+
+
+def _imports(package: str) -> set[str]:
+    names: set[str] = set()
+    for path in (ROOT / package).rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names |= {alias.name.split(".")[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names.add(node.module.split(".")[0])
+    return names
+
+
+def test_contracts_import_none_of_the_other_packages() -> None:
+    assert not (_imports("contracts") & OURS)
+
+
+def test_onboard_packages_never_import_torch() -> None:
+    modules = []
+    for package in ONBOARD:
+        modules.append(package)
+        modules += [
+            f"{package}.{info.name}" for info in pkgutil.iter_modules([str(ROOT / package)])
+        ]
+    code = (
+        "import importlib, sys\n"
+        f"for name in {modules!r}: importlib.import_module(name)\n"
+        "print('torch' in sys.modules)"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True
+    )
+    assert result.stdout.strip() == "False"

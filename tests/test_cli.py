@@ -1,0 +1,67 @@
+"""The `qnav` command as a user runs it: a real process, real arguments."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+VERBS = ["scenarios", "settings", "eval", "calibrate", "render", "bench"]
+
+
+def _qnav(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "qnav", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+@pytest.mark.parametrize("verb", VERBS)
+def test_every_verb_has_help(verb: str) -> None:
+    result = _qnav(verb, "--help")
+    assert result.returncode == 0
+    assert "usage: qnav" in result.stdout
+
+
+def test_eval_json_prints_one_object_with_the_protocol_fields() -> None:
+    result = _qnav("eval", "--scenario", "walls-increment", "--episodes", "20", "--json")
+    assert result.returncode == 0, result.stderr
+    values = json.loads(result.stdout)
+    assert set(values) == {"success", "collision", "unfinished", "episodes"}
+    assert values["episodes"] == 20
+
+
+def test_bad_setting_exits_with_a_message_naming_it() -> None:
+    result = _qnav("eval", "--scenario", "obstacles-inertia", "--set", "obstacles.count=999")
+    assert result.returncode == 2
+    assert "obstacles.count = 999 is out of range" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_unknown_scenario_exits_with_the_list_of_scenarios() -> None:
+    result = _qnav("eval", "--scenario", "moon")
+    assert result.returncode == 2
+    assert "unknown scenario 'moon'" in result.stderr
+
+
+def test_bench_sim_json_has_the_documented_shape() -> None:
+    result = _qnav(
+        "bench", "sim", "--batches", "1,4", "--seconds", "0.05", "--no-scaling", "--json"
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["scenario"] == "obstacles-inertia"
+    assert [r["batch"] for r in report["results"]] == [1, 4]
+    assert all(r["steps_per_second"] > 0 for r in report["results"])
+
+
+def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    printed = _qnav("settings", "--scenario", "obstacles-increment", "--set", "obstacles.count=2")
+    assert printed.returncode == 0
+    path = tmp_path / "world.toml"
+    path.write_text(printed.stdout)
+    result = _qnav("eval", "--world-config", str(path), "--episodes", "5", "--json")
+    assert result.returncode == 0, result.stderr
