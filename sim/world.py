@@ -105,9 +105,9 @@ def reset(
     # spawn square: area-uniform draws in the annulus, keeping those inside the square.
     lo, hi = config.spawn.target_min_distance_m, config.spawn.target_max_distance_m
     draw = rng.uniform(keys, _TARGET, (_CANDIDATES, 2))
-    radius = np.sqrt(lo * lo + (hi * hi - lo * lo) * draw[..., 0])
+    reach = np.sqrt(lo * lo + (hi * hi - lo * lo) * draw[..., 0])
     angle = 2 * math.pi * draw[..., 1]
-    target_candidates = robot_xy[:, None, :] + radius[..., None] * np.stack(
+    target_candidates = robot_xy[:, None, :] + reach[..., None] * np.stack(
         [np.cos(angle), np.sin(angle)], axis=-1
     )
     inside = ((target_candidates >= margin) & (target_candidates <= size - margin)).all(-1)
