@@ -45,7 +45,7 @@ calibrate: $(STAMP)
 
 # Regenerate the settings reference from the settings classes.
 docs: $(STAMP)
-	$(BIN)/qnav settings --markdown > docs/settings.md
+	$(BIN)/qnav settings --reference > docs/settings.md
 
 clean:
 	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache out

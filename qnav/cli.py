@@ -66,8 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
         "settings", help="print a scenario's world settings as a commented TOML file"
     )
     _world_options(settings)
+    settings.add_argument("--markdown", action="store_true", help="print a Markdown table instead")
     settings.add_argument(
-        "--markdown", action="store_true", help="print a Markdown table instead (docs/settings.md)"
+        "--reference", action="store_true", help="print the settings reference (docs/settings.md)"
     )
     settings.set_defaults(handler=_lazy("sim.cli:settings"))
 

@@ -31,9 +31,39 @@ def scenarios(args: argparse.Namespace) -> int:
 
 def settings(args: argparse.Namespace) -> int:
     """Print the world settings as a commented TOML file (or a Markdown table)."""
+    if args.reference:
+        sys.stdout.write(settings_reference())
+        return 0
     world = _world(args)
     sys.stdout.write(to_markdown(world) if args.markdown else to_toml(world))
     return 0
+
+
+def settings_reference() -> str:
+    """The text of docs/settings.md, generated from the settings classes."""
+    increment = to_markdown(scenario("walls-increment")).splitlines()
+    dynamics_rows = [row for row in increment[2:] if row.startswith("| `dynamics")]
+    return "\n".join(
+        [
+            "# World settings",
+            "",
+            "Every setting of the simulator, with its value in the `obstacles-inertia` scenario.",
+            "The other scenarios differ only in `name`, `obstacles.count` (0 in the walls-only",
+            "scenarios), `dynamics` (below) and `lidar` (none in the `toycar-*` variants).",
+            "Print any scenario's settings as a commented TOML file with",
+            "`qnav settings --scenario NAME`, edit it and pass it back with `--world-config FILE`,",
+            "or change one value with `--set section.field=value`.",
+            "",
+            "Generated from the settings classes by `make docs`; a test fails when it is stale.",
+            "",
+            to_markdown(scenario("obstacles-inertia")),
+            "Increment dynamics (`walls-increment`, `obstacles-increment`, `toycar-increment`):",
+            "",
+            *increment[:2],
+            *dynamics_rows,
+            "",
+        ]
+    )
 
 
 def evaluate(args: argparse.Namespace) -> int:

@@ -65,3 +65,12 @@ def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: igno
     path.write_text(printed.stdout)
     result = _qnav("eval", "--world-config", str(path), "--episodes", "5", "--json")
     assert result.returncode == 0, result.stderr
+
+
+def test_settings_reference_in_docs_is_current() -> None:
+    from pathlib import Path
+
+    from sim.cli import settings_reference
+
+    docs = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
+    assert docs.read_text() == settings_reference(), "run `make docs` to regenerate"
