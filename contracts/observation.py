@@ -87,3 +87,37 @@ def encode_target(features: NDArray[np.floating], max_range_m: float) -> NDArray
     encoded = np.array(features, dtype=np.float32, copy=True)
     encoded[..., 0] /= np.float32(max_range_m)
     return encoded
+
+
+def encode_frame(
+    scan_m: NDArray[np.floating] | None, features: NDArray[np.floating], max_range_m: float
+) -> NDArray[np.float32]:
+    """One network input frame (..., B + 3): the encoded scan followed by the encoded target.
+
+    Without a lidar (scan_m is None) the frame is the encoded target alone (..., 3).
+    """
+    target = encode_target(features, max_range_m)
+    if scan_m is None:
+        return target
+    return np.concatenate([encode_scan(scan_m, max_range_m), target], axis=-1)
+
+
+class FrameWindow:
+    """The last k frames of each of N streams, oldest first, for the recurrent policy.
+
+    At the start of an episode the window is filled with copies of its first frame: the network
+    always sees k frames, and a standing start looks like a robot that has not moved.
+    """
+
+    def __init__(self, num_streams: int, frame_size: int, length: int = WINDOW_LENGTH) -> None:
+        self.frames = np.zeros((num_streams, length, frame_size), dtype=np.float32)
+
+    def start(self, streams: NDArray[np.intp], first_frames: NDArray[np.float32]) -> None:
+        """Begin new episodes in `streams` with their first frames (S, frame_size)."""
+        self.frames[streams] = first_frames[:, None, :]
+
+    def push(self, frames: NDArray[np.float32], streams: NDArray[np.intp] | None = None) -> None:
+        """Append one frame per stream (all streams, or those listed), dropping the oldest."""
+        index = slice(None) if streams is None else streams
+        self.frames[index, :-1] = self.frames[index, 1:]
+        self.frames[index, -1] = frames

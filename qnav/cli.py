@@ -29,11 +29,12 @@ def _lazy(target: str) -> Handler:
     return run
 
 
-def _world_options(parser: argparse.ArgumentParser, default: str = "walls-inertia") -> None:
+def _world_options(parser: argparse.ArgumentParser, default: str | None = "walls-inertia") -> None:
+    shown = default or "the policy's own, else walls-inertia"
     parser.add_argument(
         "--scenario",
         default=default,
-        help=f"scenario name (`qnav scenarios` lists them; default {default})",
+        help=f"scenario name (`qnav scenarios` lists them; default {shown})",
     )
     parser.add_argument(
         "--world-config",
@@ -75,9 +76,19 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = verbs.add_parser(
         "eval", help="run the paper's test protocol and print success, collision, unfinished"
     )
-    _world_options(evaluate)
+    _world_options(evaluate, default=None)
     evaluate.add_argument(
-        "--agent", default="random", choices=["random"], help="who acts (default: random)"
+        "--policy",
+        type=Path,
+        metavar="RUN_DIR",
+        help="a training run folder; without it the random agent acts",
+    )
+    evaluate.add_argument(
+        "--random-action-prob",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="with --policy: take a random action with probability P at each step",
     )
     evaluate.add_argument("--episodes", type=int, default=200, help="test episodes (default 200)")
     evaluate.add_argument(
@@ -86,7 +97,36 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--seed", type=int, default=12345, help="seed of the test layouts")
     evaluate.add_argument("--num-worlds", type=int, default=64, help="worlds stepped together")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
-    evaluate.set_defaults(handler=_lazy("sim.cli:evaluate"))
+    evaluate.set_defaults(handler=_lazy("qnav.commands:evaluate"))
+
+    train = verbs.add_parser("train", help="train a Q-network (resumes a killed run)")
+    _world_options(train)
+    train.add_argument("--model", choices=["recurrent", "feedforward"], help="Q-network kind")
+    train.add_argument("--seed", type=int, help="run seed")
+    train.add_argument(
+        "--preset",
+        default="fast",
+        choices=["fast", "paper"],
+        help="fast: our schedule for 2 CPU cores (default); paper: the paper's exact schedule",
+    )
+    train.add_argument(
+        "--relabel", choices=["paper", "hindsight", "none"], help="target re-drawing"
+    )
+    train.add_argument("--episodes", type=int, help="training episodes")
+    train.add_argument(
+        "--train-config", type=Path, metavar="FILE", help="TOML file with a [train] table"
+    )
+    train.add_argument(
+        "--train-set",
+        dest="train_assignments",
+        action="append",
+        default=[],
+        metavar="train.FIELD=VALUE",
+        help="change one learner setting (repeatable)",
+    )
+    train.add_argument("--run-dir", type=Path, help="run folder (default runs/SCENARIO/...)")
+    train.add_argument("--quiet", action="store_true", help="no progress bar")
+    train.set_defaults(handler=_lazy("qnav.commands:train"))
 
     calibrate = verbs.add_parser(
         "calibrate", help="random agent in each of the paper's scenarios, beside the paper's rows"

@@ -66,31 +66,6 @@ def settings_reference() -> str:
     )
 
 
-def evaluate(args: argparse.Namespace) -> int:
-    """The paper's test protocol with the chosen agent."""
-    config = _world(args)
-    eval_settings = EvalSettings(
-        episodes=args.episodes,
-        max_episode_steps=args.max_steps,
-        num_worlds=args.num_worlds,
-        seed=args.seed,
-    )
-    agent = RandomAgent(min(args.num_worlds, args.episodes), seed=args.seed)
-    result = run_evaluation(config, agent, eval_settings, progress=not args.json)
-    if args.json:
-        print(json.dumps({k: v for k, v in asdict(result).items() if k != "mean_steps"}))
-        return 0
-    print(
-        f"{config.name}, {args.agent} agent, {result.episodes} episodes "
-        f"of up to {args.max_steps} steps"
-    )
-    for label in ("success", "collision", "unfinished"):
-        value = getattr(result, label)
-        print(f"  {label:<11} {value:.3f} +- {result.standard_error(value):.3f}")
-    print(f"  mean length {result.mean_steps:.1f} steps")
-    return 0
-
-
 def calibrate(args: argparse.Namespace) -> int:
     """The random agent under the test protocol in each paper scenario, beside the paper."""
     rows = {}

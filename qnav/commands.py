@@ -1,0 +1,94 @@
+"""Handlers of the verbs that join packages: eval (random agent or a trained policy), train."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from contracts.settings import load_toml, parse_assignments, with_overrides
+from sim.config import WorldConfig, load_world
+from sim.evaluate import Agent, EvalSettings, RandomAgent
+from sim.evaluate import evaluate as run_evaluation
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    """The paper's test protocol with the random agent or a trained policy."""
+    eval_settings = EvalSettings(
+        episodes=args.episodes,
+        max_episode_steps=args.max_steps,
+        num_worlds=args.num_worlds,
+        seed=args.seed,
+    )
+    worlds = min(args.num_worlds, args.episodes)
+    agent: Agent
+    if args.policy is None:
+        world = load_world(args.scenario or "walls-inertia", args.world_config, args.assignments)
+        agent, label = RandomAgent(worlds, seed=args.seed), "random agent"
+    else:
+        from training.policy import load_network
+        from training.run import policy_agent
+
+        network, run = load_network(args.policy)
+        world = (
+            load_world(args.scenario, args.world_config, args.assignments)
+            if args.scenario
+            else run.world
+        )
+        agent = policy_agent(
+            network,
+            world,
+            worlds,
+            run.train.window,
+            epsilon=args.random_action_prob,
+            hold_steps=1,
+            seed=args.seed,
+        )
+        label = f"{run.train.model} policy {args.policy}"
+        if args.random_action_prob:
+            label += f" with {args.random_action_prob:.0%} random actions"
+    result = run_evaluation(world, agent, eval_settings, progress=not args.json)
+    if args.json:
+        print(json.dumps({k: v for k, v in asdict(result).items() if k != "mean_steps"}))
+        return 0
+    print(f"{world.name}, {label}, {result.episodes} episodes of up to {args.max_steps} steps")
+    for name in ("success", "collision", "unfinished"):
+        value = getattr(result, name)
+        print(f"  {name:<11} {value:.3f} +- {result.standard_error(value):.3f}")
+    print(f"  mean length {result.mean_steps:.1f} steps")
+    return 0
+
+
+def train(args: argparse.Namespace) -> int:
+    """Train (or resume) one run."""
+    from training.config import preset
+    from training.run import train as run_training
+
+    world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
+    settings = preset(args.preset)
+    if args.train_config is not None:
+        settings = with_overrides(settings, load_toml(args.train_config).get("train", {}))
+    if args.train_assignments:
+        settings = with_overrides(
+            settings, parse_assignments(args.train_assignments).get("train", {})
+        )
+    chosen = {
+        name: getattr(args, name)
+        for name in ("model", "seed", "relabel", "episodes")
+        if getattr(args, name) is not None
+    }
+    settings = replace(settings, **chosen)
+    run_dir = args.run_dir or Path("runs") / world.name / (
+        f"{settings.model}-seed{settings.seed}-{args.preset}"
+        + ("" if settings.relabel == "paper" else f"-{settings.relabel}")
+    )
+    print(f"run folder: {run_dir}")
+    results = run_training(world, settings, run_dir, progress=not args.quiet)
+    test = results["test"]
+    print(
+        f"test ({test['episodes']} episodes of up to 500 steps): success {test['success']:.3f}, "
+        f"collision {test['collision']:.3f}, unfinished {test['unfinished']:.3f}"
+    )
+    print(f"wrote {run_dir}/results.json, progress.csv, success.png, model.pt")
+    return 0

@@ -1,0 +1,75 @@
+"""A torch Q-network acting in a batch of worlds: greedy, or epsilon-greedy with held choices."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from contracts.actions import NUM_ACTIONS
+from contracts.observation import FrameWindow, encode_frame
+from sim.world import Observation
+from training.networks import QNetwork
+
+
+def observation_frames(observation: Observation, max_range_m: float) -> NDArray[np.float32]:
+    """Encoded frames (N, F) of a batch of observations."""
+    return encode_frame(observation.scan_m, observation.target_features(), max_range_m)
+
+
+class TorchAgent:
+    """Keeps each world's window of k frames and picks actions from the network's Q values.
+
+    With `epsilon` > 0 a world explores: with probability epsilon it draws a random action and
+    holds it for `hold_steps` steps (the paper holds random choices for five steps).
+    """
+
+    def __init__(
+        self,
+        network: QNetwork,
+        num_worlds: int,
+        window: int,
+        max_range_m: float,
+        *,
+        epsilon: float = 0.0,
+        hold_steps: int = 5,
+        seed: int = 0,
+    ) -> None:
+        self.network = network
+        self.max_range_m = max_range_m
+        self.window = FrameWindow(num_worlds, network.frame_size, window)
+        self.fresh = np.ones(num_worlds, dtype=bool)
+        self.epsilon = np.full(num_worlds, epsilon)
+        self.hold_steps = hold_steps
+        self.held_action = np.zeros(num_worlds, dtype=np.int64)
+        self.held_for = np.zeros(num_worlds, dtype=np.int64)
+        self.rng = np.random.default_rng(seed)
+        self.last_q = np.zeros((num_worlds, NUM_ACTIONS), dtype=np.float32)
+
+    def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
+        self.fresh[worlds] = True
+        self.held_for[worlds] = 0
+
+    def act(self, observation: Observation) -> NDArray[np.int64]:
+        frames = observation_frames(observation, self.max_range_m)
+        fresh = np.flatnonzero(self.fresh)
+        if fresh.size:
+            self.window.start(fresh, frames[fresh])
+        ongoing = np.flatnonzero(~self.fresh)
+        if ongoing.size:
+            self.window.push(frames[ongoing], ongoing)
+        self.fresh[:] = False
+        with torch.no_grad():
+            q = self.network(torch.from_numpy(self.window.frames)).numpy()
+        self.last_q = q
+        action = q.argmax(axis=1)
+        return self._explore(action)
+
+    def _explore(self, greedy: NDArray[np.int64]) -> NDArray[np.int64]:
+        holding = self.held_for > 0
+        draw = ~holding & (self.rng.random(greedy.size) < self.epsilon)
+        self.held_action[draw] = self.rng.integers(0, NUM_ACTIONS, int(draw.sum()))
+        self.held_for[draw] = self.hold_steps
+        random = self.held_for > 0
+        self.held_for[random] -= 1
+        return np.where(random, self.held_action, greedy)

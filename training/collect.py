@@ -1,0 +1,55 @@
+"""Collect a round of training episodes in parallel worlds of the batched simulator."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sim.config import WorldConfig
+from sim.task import Outcome
+from sim.world import observe, reset, step
+from training.agent import TorchAgent
+from training.replay import Episode
+
+
+def collect_round(
+    config: WorldConfig, agent: TorchAgent, seed: int, episode_ids: NDArray[np.int64]
+) -> list[Episode]:
+    """Run one episode per world, each with the layout of (seed, its episode id), to its end."""
+    n = episode_ids.size
+    state = reset(config, np.full(n, seed, dtype=np.int64), episode_ids)
+    observation = observe(config, state)
+    agent.start(np.arange(n), episode_ids)
+    poses, scans, clearances, actions = (
+        [observation.pose],
+        [observation.scan_m],
+        [observation.clearance_m],
+        [],
+    )
+    length = np.zeros(n, dtype=np.int64)
+    ending = np.full(n, Outcome.RUNNING, dtype=np.int64)
+    active = np.ones(n, dtype=bool)
+    while active.any():
+        action = agent.act(observation)
+        state, observation, transition = step(config, state, action)
+        poses.append(observation.pose)
+        scans.append(observation.scan_m)
+        clearances.append(observation.clearance_m)
+        actions.append(action)
+        length[active] += 1
+        done = (transition.terminated | transition.truncated) & active
+        ending[done] = transition.outcome[done]
+        active &= ~done
+    pose, clearance, act = np.stack(poses), np.stack(clearances), np.stack(actions)
+    scan = None if config.lidar is None else np.stack(scans)  # type: ignore[arg-type]
+    return [
+        Episode(
+            pose=pose[: length[i] + 1, i],
+            scan_m=None if scan is None else scan[: length[i] + 1, i],
+            clearance_m=clearance[: length[i] + 1, i],
+            action=act[: length[i], i],
+            target_xy=state.target_xy[i],
+            outcome=int(ending[i]),
+        )
+        for i in range(n)
+    ]

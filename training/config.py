@@ -1,0 +1,120 @@
+"""Learner settings, and the two presets: the paper's schedule and our fast one."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from contracts.errors import ConfigError
+from contracts.observation import WINDOW_LENGTH
+from contracts.settings import check_range
+from training.networks import ModelKind
+from training.replay import Relabel
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Everything that shapes a training run (the world's settings live in sim.config)."""
+
+    SECTION = "train"
+
+    model: ModelKind = "recurrent"
+    """Q-network: recurrent (LSTM over the window) or feedforward (last frame only)."""
+    seed: int = 0
+    """Seed of the network's initial weights, the training layouts and the replay sampling."""
+    episodes: int = 600
+    """Training episodes (paper: 600)."""
+    parallel_worlds: int = 1
+    """Episodes collected at once, between training phases (paper: 1)."""
+    warmup_episodes: int = 5
+    """Episodes collected before the first training iteration (paper: 5)."""
+    iterations_per_episode: float = 1000.0
+    """Training iterations per collected episode (paper: 1000)."""
+    batch_size: int = 256
+    """Transitions per training iteration (paper: 256)."""
+    learning_rate: float = 1e-4
+    """Adam's learning rate (paper: 1e-4)."""
+    gamma: float = 0.97
+    """Discount factor (paper: 0.97)."""
+    target_update_period: int = 10_000
+    """Iterations between copies of the online network into the target (paper: 10,000)."""
+    epsilon_start: float = 0.7
+    """Exploration probability of the first episode (paper: 0.7)."""
+    epsilon_decay: float = 0.98
+    """Factor applied to epsilon after each episode (paper: 0.98)."""
+    epsilon_min: float = 0.0
+    """Floor under epsilon (paper: none)."""
+    hold_steps: int = 5
+    """Steps a random choice is held (paper: 5)."""
+    relabel: Relabel = "paper"
+    """Target of a sampled transition: fresh random (paper), a later pose (hindsight), own."""
+    window: int = WINDOW_LENGTH
+    """Observations per network input (paper: k = 5)."""
+    hidden_size: int = 512
+    """LSTM and hidden layer width (paper: 512)."""
+    loss: Literal["mse", "huber"] = "mse"
+    """TD loss: the paper's squared error, or Huber."""
+    grad_clip_norm: float = 0.0
+    """Clip the gradient's global norm to this (0: no clipping; paper: none)."""
+    max_episode_steps: int = 200
+    """Steps before a training episode is truncated (paper: 200)."""
+    eval_every_episodes: int = 50
+    """Episodes between greedy evaluations during training (0: none)."""
+    eval_episodes: int = 100
+    """Episodes of each greedy evaluation during training (episodes as long as in training)."""
+    final_eval_episodes: int = 200
+    """Episodes of the final test (paper: 200)."""
+    threads: int = 2
+    """Torch threads."""
+    bf16_matmul: bool = False
+    """Run the training forward passes under bfloat16 autocast (about 1.7x faster where the CPU
+    has AMX or AVX-512 BF16); weights, optimiser and loss stay float32."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "episodes", self.episodes, 1, 10_000_000)
+        check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
+        check_range(self, "warmup_episodes", self.warmup_episodes, 0, self.episodes)
+        check_range(self, "iterations_per_episode", self.iterations_per_episode, 0.0, 1e6)
+        check_range(self, "batch_size", self.batch_size, 1, 1_000_000)
+        check_range(self, "learning_rate", self.learning_rate, 0.0, 1.0, exclusive_low=True)
+        check_range(self, "gamma", self.gamma, 0.0, 1.0)
+        check_range(self, "target_update_period", self.target_update_period, 1, 10**9)
+        check_range(self, "epsilon_start", self.epsilon_start, 0.0, 1.0)
+        check_range(self, "epsilon_decay", self.epsilon_decay, 0.0, 1.0)
+        check_range(self, "epsilon_min", self.epsilon_min, 0.0, 1.0)
+        check_range(self, "hold_steps", self.hold_steps, 1, 10_000)
+        check_range(self, "window", self.window, 1, 1000)
+        check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
+        check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)
+        check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
+        check_range(self, "eval_every_episodes", self.eval_every_episodes, 0, 10**7)
+        check_range(self, "eval_episodes", self.eval_episodes, 1, 10**7)
+        check_range(self, "final_eval_episodes", self.final_eval_episodes, 1, 10**7)
+        check_range(self, "threads", self.threads, 1, 1024)
+
+    def epsilon(self, episode: int) -> float:
+        """Exploration probability of the given (0-based) training episode."""
+        return max(self.epsilon_min, self.epsilon_start * self.epsilon_decay**episode)
+
+
+PAPER = TrainSettings()
+"""The paper's schedule exactly: 1000 iterations of batch 256 after each of 600 episodes."""
+
+FAST = replace(
+    PAPER,
+    parallel_worlds=8,
+    iterations_per_episode=4.0,
+    learning_rate=5e-4,
+    target_update_period=250,
+)
+"""Our schedule for two CPU cores: the paper's episodes, far fewer and larger-step iterations."""
+
+PRESETS = {"paper": PAPER, "fast": FAST}
+
+
+def preset(name: str) -> TrainSettings:
+    """A named preset."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ConfigError(f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}") from None

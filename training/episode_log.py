@@ -1,0 +1,61 @@
+"""Collected episodes on disk, one file per collection round, so a killed run loses none.
+
+Each file is written to a temporary name and renamed, so a file either holds a whole round or
+does not exist.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from training.replay import Episode
+
+
+def write_round(folder: Path, round_index: int, episodes: list[Episode]) -> Path:
+    """Store the episodes of one round as `round-000042.npz`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"round-{round_index:06d}.npz"
+    partial = folder / f".round-{round_index:06d}.partial.npz"
+    has_scan = episodes[0].scan_m is not None
+    np.savez(
+        partial,
+        lengths=np.array([e.action.size for e in episodes]),
+        pose=np.concatenate([e.pose for e in episodes]),
+        scan=np.concatenate([e.scan_m for e in episodes if e.scan_m is not None])
+        if has_scan
+        else np.zeros((0, 0), np.float32),
+        clearance=np.concatenate([e.clearance_m for e in episodes]),
+        action=np.concatenate([e.action for e in episodes]),
+        target=np.stack([e.target_xy for e in episodes]),
+        outcome=np.array([e.outcome for e in episodes]),
+    )
+    partial.replace(path)
+    return path
+
+
+def read_rounds(folder: Path) -> list[list[Episode]]:
+    """Every stored round, in order."""
+    rounds = []
+    for path in sorted(folder.glob("round-*.npz")):
+        with np.load(path) as data:
+            lengths = data["lengths"]
+            frame_ends = np.cumsum(lengths + 1)
+            action_ends = np.cumsum(lengths)
+            has_scan = data["scan"].size > 0
+            episodes = []
+            for i, length in enumerate(lengths):
+                frames = slice(frame_ends[i] - length - 1, frame_ends[i])
+                episodes.append(
+                    Episode(
+                        pose=data["pose"][frames],
+                        scan_m=data["scan"][frames] if has_scan else None,
+                        clearance_m=data["clearance"][frames],
+                        action=data["action"][action_ends[i] - length : action_ends[i]],
+                        target_xy=data["target"][i],
+                        outcome=int(data["outcome"][i]),
+                    )
+                )
+            rounds.append(episodes)
+    return rounds

@@ -1,0 +1,332 @@
+"""A training run: collect, replay with re-drawn targets, update, evaluate, checkpoint.
+
+Everything lives in one run folder:
+
+    settings.toml      world and learner settings (a resumed run must match them)
+    episodes/          collected episodes, one file per round (no completed episode is lost)
+    checkpoint.pt      networks, optimiser, counters, history (written atomically each round)
+    progress.csv       one row per round: episodes, iterations, time, exploration, success
+    success.png        success during training (the paper's figures 5, 6, 8, 9)
+    model.pt           the final online network with its world and learner settings
+    results.json       the final test under the paper's protocol
+
+A run killed at any moment resumes from its last checkpoint when started again with the same
+folder: rounds collected after that checkpoint are read back from `episodes/` and trained on.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import math
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from contracts.errors import ConfigError
+from contracts.settings import from_dict, to_dict, to_toml
+from sim.config import WorldConfig
+from sim.evaluate import EvalResult, EvalSettings, evaluate
+from sim.task import Outcome
+from training.agent import TorchAgent
+from training.collect import collect_round
+from training.config import TrainSettings
+from training.episode_log import read_rounds, write_round
+from training.learner import td_update
+from training.networks import QNetwork
+from training.replay import Episode, EpisodeReplay
+
+VALIDATION_SEED = 999
+"""Layouts of the evaluations during training (the final test uses EvalSettings' own seed)."""
+_TRAIN_LAYOUT_SEED = 1_000_003
+
+
+@dataclass
+class Progress:
+    """Counters and history of a run, saved with every checkpoint."""
+
+    rounds: int = 0
+    episodes: int = 0
+    iterations: int = 0
+    collect_s: float = 0.0
+    train_s: float = 0.0
+    eval_s: float = 0.0
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
+    """The Q-network for this world and these settings."""
+    beams = world.lidar.num_beams if world.lidar else None
+    return QNetwork(settings.model, beams, settings.hidden_size)
+
+
+def policy_agent(
+    network: QNetwork, world: WorldConfig, num_worlds: int, window: int, **kwargs: Any
+) -> TorchAgent:
+    """A greedy (or epsilon-greedy) agent of the network for this world."""
+    max_range = world.lidar.max_range_m if world.lidar else 20.0
+    return TorchAgent(network, num_worlds, window, max_range, **kwargs)
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What a run folder's settings.toml holds."""
+
+    SECTION = ""
+
+    world: WorldConfig
+    """The world trained in."""
+    train: TrainSettings
+    """The learner."""
+
+
+def read_settings(run_dir: Path) -> RunSettings:
+    """The world and learner settings a run folder was started with."""
+    path = run_dir / "settings.toml"
+    if not path.exists():
+        raise ConfigError(f"{run_dir} is not a training run: it has no settings.toml")
+    return from_dict(RunSettings, tomllib.loads(path.read_text()))
+
+
+def train(
+    world: WorldConfig, settings: TrainSettings, run_dir: Path, progress: bool = True
+) -> dict[str, Any]:
+    """Run (or resume) training in `run_dir`; returns the final test results."""
+    world = replace(world, max_episode_steps=settings.max_episode_steps)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    settings_path = run_dir / "settings.toml"
+    run_settings = RunSettings(world, settings)
+    if settings_path.exists() and read_settings(run_dir) != run_settings:
+        raise ConfigError(
+            f"{run_dir} holds a run with other settings ({settings_path}); "
+            "resume it with the same settings or choose another folder"
+        )
+    settings_path.write_text(to_toml(run_settings))
+    torch.set_num_threads(settings.threads)
+    torch.manual_seed(settings.seed)
+    online = make_network(world, settings)
+    target = copy.deepcopy(online)
+    optimizer = torch.optim.Adam(online.parameters(), lr=settings.learning_rate)
+    state = Progress()
+    checkpoint = run_dir / "checkpoint.pt"
+    if checkpoint.exists():
+        saved = torch.load(checkpoint, weights_only=False)
+        online.load_state_dict(saved["online"])
+        target.load_state_dict(saved["target"])
+        optimizer.load_state_dict(saved["optimizer"])
+        state = Progress(**saved["progress"])
+    replay = EpisodeReplay(
+        world, settings.episodes * (settings.max_episode_steps + 1), settings.window
+    )
+    logged = read_rounds(run_dir / "episodes")
+    for episodes in logged:
+        for episode in episodes:
+            replay.add(episode)
+    logged_episodes = sum(len(r) for r in logged)
+    if logged_episodes < state.episodes:
+        raise ConfigError(f"{run_dir}/episodes holds fewer episodes than its checkpoint")
+
+    bar = tqdm(
+        total=settings.episodes,
+        initial=state.episodes,
+        unit="ep",
+        disable=not progress,
+        desc=f"train {world.name} {settings.model} seed {settings.seed}",
+    )
+    while state.episodes < settings.episodes:
+        round_index = state.rounds
+        started = time.perf_counter()
+        if round_index < len(logged):
+            episodes = logged[round_index]
+        else:
+            episodes = _collect(world, settings, online, state.episodes, round_index)
+            write_round(run_dir / "episodes", round_index, episodes)
+            for episode in episodes:
+                replay.add(episode)
+        state.collect_s += time.perf_counter() - started
+        state.episodes += len(episodes)
+        state.rounds += 1
+
+        started = time.perf_counter()
+        owed = math.floor(
+            settings.iterations_per_episode * max(0, state.episodes - settings.warmup_episodes)
+        )
+        sampler = np.random.default_rng([settings.seed, round_index])
+        losses = []
+        online.train()
+        while state.iterations < owed:
+            batch = replay.sample(settings.batch_size, sampler, settings.relabel)
+            losses.append(
+                td_update(
+                    online,
+                    target,
+                    optimizer,
+                    batch,
+                    settings.gamma,
+                    loss_kind=settings.loss,
+                    grad_clip_norm=settings.grad_clip_norm,
+                    bf16=settings.bf16_matmul,
+                )
+            )
+            state.iterations += 1
+            if state.iterations % settings.target_update_period == 0:
+                target.load_state_dict(online.state_dict())
+        state.train_s += time.perf_counter() - started
+
+        row: dict[str, float] = {
+            "episodes": state.episodes,
+            "iterations": state.iterations,
+            "wall_s": round(state.collect_s + state.train_s + state.eval_s, 2),
+            "epsilon": round(settings.epsilon(state.episodes - 1), 4),
+            "train_success": float(np.mean([e.outcome == Outcome.SUCCESS for e in episodes])),
+            "train_collision": float(np.mean([e.outcome == Outcome.COLLISION for e in episodes])),
+            "loss": float(np.mean(losses)) if losses else math.nan,
+        }
+        every = settings.eval_every_episodes
+        if every and (state.episodes // every > (state.episodes - len(episodes)) // every):
+            started = time.perf_counter()
+            result = _evaluate(
+                world,
+                settings=settings,
+                network=online,
+                episodes=settings.eval_episodes,
+                seed=VALIDATION_SEED,
+                max_steps=settings.max_episode_steps,
+            )
+            state.eval_s += time.perf_counter() - started
+            row |= {
+                "eval_success": result.success,
+                "eval_collision": result.collision,
+                "eval_unfinished": result.unfinished,
+            }
+        state.history.append(row)
+        _checkpoint(checkpoint, online, target, optimizer, state)
+        _write_progress(
+            run_dir, state.history, f"{world.name}, {settings.model}, seed {settings.seed}"
+        )
+        bar.update(len(episodes))
+        bar.set_postfix(
+            eps=f"{row['epsilon']:.3f}",
+            loss=f"{row['loss']:.4f}",
+            val=f"{row.get('eval_success', math.nan):.2f}",
+        )
+    bar.close()
+
+    results_path = run_dir / "results.json"
+    if results_path.exists():
+        return dict(json.loads(results_path.read_text()))
+    torch.save(
+        {"online": online.state_dict(), "world": to_dict(world), "train": to_dict(settings)},
+        run_dir / "model.pt",
+    )
+    started = time.perf_counter()
+    test = EvalSettings()
+    final = _evaluate(
+        world,
+        settings=settings,
+        network=online,
+        episodes=settings.final_eval_episodes,
+        seed=test.seed,
+        max_steps=test.max_episode_steps,
+    )
+    results = {
+        "scenario": world.name,
+        "model": settings.model,
+        "seed": settings.seed,
+        "relabel": settings.relabel,
+        "test": {k: v for k, v in asdict(final).items() if k != "mean_steps"},
+        "episodes": state.episodes,
+        "iterations": state.iterations,
+        "collect_s": round(state.collect_s, 1),
+        "train_s": round(state.train_s, 1),
+        "eval_s": round(state.eval_s + time.perf_counter() - started, 1),
+    }
+    results_path.write_text(json.dumps(results, indent=2) + "\n")
+    return results
+
+
+def _collect(
+    world: WorldConfig, settings: TrainSettings, online: QNetwork, first: int, round_index: int
+) -> list[Episode]:
+    count = min(settings.parallel_worlds, settings.episodes - first)
+    ids = np.arange(first, first + count, dtype=np.int64)
+    agent = policy_agent(
+        online,
+        world,
+        count,
+        settings.window,
+        hold_steps=settings.hold_steps,
+        seed=settings.seed * 1_000_000 + round_index,
+    )
+    agent.epsilon[:] = [settings.epsilon(int(i)) for i in ids]
+    online.eval()
+    return collect_round(world, agent, _TRAIN_LAYOUT_SEED + settings.seed, ids)
+
+
+def _evaluate(
+    world: WorldConfig,
+    *,
+    settings: TrainSettings,
+    network: QNetwork,
+    episodes: int,
+    seed: int,
+    max_steps: int,
+) -> EvalResult:
+    network.eval()
+    eval_settings = EvalSettings(
+        episodes=episodes, num_worlds=min(episodes, 100), seed=seed, max_episode_steps=max_steps
+    )
+    agent = policy_agent(network, world, eval_settings.num_worlds, settings.window)
+    return evaluate(world, agent, eval_settings)
+
+
+def _checkpoint(
+    path: Path,
+    online: QNetwork,
+    target: QNetwork,
+    optimizer: torch.optim.Optimizer,
+    state: Progress,
+) -> None:
+    partial = path.with_suffix(".partial")
+    torch.save(
+        {
+            "online": online.state_dict(),
+            "target": target.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "progress": asdict(state),
+        },
+        partial,
+    )
+    partial.replace(path)
+
+
+def _write_progress(run_dir: Path, history: list[dict[str, float]], title: str) -> None:
+    columns = [
+        "episodes",
+        "iterations",
+        "wall_s",
+        "epsilon",
+        "train_success",
+        "train_collision",
+        "loss",
+        "eval_success",
+        "eval_collision",
+        "eval_unfinished",
+    ]
+    partial = run_dir / "progress.csv.partial"
+    with partial.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, columns)
+        writer.writeheader()
+        writer.writerows(history)
+    partial.replace(run_dir / "progress.csv")
+    if any("eval_success" in row for row in history):
+        from training.plots import plot_training
+
+        plot_training(history, run_dir / "success.png", title)
