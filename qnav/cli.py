@@ -146,6 +146,40 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--out", type=Path, default=Path("out/render"), help="output folder")
     render.set_defaults(handler=_lazy("sim.cli:render"))
 
+    reproduce = verbs.add_parser(
+        "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
+    )
+    reproduce.add_argument("--jobs", type=int, default=1, help="trainings at once (1)")
+    reproduce.add_argument("--preset", default="fast", choices=["fast", "paper"], help="schedule")
+    reproduce.add_argument(
+        "--scenarios",
+        default=",".join(
+            ["obstacles-inertia", "walls-inertia", "walls-increment", "obstacles-increment"]
+        ),
+        help="comma-separated scenarios (default: the paper's four)",
+    )
+    reproduce.add_argument(
+        "--models", default="recurrent,feedforward", help="comma-separated models"
+    )
+    reproduce.add_argument("--seeds", default="0,1,2,3,4", help="comma-separated seeds")
+    reproduce.add_argument(
+        "--time-budget-min",
+        type=float,
+        default=None,
+        help="start no new run after this many minutes (the rest waits for the next batch)",
+    )
+    reproduce.add_argument("--runs-dir", type=Path, default=Path("runs/study"), help="run folders")
+    reproduce.add_argument(
+        "--results-dir", type=Path, default=Path("results"), help="one JSON per run (committed)"
+    )
+    reproduce.add_argument(
+        "--docs", type=Path, default=Path("docs/results.md"), help="the tables, as Markdown"
+    )
+    reproduce.add_argument(
+        "--tables-only", action="store_true", help="rewrite the tables from results/, train nothing"
+    )
+    reproduce.set_defaults(handler=_lazy("qnav.commands:reproduce"))
+
     bench = verbs.add_parser("bench", help="benchmarks")
     benches = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
     bench_sim = benches.add_parser("sim", help="simulator env-steps per second on one core")
@@ -159,6 +193,17 @@ def build_parser() -> argparse.ArgumentParser:
     bench_sim.add_argument("--no-scaling", action="store_true", help="skip beam/obstacle scaling")
     bench_sim.add_argument("--json", action="store_true", help="print one JSON object")
     bench_sim.set_defaults(handler=_lazy("sim.cli:bench"))
+    bench_learner = benches.add_parser(
+        "learner", help="one training iteration's GFLOP/s against the machine's matmul rate"
+    )
+    bench_learner.add_argument(
+        "--model", default="recurrent", choices=["recurrent", "feedforward"], help="Q-network"
+    )
+    bench_learner.add_argument("--batch", type=int, default=256, help="batch size (256)")
+    bench_learner.add_argument("--repeats", type=int, default=10, help="timed iterations (10)")
+    bench_learner.add_argument("--threads", type=int, default=2, help="torch threads (2)")
+    bench_learner.add_argument("--json", action="store_true", help="print one JSON object")
+    bench_learner.set_defaults(handler=_lazy("qnav.commands:bench_learner"))
     return parser
 
 

@@ -92,3 +92,50 @@ def train(args: argparse.Namespace) -> int:
     )
     print(f"wrote {run_dir}/results.json, progress.csv, success.png, model.pt")
     return 0
+
+
+def bench_learner(args: argparse.Namespace) -> int:
+    """Training iteration cost against the machine's own matrix-product rate."""
+    from training.bench import format_report, run
+
+    report = run(
+        model=args.model, batch_size=args.batch, repeats=args.repeats, threads=args.threads
+    )
+    print(json.dumps(report) if args.json else format_report(report))
+    return 0
+
+
+def reproduce(args: argparse.Namespace) -> int:
+    """Run the study's missing runs, then write docs/results.md."""
+    from sim import paper
+    from sim.config import scenario
+    from training.study import plan, results_markdown, run_study
+
+    specs = plan(
+        tuple(args.scenarios.split(",")),
+        tuple(args.models.split(",")),
+        tuple(int(s) for s in args.seeds.split(",")),
+    )
+    if not args.tables_only:
+        budget = None if args.time_budget_min is None else args.time_budget_min * 60
+        run_study(
+            specs,
+            args.runs_dir,
+            results_root=args.results_dir,
+            jobs=args.jobs,
+            preset=args.preset,
+            time_budget_s=budget,
+        )
+    random_rows = {}
+    for name in paper.RANDOM:
+        result = run_evaluation(
+            scenario(name),
+            RandomAgent(250, seed=1),
+            EvalSettings(episodes=1000, num_worlds=250),
+            progress=False,
+        )
+        random_rows[name] = asdict(result)
+    args.docs.parent.mkdir(parents=True, exist_ok=True)
+    args.docs.write_text(results_markdown(args.results_dir, random_rows))
+    print(f"wrote {args.docs}")
+    return 0

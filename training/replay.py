@@ -107,9 +107,12 @@ class EpisodeReplay:
         if not self._transition_index.size:
             self._transition_index = np.concatenate(self._transitions)
         now = self._transition_index[rng.integers(0, self._transition_index.size, batch_size)]
+        return self.transitions_at(now, self._targets(now, rng, relabel))
+
+    def transitions_at(self, now: NDArray[np.int64], target: NDArray[np.float64]) -> Batch:
+        """The transitions leaving frames `now`, with the given targets (N, 2)."""
         offsets = np.arange(-self.window + 1, 2)
         frame_index = np.maximum(now[:, None] + offsets, self.first[now][:, None])
-        target = self._targets(now, rng, relabel)
         features = target_features(self.pose[frame_index], target[:, None, :])
         encoded_target = encode_target(features, self.max_range_m)
         frames = (

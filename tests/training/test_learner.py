@@ -1,0 +1,38 @@
+import numpy as np
+import torch
+
+from training.learner import double_dqn_target, td_update
+from training.networks import QNetwork
+from training.replay import Batch
+
+
+def test_double_dqn_evaluates_the_online_argmax_with_the_target_network() -> None:
+    reward = torch.tensor([0.5, 0.5])
+    terminal = torch.tensor([False, False])
+    online = torch.tensor([[1.0, 3.0, 2.0], [0.0, 0.0, 9.0]])
+    target = torch.tensor([[10.0, 20.0, 30.0], [1.0, 2.0, 3.0]])
+    y = double_dqn_target(reward, terminal, online, target, gamma=0.5)
+    torch.testing.assert_close(y, torch.tensor([0.5 + 0.5 * 20.0, 0.5 + 0.5 * 3.0]))
+
+
+def test_terminal_transitions_do_not_bootstrap() -> None:
+    y = double_dqn_target(
+        torch.tensor([-1.0]), torch.tensor([True]), torch.ones(1, 3), 5 * torch.ones(1, 3), 0.97
+    )
+    torch.testing.assert_close(y, torch.tensor([-1.0]))
+
+
+def test_repeated_updates_fit_a_fixed_terminal_target() -> None:
+    torch.manual_seed(0)
+    online, target = QNetwork("recurrent", 720, 32), QNetwork("recurrent", 720, 32)
+    optimizer = torch.optim.Adam(online.parameters(), lr=1e-3)
+    batch = Batch(
+        frames=np.random.default_rng(0).random((16, 6, online.frame_size), dtype=np.float32),
+        action=np.arange(16) % 3,
+        reward=np.full(16, 0.7, dtype=np.float32),
+        terminal=np.ones(16, dtype=bool),
+    )
+    first = td_update(online, target, optimizer, batch, 0.97)
+    for _ in range(200):
+        last = td_update(online, target, optimizer, batch, 0.97)
+    assert last < first / 100

@@ -1,0 +1,117 @@
+import numpy as np
+import pytest
+
+from sim.config import scenario
+from sim.evaluate import RandomAgent
+from sim.world import observe, reset, step
+from training.replay import Episode, EpisodeReplay
+
+CONFIG = scenario("walls-increment")
+
+
+def _episode(seed: int, steps: int = 400) -> tuple[Episode, list[float], list[bool]]:
+    """One random-agent episode, with the rewards and terminations the simulator gave."""
+    state = reset(CONFIG, np.array([seed]), np.array([0]))
+    observation = observe(CONFIG, state)
+    agent = RandomAgent(1, seed=seed)
+    agent.start(np.array([0]), np.array([0]))
+    assert observation.scan_m is not None
+    poses, scans, gaps = (
+        [observation.pose[0]],
+        [observation.scan_m[0]],
+        [observation.clearance_m[0]],
+    )
+    actions: list[int] = []
+    rewards: list[float] = []
+    ends: list[bool] = []
+    for _ in range(steps):
+        action = agent.act(observation)
+        state, observation, transition = step(CONFIG, state, action)
+        poses.append(observation.pose[0])
+        scans.append(observation.scan_m[0])  # type: ignore[index]
+        gaps.append(observation.clearance_m[0])
+        actions.append(int(action[0]))
+        rewards.append(float(transition.reward[0]))
+        ends.append(bool(transition.terminated[0]))
+        if transition.terminated[0] or transition.truncated[0]:
+            break
+    episode = Episode(
+        np.array(poses),
+        np.array(scans),
+        np.array(gaps),
+        np.array(actions),
+        state.target_xy[0],
+        int(transition.outcome[0]),
+    )
+    return episode, rewards, ends
+
+
+def _replay(*episodes: Episode) -> EpisodeReplay:
+    replay = EpisodeReplay(CONFIG, 10_000, window=5)
+    for episode in episodes:
+        replay.add(episode)
+    return replay
+
+
+def test_own_target_reproduces_the_simulators_rewards_and_terminations() -> None:
+    episode, rewards, ends = _episode(3)
+    replay = _replay(episode)
+    now = np.arange(episode.action.size)
+    batch = replay.transitions_at(now, np.repeat(episode.target_xy[None], now.size, axis=0))
+    np.testing.assert_allclose(batch.reward, rewards, rtol=1e-6)
+    np.testing.assert_array_equal(batch.terminal, ends)
+    np.testing.assert_array_equal(batch.action, episode.action)
+
+
+def test_windows_never_cross_an_episode_start() -> None:
+    first, _, _ = _episode(1)
+    second, _, _ = _episode(2)
+    replay = _replay(first, second)
+    start = first.pose.shape[0]  # the second episode's first frame
+    batch = replay.transitions_at(np.array([start, start + 2]), np.zeros((2, 2)) + 5.0)
+    scans = batch.frames[..., :720]
+    # At the first step every earlier frame is a copy of the first frame.
+    for frame in range(5):
+        np.testing.assert_array_equal(scans[0, frame], scans[0, 4])
+    # Two steps in, frames 0-2 are the first frame, then steps 1 and 2, then step 3 for s'.
+    np.testing.assert_array_equal(scans[1, 0], scans[1, 2])
+    assert not np.array_equal(scans[1, 2], scans[1, 3])
+
+
+def test_next_window_is_the_following_transitions_window() -> None:
+    episode, _, _ = _episode(4)
+    replay = _replay(episode)
+    target = np.array([[5.0, 5.0]])
+    now = replay.transitions_at(np.array([6]), target).frames[0]
+    following = replay.transitions_at(np.array([7]), target).frames[0]
+    np.testing.assert_array_equal(now[1:], following[:-1])
+    assert not np.array_equal(now[0], now[-1])
+
+
+@pytest.mark.parametrize("relabel", ["paper", "hindsight", "none"])
+def test_sampled_targets_follow_the_relabel_rule(relabel: str) -> None:
+    episode, _, _ = _episode(5)
+    replay = _replay(episode)
+    rng = np.random.default_rng(0)
+    now = np.arange(episode.action.size)
+    targets = replay._targets(now, rng, relabel)  # type: ignore[arg-type]
+    if relabel == "none":
+        np.testing.assert_array_equal(targets, np.repeat(episode.target_xy[None], now.size, 0))
+    elif relabel == "hindsight":
+        later = [
+            any(np.array_equal(t, p) for p in episode.pose[i + 1 :, :2])
+            for i, t in zip(now, targets, strict=True)
+        ]
+        assert all(later)
+    else:
+        margin = CONFIG.spawn.wall_margin_m
+        assert (targets >= margin).all() and (targets <= CONFIG.arena.size_m - margin).all()
+        assert np.unique(targets[:, 0]).size == now.size
+
+
+def test_hindsight_makes_some_sampled_transitions_successes() -> None:
+    episode, _, _ = _episode(6)
+    replay = _replay(episode)
+    batch = replay.sample(512, np.random.default_rng(0), "hindsight")
+    assert (batch.reward == 1.0).any()
+    assert (batch.terminal[batch.reward == 1.0]).all()

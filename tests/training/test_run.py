@@ -1,0 +1,93 @@
+"""Training runs as a user starts them: real processes, a real kill, a real resume."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from contracts.errors import ConfigError
+from sim.config import scenario
+from training.config import FAST
+from training.episode_log import read_rounds
+from training.run import read_settings, train
+
+TINY = [
+    "--train-set", "train.hidden_size=16",
+    "--train-set", "train.parallel_worlds=4",
+    "--train-set", "train.iterations_per_episode=1",
+    "--train-set", "train.batch_size=8",
+    "--train-set", "train.eval_every_episodes=8",
+    "--train-set", "train.eval_episodes=4",
+    "--train-set", "train.final_eval_episodes=4",
+    "--train-set", "train.max_episode_steps=30",
+    "--train-set", "train.warmup_episodes=2",
+]  # fmt: skip
+
+
+def _train_command(run_dir: Path, episodes: int) -> list[str]:
+    return [
+        sys.executable, "-m", "qnav", "train", "--scenario", "walls-increment", "--seed", "3",
+        "--episodes", str(episodes), "--run-dir", str(run_dir), "--quiet", *TINY,
+    ]  # fmt: skip
+
+
+def test_a_run_writes_settings_progress_model_and_results(tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    result = subprocess.run(
+        _train_command(run_dir, 12), capture_output=True, text=True, timeout=300, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    for name in ("settings.toml", "progress.csv", "success.png", "model.pt", "results.json"):
+        assert (run_dir / name).exists(), name
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["episodes"] == 12
+    assert results["test"]["episodes"] == 4
+    assert read_settings(run_dir).train.seed == 3
+    assert sum(len(r) for r in read_rounds(run_dir / "episodes")) == 12
+    policy = subprocess.run(
+        [sys.executable, "-m", "qnav", "eval", "--policy", str(run_dir), "--episodes", "3",
+         "--json"],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert policy.returncode == 0, policy.stderr
+    assert json.loads(policy.stdout)["episodes"] == 3
+
+
+def test_a_killed_run_resumes_without_losing_a_completed_episode(tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    process = subprocess.Popen(
+        _train_command(run_dir, 40), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (run_dir / "checkpoint.pt").exists():
+        time.sleep(0.05)
+    time.sleep(0.5)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    collected = sum(len(r) for r in read_rounds(run_dir / "episodes"))
+    assert 0 < collected < 40, "the kill should land mid-run"
+    resumed = subprocess.run(
+        _train_command(run_dir, 40), capture_output=True, text=True, timeout=300, check=False
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    rounds = read_rounds(run_dir / "episodes")
+    assert sum(len(r) for r in rounds) == 40
+    assert len(list((run_dir / "episodes").glob("round-*.npz"))) == 10  # no round written twice
+    assert json.loads((run_dir / "results.json").read_text())["episodes"] == 40
+
+
+def test_a_run_folder_refuses_other_settings(tmp_path: Path) -> None:
+    world = scenario("walls-increment")
+    settings = replace(
+        FAST, episodes=4, parallel_worlds=4, hidden_size=8, iterations_per_episode=0.0,
+        warmup_episodes=0, eval_every_episodes=0, final_eval_episodes=2,
+    )  # fmt: skip
+    train(world, settings, tmp_path, progress=False)
+    with pytest.raises(ConfigError, match="other settings"):
+        train(world, replace(settings, seed=9), tmp_path, progress=False)

@@ -1,0 +1,269 @@
+"""`qnav reproduce`: the paper's whole study, run in resumable batches.
+
+Plan: 5 seeds x {recurrent, feedforward} x the four scenarios; then, from the trained runs, the
+two cross-dynamics tests and the feedforward agent with 10% random test actions. Runs go to
+`runs/study/`, their results to `results/` (one JSON per run, committed), and the tables to
+`docs/results.md`. A run whose result exists is skipped, so the study can be stopped and
+started again at any point; an interrupted run resumes from its checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim import paper
+
+SCENARIOS = ("obstacles-inertia", "walls-inertia", "walls-increment", "obstacles-increment")
+MODELS = ("recurrent", "feedforward")
+SEEDS = (0, 1, 2, 3, 4)
+CROSS = {
+    # trained on -> tested on (the paper's generalisation tests, 5 obstacles)
+    "obstacles-increment": "obstacles-inertia",
+    "obstacles-inertia": "obstacles-increment",
+}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run of the study."""
+
+    scenario: str
+    model: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.scenario}-{self.model}-seed{self.seed}"
+
+
+def plan(
+    scenarios: tuple[str, ...] = SCENARIOS,
+    models: tuple[str, ...] = MODELS,
+    seeds: tuple[int, ...] = SEEDS,
+) -> list[RunSpec]:
+    """Every run of the study, walls-only scenarios first (they are the quickest)."""
+    order = sorted(scenarios, key=lambda s: (s.startswith("obstacles"), s))
+    return [RunSpec(s, m, seed) for s in order for m in models for seed in seeds]
+
+
+def _train_command(spec: RunSpec, run_root: Path, threads: int, preset: str) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "qnav",
+        "train",
+        "--scenario",
+        spec.scenario,
+        "--model",
+        spec.model,
+        "--seed",
+        str(spec.seed),
+        "--preset",
+        preset,
+        "--run-dir",
+        str(run_root / spec.name),
+        "--quiet",
+        "--train-set",
+        f"train.threads={threads}",
+    ]
+
+
+def _eval_json(run_dir: Path, extra: list[str]) -> dict[str, Any]:
+    output = subprocess.run(
+        [sys.executable, "-m", "qnav", "eval", "--policy", str(run_dir), "--json", *extra],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return dict(json.loads(output.stdout))
+
+
+def run_study(
+    specs: list[RunSpec],
+    run_root: Path,
+    *,
+    results_root: Path,
+    jobs: int = 1,
+    preset: str = "fast",
+    time_budget_s: float | None = None,
+) -> list[RunSpec]:
+    """Train every spec without a result, `jobs` at a time; returns those finished now."""
+    results_root.mkdir(parents=True, exist_ok=True)
+    pending = [s for s in specs if not (results_root / f"{s.name}.json").exists()]
+    threads = max(1, (os.cpu_count() or 2) // jobs)
+    started = time.monotonic()
+    running: dict[RunSpec, subprocess.Popen[bytes]] = {}
+    finished: list[RunSpec] = []
+    print(f"{len(specs) - len(pending)} of {len(specs)} runs already have results")
+    while pending or running:
+        out_of_time = time_budget_s is not None and time.monotonic() - started > time_budget_s
+        while pending and len(running) < jobs and not out_of_time:
+            spec = pending.pop(0)
+            print(f"start  {spec.name}", flush=True)
+            running[spec] = subprocess.Popen(_train_command(spec, run_root, threads, preset))
+        for spec, process in list(running.items()):
+            if process.poll() is None:
+                continue
+            del running[spec]
+            if process.returncode != 0:
+                print(f"FAILED {spec.name} (exit {process.returncode})", flush=True)
+                continue
+            _record(spec, run_root / spec.name, results_root)
+            finished.append(spec)
+            print(f"done   {spec.name}", flush=True)
+        if out_of_time and not running:
+            print(f"time budget spent; {len(pending)} runs left for the next batch")
+            break
+        time.sleep(1.0)
+    return finished
+
+
+def _record(spec: RunSpec, run_dir: Path, results_root: Path) -> None:
+    """Copy the run's results and add the study's extra tests of it."""
+    results = json.loads((run_dir / "results.json").read_text())
+    extra: dict[str, Any] = {}
+    if spec.scenario in CROSS:
+        extra["cross_dynamics"] = {
+            "tested_on": CROSS[spec.scenario],
+            "test": _eval_json(run_dir, ["--scenario", CROSS[spec.scenario]]),
+        }
+    if spec.model == "feedforward" and spec.scenario == "walls-increment":
+        extra["random_actions_10pct"] = _eval_json(run_dir, ["--random-action-prob", "0.1"])
+    results |= extra
+    (results_root / f"{spec.name}.json").write_text(json.dumps(results, indent=2) + "\n")
+
+
+def _load(results_root: Path) -> dict[str, dict[str, Any]]:
+    return {p.stem: json.loads(p.read_text()) for p in sorted(results_root.glob("*.json"))}
+
+
+def _cells(tests: list[dict[str, float]]) -> list[str]:
+    """'mean +- std' of success, collision and unfinished over runs."""
+    cells = []
+    for key in ("success", "collision", "unfinished"):
+        values = np.array([t[key] for t in tests])
+        cells.append(f"{values.mean():.3f} +- {values.std():.3f}")
+    return cells
+
+
+def _row(*cells: object) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+
+def _paper_cell(mean: paper.Fractions, std: paper.Fractions) -> str:
+    return " / ".join(f"{m} +- {s}" for m, s in zip(mean, std, strict=True))
+
+
+def _runs(results: dict[str, dict[str, Any]], prefix: str) -> list[dict[str, Any]]:
+    return [r for name, r in results.items() if name.startswith(prefix)]
+
+
+def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]]) -> str:
+    """docs/results.md: our tables beside the paper's."""
+    results = _load(results_root)
+    header = _row("agent", "n", "success", "collision", "unfinished", "paper s / c / u")
+    rule = _row(*["---"] * 6)
+    lines = [
+        "# Results: the paper's tables, reproduced",
+        "",
+        "Generated by `qnav reproduce` from `results/*.json` (one file per training run). Each",
+        "figure is the mean +- std over the seeds that have finished (n), under the paper's test",
+        "protocol: greedy policy, 200 episodes of up to 500 steps. Paper values beside ours.",
+        "",
+    ]
+    for scenario in SCENARIOS:
+        lines += [f"## Table {paper.TABLES[scenario]}: {scenario}", "", header, rule]
+        ours = random_rows.get(scenario)
+        if ours:
+            theirs = " / ".join(str(v) for v in paper.RANDOM[scenario])
+            lines.append(
+                _row(
+                    "Random",
+                    "1000 episodes",
+                    *(f"{ours[k]:.3f}" for k in ("success", "collision", "unfinished")),
+                    theirs,
+                )
+            )
+        for model, reference in (
+            ("feedforward", paper.FEEDFORWARD),
+            ("recurrent", paper.RECURRENT),
+        ):
+            runs = _runs(results, f"{scenario}-{model}-")
+            quoted = _paper_cell(*reference[scenario])
+            if not runs:
+                lines.append(_row(model.capitalize(), 0, "not run yet", "", "", quoted))
+                continue
+            tests = [r["test"] for r in runs]
+            best = max(tests, key=lambda t: t["success"])
+            lines.append(_row(model.capitalize(), len(runs), *_cells(tests), quoted))
+            lines.append(
+                _row(
+                    f"{model.capitalize()} (best)",
+                    "",
+                    *(f"{best[k]:.3f}" for k in ("success", "collision", "unfinished")),
+                    "",
+                )
+            )
+        lines.append("")
+    lines += [
+        "## Generalisation and random test actions",
+        "",
+        header.replace("agent", "test"),
+        rule,
+    ]
+    extra_tests = [
+        (
+            f"{trained}-recurrent-",
+            "cross_dynamics",
+            f"recurrent, trained on {trained}, tested on {tested}",
+            quoted,
+        )
+        for (trained, tested), quoted in zip(
+            CROSS.items(),
+            (
+                "0.765 +- 0.064 / 0.229 +- 0.064 / 0.006 +- 0.007",
+                "0.743 +- 0.019 / 0.251 +- 0.021 / 0.006 +- 0.005",
+            ),
+            strict=True,
+        )
+    ] + [
+        (
+            "walls-increment-feedforward-",
+            "random_actions_10pct",
+            "feedforward, walls-increment, 10% random test actions",
+            "0.925 +- 0.096 / 0.069 +- 0.085 / 0.006 +- 0.012",
+        ),
+    ]
+    for prefix, key, label, quoted in extra_tests:
+        tests = [r[key].get("test", r[key]) for r in _runs(results, prefix) if key in r]
+        if tests:
+            lines.append(_row(label, len(tests), *_cells(tests), quoted))
+        else:
+            lines.append(_row(label, 0, "not run yet", "", "", quoted))
+    lines += [
+        "",
+        "## Compute",
+        "",
+        _row("scenario", "model", "n", "minutes per run (mean)", "iterations"),
+        _row(*["---"] * 5),
+    ]
+    for scenario in SCENARIOS:
+        for model in MODELS:
+            runs = _runs(results, f"{scenario}-{model}-")
+            if runs:
+                minutes = np.mean(
+                    [(r["collect_s"] + r["train_s"] + r["eval_s"]) / 60 for r in runs]
+                )
+                lines.append(
+                    _row(scenario, model, len(runs), f"{minutes:.1f}", runs[0]["iterations"])
+                )
+    return "\n".join(lines) + "\n"
