@@ -146,6 +146,13 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--out", type=Path, default=Path("out/render"), help="output folder")
     render.set_defaults(handler=_lazy("sim.cli:render"))
 
+    figures = verbs.add_parser(
+        "figures", help="action maps (paper figure 3) and trajectories (figure 10) of a run"
+    )
+    figures.add_argument("run", type=Path, help="training run folder")
+    figures.add_argument("--out", type=Path, default=Path("docs/img"), help="output folder")
+    figures.set_defaults(handler=_lazy("qnav.commands:figures"))
+
     reproduce = verbs.add_parser(
         "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
     )
@@ -174,6 +181,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     reproduce.add_argument(
         "--docs", type=Path, default=Path("docs/results.md"), help="the tables, as Markdown"
+    )
+    reproduce.add_argument(
+        "--ablation",
+        action="store_true",
+        help="also run the target re-drawing ablation (none / paper / hindsight)",
     )
     reproduce.add_argument(
         "--tables-only", action="store_true", help="rewrite the tables from results/, train nothing"

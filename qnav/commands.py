@@ -109,13 +109,12 @@ def reproduce(args: argparse.Namespace) -> int:
     """Run the study's missing runs, then write docs/results.md."""
     from sim import paper
     from sim.config import scenario
-    from training.study import plan, results_markdown, run_study
+    from training.study import ablation_plan, plan, results_markdown, run_study
 
-    specs = plan(
-        tuple(args.scenarios.split(",")),
-        tuple(args.models.split(",")),
-        tuple(int(s) for s in args.seeds.split(",")),
-    )
+    seeds = tuple(int(s) for s in args.seeds.split(","))
+    specs = plan(tuple(args.scenarios.split(",")), tuple(args.models.split(",")), seeds)
+    if args.ablation:
+        specs += [s for s in ablation_plan() if s.relabel != "paper"]
     if not args.tables_only:
         budget = None if args.time_budget_min is None else args.time_budget_min * 60
         run_study(
@@ -138,4 +137,13 @@ def reproduce(args: argparse.Namespace) -> int:
     args.docs.parent.mkdir(parents=True, exist_ok=True)
     args.docs.write_text(results_markdown(args.results_dir, random_rows))
     print(f"wrote {args.docs}")
+    return 0
+
+
+def figures(args: argparse.Namespace) -> int:
+    """Action maps and trajectories of a training run, as PNG."""
+    from training.figures import write_figures
+
+    for path in write_figures(args.run, args.out):
+        print(f"wrote {path}")
     return 0

@@ -48,3 +48,21 @@ RECURRENT: dict[str, tuple[Fractions, Fractions]] = {
     "obstacles-increment": (Fractions(0.735, 0.257, 0.008), Fractions(0.048, 0.048, 0.013)),
 }
 """Recurrent agent: (mean, std) over five seeds."""
+
+CROSS_DYNAMICS: dict[tuple[str, str], tuple[Fractions, Fractions]] = {
+    ("obstacles-increment", "obstacles-inertia"): (
+        Fractions(0.765, 0.229, 0.006),
+        Fractions(0.064, 0.064, 0.007),
+    ),
+    ("obstacles-inertia", "obstacles-increment"): (
+        Fractions(0.743, 0.251, 0.006),
+        Fractions(0.019, 0.021, 0.005),
+    ),
+}
+"""Recurrent agents trained with one dynamics, tested with the other (text of section IV)."""
+
+FEEDFORWARD_RANDOM_ACTIONS: tuple[Fractions, Fractions] = (
+    Fractions(0.925, 0.069, 0.006),
+    Fractions(0.096, 0.085, 0.012),
+)
+"""Feedforward, walls-increment, with a 10% chance of a random action at each test step."""

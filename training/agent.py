@@ -60,7 +60,8 @@ class TorchAgent:
             self.window.push(frames[ongoing], ongoing)
         self.fresh[:] = False
         with torch.no_grad():
-            q = self.network(torch.from_numpy(self.window.frames)).numpy()
+            device = next(self.network.parameters()).device
+            q = self.network(torch.from_numpy(self.window.frames).to(device)).cpu().numpy()
         self.last_q = q
         action = q.argmax(axis=1)
         return self._explore(action)

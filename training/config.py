@@ -38,6 +38,11 @@ class TrainSettings:
     """Discount factor (paper: 0.97)."""
     target_update_period: int = 10_000
     """Iterations between copies of the online network into the target (paper: 10,000)."""
+    target_smoothing: float = 0.0
+    """Polyak rate: after every iteration the target moves this fraction towards the online
+    network, instead of hard copies every `target_update_period` (0: hard copies, as the paper)."""
+    keep_best: bool = False
+    """Ship the network of the best validation evaluation rather than the last one."""
     epsilon_start: float = 0.7
     """Exploration probability of the first episode (paper: 0.7)."""
     epsilon_decay: float = 0.98
@@ -62,13 +67,17 @@ class TrainSettings:
     """Episodes between greedy evaluations during training (0: none)."""
     eval_episodes: int = 100
     """Episodes of each greedy evaluation during training (episodes as long as in training)."""
+    snapshot_every_episodes: int = 0
+    """Save the online network every this many episodes, for the action-map figure (0: never)."""
     final_eval_episodes: int = 200
     """Episodes of the final test (paper: 200)."""
     threads: int = 2
     """Torch threads."""
+    device: str = "auto"
+    """Torch device for learning: "cpu", "cuda", or "auto" (cuda when available)."""
     bf16_matmul: bool = False
     """Run the training forward passes under bfloat16 autocast (about 1.7x faster where the CPU
-    has AMX or AVX-512 BF16); weights, optimiser and loss stay float32."""
+    has AMX or AVX-512 BF16, ignored where it has neither); weights and loss stay float32."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes", self.episodes, 1, 10_000_000)
@@ -79,6 +88,7 @@ class TrainSettings:
         check_range(self, "learning_rate", self.learning_rate, 0.0, 1.0, exclusive_low=True)
         check_range(self, "gamma", self.gamma, 0.0, 1.0)
         check_range(self, "target_update_period", self.target_update_period, 1, 10**9)
+        check_range(self, "target_smoothing", self.target_smoothing, 0.0, 1.0)
         check_range(self, "epsilon_start", self.epsilon_start, 0.0, 1.0)
         check_range(self, "epsilon_decay", self.epsilon_decay, 0.0, 1.0)
         check_range(self, "epsilon_min", self.epsilon_min, 0.0, 1.0)
@@ -89,8 +99,11 @@ class TrainSettings:
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
         check_range(self, "eval_every_episodes", self.eval_every_episodes, 0, 10**7)
         check_range(self, "eval_episodes", self.eval_episodes, 1, 10**7)
+        check_range(self, "snapshot_every_episodes", self.snapshot_every_episodes, 0, 10**7)
         check_range(self, "final_eval_episodes", self.final_eval_episodes, 1, 10**7)
         check_range(self, "threads", self.threads, 1, 1024)
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ConfigError(f"train.device = {self.device!r}: choose auto, cpu, cuda or cuda:N")
 
     def epsilon(self, episode: int) -> float:
         """Exploration probability of the given (0-based) training episode."""
@@ -103,9 +116,12 @@ PAPER = TrainSettings()
 FAST = replace(
     PAPER,
     parallel_worlds=8,
-    iterations_per_episode=4.0,
+    iterations_per_episode=8.0,
     learning_rate=5e-4,
-    target_update_period=250,
+    target_smoothing=0.005,
+    grad_clip_norm=10.0,
+    bf16_matmul=True,
+    keep_best=True,
 )
 """Our schedule for two CPU cores: the paper's episodes, far fewer and larger-step iterations."""
 

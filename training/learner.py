@@ -31,23 +31,25 @@ def td_update(
     bf16: bool = False,
 ) -> float:
     """One gradient step on a batch; returns the loss."""
-    frames = torch.from_numpy(batch.frames)
+    device = next(online.parameters()).device
+    frames = torch.from_numpy(batch.frames).to(device)
+    action = torch.from_numpy(batch.action).to(device)
     window = frames.shape[1] - 1
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
         # s_t and s_t+1 share k - 1 frames: encode the k + 1 frames once for both windows.
         features = online.frame_features(frames)
         q_taken = (
             online.q_from_features(features[:, :window])
             .float()
-            .gather(1, torch.from_numpy(batch.action).unsqueeze(1))
+            .gather(1, action.unsqueeze(1))
             .squeeze(1)
         )
         with torch.no_grad():
             q_next_online = online.q_from_features(features[:, 1:].detach()).float()
             q_next_target = target(frames[:, 1:]).float()
     y = double_dqn_target(
-        torch.from_numpy(batch.reward),
-        torch.from_numpy(batch.terminal),
+        torch.from_numpy(batch.reward).to(device),
+        torch.from_numpy(batch.terminal).to(device),
         q_next_online,
         q_next_target,
         gamma,

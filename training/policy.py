@@ -18,7 +18,8 @@ def load_network(run_dir: Path) -> tuple[QNetwork, RunSettings]:
     for name, key in (("model.pt", "online"), ("checkpoint.pt", "online")):
         path = run_dir / name
         if path.exists():
-            network.load_state_dict(torch.load(path, weights_only=False)[key])
+            saved = torch.load(path, weights_only=False, map_location="cpu")
+            network.load_state_dict(saved[key])
             network.eval()
             return network, settings
     raise ConfigError(f"{run_dir} has neither model.pt nor checkpoint.pt: nothing to load")

@@ -58,6 +58,7 @@ class Progress:
     collect_s: float = 0.0
     train_s: float = 0.0
     eval_s: float = 0.0
+    best_success: float = -1.0
     history: list[dict[str, float]] = field(default_factory=list)
 
 
@@ -111,13 +112,19 @@ def train(
     settings_path.write_text(to_toml(run_settings))
     torch.set_num_threads(settings.threads)
     torch.manual_seed(settings.seed)
-    online = make_network(world, settings)
+    device = torch.device(
+        ("cuda" if torch.cuda.is_available() else "cpu")
+        if settings.device == "auto"
+        else settings.device
+    )
+    bf16 = settings.bf16_matmul and (device.type == "cuda" or _cpu_has_bf16())
+    online = make_network(world, settings).to(device)
     target = copy.deepcopy(online)
     optimizer = torch.optim.Adam(online.parameters(), lr=settings.learning_rate)
     state = Progress()
     checkpoint = run_dir / "checkpoint.pt"
     if checkpoint.exists():
-        saved = torch.load(checkpoint, weights_only=False)
+        saved = torch.load(checkpoint, weights_only=False, map_location=device)
         online.load_state_dict(saved["online"])
         target.load_state_dict(saved["target"])
         optimizer.load_state_dict(saved["optimizer"])
@@ -172,11 +179,13 @@ def train(
                     settings.gamma,
                     loss_kind=settings.loss,
                     grad_clip_norm=settings.grad_clip_norm,
-                    bf16=settings.bf16_matmul,
+                    bf16=bf16,
                 )
             )
             state.iterations += 1
-            if state.iterations % settings.target_update_period == 0:
+            if settings.target_smoothing:
+                soft_update(target, online, settings.target_smoothing)
+            elif state.iterations % settings.target_update_period == 0:
                 target.load_state_dict(online.state_dict())
         state.train_s += time.perf_counter() - started
 
@@ -189,8 +198,14 @@ def train(
             "train_collision": float(np.mean([e.outcome == Outcome.COLLISION for e in episodes])),
             "loss": float(np.mean(losses)) if losses else math.nan,
         }
-        every = settings.eval_every_episodes
-        if every and (state.episodes // every > (state.episodes - len(episodes)) // every):
+        if _crossed(settings.snapshot_every_episodes, state.episodes, len(episodes)):
+            snapshots = run_dir / "snapshots"
+            snapshots.mkdir(exist_ok=True)
+            torch.save(
+                {"online": online.state_dict(), "iterations": state.iterations},
+                snapshots / f"episodes-{state.episodes:05d}.pt",
+            )
+        if _crossed(settings.eval_every_episodes, state.episodes, len(episodes)):
             started = time.perf_counter()
             result = _evaluate(
                 world,
@@ -201,6 +216,11 @@ def train(
                 max_steps=settings.max_episode_steps,
             )
             state.eval_s += time.perf_counter() - started
+            if settings.keep_best and result.success >= state.best_success:
+                state.best_success = result.success
+                partial = run_dir / "best.pt.partial"
+                torch.save({"online": online.state_dict(), "episodes": state.episodes}, partial)
+                partial.replace(run_dir / "best.pt")
             row |= {
                 "eval_success": result.success,
                 "eval_collision": result.collision,
@@ -222,8 +242,12 @@ def train(
     results_path = run_dir / "results.json"
     if results_path.exists():
         return dict(json.loads(results_path.read_text()))
+    shipped = online.state_dict()
+    if settings.keep_best and (run_dir / "best.pt").exists():
+        shipped = torch.load(run_dir / "best.pt", weights_only=False, map_location=device)["online"]
+        online.load_state_dict(shipped)
     torch.save(
-        {"online": online.state_dict(), "world": to_dict(world), "train": to_dict(settings)},
+        {"online": shipped, "world": to_dict(world), "train": to_dict(settings)},
         run_dir / "model.pt",
     )
     started = time.perf_counter()
@@ -244,12 +268,39 @@ def train(
         "test": {k: v for k, v in asdict(final).items() if k != "mean_steps"},
         "episodes": state.episodes,
         "iterations": state.iterations,
+        "first_reached": {str(level): first_reached(state.history, level) for level in (0.9, 0.99)},
         "collect_s": round(state.collect_s, 1),
         "train_s": round(state.train_s, 1),
         "eval_s": round(state.eval_s + time.perf_counter() - started, 1),
     }
     results_path.write_text(json.dumps(results, indent=2) + "\n")
     return results
+
+
+def _cpu_has_bf16() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (otherwise autocast would be slower)."""
+    checks = ("_is_amx_tile_supported", "_is_avx512_bf16_supported")
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+
+
+def soft_update(target: QNetwork, online: QNetwork, rate: float) -> None:
+    """target <- (1 - rate) * target + rate * online, parameter by parameter."""
+    with torch.no_grad():
+        for mine, theirs in zip(target.parameters(), online.parameters(), strict=True):
+            mine.lerp_(theirs, rate)
+
+
+def first_reached(history: list[dict[str, float]], level: float) -> dict[str, float] | None:
+    """Episodes, iterations and wall time when validation success first reached `level`."""
+    for row in history:
+        if row.get("eval_success", -1.0) >= level:
+            return {k: row[k] for k in ("episodes", "iterations", "wall_s")}
+    return None
+
+
+def _crossed(every: int, episodes: int, added: int) -> bool:
+    """Whether the last `added` episodes passed a multiple of `every` (never if every is 0)."""
+    return bool(every) and episodes // every > (episodes - added) // every
 
 
 def _collect(

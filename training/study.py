@@ -39,10 +39,12 @@ class RunSpec:
     scenario: str
     model: str
     seed: int
+    relabel: str = "paper"
 
     @property
     def name(self) -> str:
-        return f"{self.scenario}-{self.model}-seed{self.seed}"
+        suffix = "" if self.relabel == "paper" else f"-{self.relabel}"
+        return f"{self.scenario}-{self.model}-seed{self.seed}{suffix}"
 
 
 def plan(
@@ -55,26 +57,27 @@ def plan(
     return [RunSpec(s, m, seed) for s in order for m in models for seed in seeds]
 
 
-def _train_command(spec: RunSpec, run_root: Path, threads: int, preset: str) -> list[str]:
+ABLATION_SCENARIOS = ("walls-increment", "obstacles-inertia")
+RELABELS = ("none", "paper", "hindsight")
+
+
+def ablation_plan(seeds: tuple[int, ...] = (0,)) -> list[RunSpec]:
+    """Target re-drawing ablation: recurrent agents with each relabel rule."""
     return [
-        sys.executable,
-        "-m",
-        "qnav",
-        "train",
-        "--scenario",
-        spec.scenario,
-        "--model",
-        spec.model,
-        "--seed",
-        str(spec.seed),
-        "--preset",
-        preset,
-        "--run-dir",
-        str(run_root / spec.name),
-        "--quiet",
-        "--train-set",
-        f"train.threads={threads}",
+        RunSpec(s, "recurrent", seed, relabel)
+        for s in ABLATION_SCENARIOS
+        for relabel in RELABELS
+        for seed in seeds
     ]
+
+
+def _train_command(spec: RunSpec, run_root: Path, threads: int, preset: str) -> list[str]:
+    options = {
+        "--scenario": spec.scenario, "--model": spec.model, "--seed": str(spec.seed),
+        "--relabel": spec.relabel, "--preset": preset, "--run-dir": str(run_root / spec.name),
+        "--train-set": f"train.threads={threads}",
+    }  # fmt: skip
+    return [sys.executable, "-m", "qnav", "train", "--quiet", *sum(options.items(), ())]
 
 
 def _eval_json(run_dir: Path, extra: list[str]) -> dict[str, Any]:
@@ -163,8 +166,25 @@ def _paper_cell(mean: paper.Fractions, std: paper.Fractions) -> str:
     return " / ".join(f"{m} +- {s}" for m, s in zip(mean, std, strict=True))
 
 
-def _runs(results: dict[str, dict[str, Any]], prefix: str) -> list[dict[str, Any]]:
-    return [r for name, r in results.items() if name.startswith(prefix)]
+def _runs(
+    results: dict[str, dict[str, Any]], scenario: str, model: str, relabel: str = "paper"
+) -> list[dict[str, Any]]:
+    return [
+        r
+        for r in results.values()
+        if (r["scenario"], r["model"], r.get("relabel", "paper")) == (scenario, model, relabel)
+    ]
+
+
+def _ablation_row(scenario: str, relabel: str, runs: list[dict[str, Any]]) -> str:
+    if not runs:
+        return _row(scenario, relabel, 0, "not run yet", "", "")
+    reached = [r.get("first_reached", {}).get("0.9") for r in runs]
+    episodes = [f"{int(r['episodes'])}" if r else "-" for r in reached]
+    minutes = [f"{r['wall_s'] / 60:.1f}" if r else "-" for r in reached]
+    success = np.mean([r["test"]["success"] for r in runs])
+    return _row(scenario, relabel, len(runs), ", ".join(episodes), ", ".join(minutes),
+                f"{success:.3f}")  # fmt: skip
 
 
 def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]]) -> str:
@@ -197,7 +217,7 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
             ("feedforward", paper.FEEDFORWARD),
             ("recurrent", paper.RECURRENT),
         ):
-            runs = _runs(results, f"{scenario}-{model}-")
+            runs = _runs(results, scenario, model)
             quoted = _paper_cell(*reference[scenario])
             if not runs:
                 lines.append(_row(model.capitalize(), 0, "not run yet", "", "", quoted))
@@ -221,34 +241,34 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         rule,
     ]
     extra_tests = [
-        (
-            f"{trained}-recurrent-",
-            "cross_dynamics",
-            f"recurrent, trained on {trained}, tested on {tested}",
-            quoted,
-        )
-        for (trained, tested), quoted in zip(
-            CROSS.items(),
-            (
-                "0.765 +- 0.064 / 0.229 +- 0.064 / 0.006 +- 0.007",
-                "0.743 +- 0.019 / 0.251 +- 0.021 / 0.006 +- 0.005",
-            ),
-            strict=True,
-        )
+        ((trained, "recurrent"), "cross_dynamics", f"recurrent, trained on {trained}, tested on "
+         f"{tested}", _paper_cell(*paper.CROSS_DYNAMICS[trained, tested]))
+        for trained, tested in CROSS.items()
     ] + [
-        (
-            "walls-increment-feedforward-",
-            "random_actions_10pct",
-            "feedforward, walls-increment, 10% random test actions",
-            "0.925 +- 0.096 / 0.069 +- 0.085 / 0.006 +- 0.012",
-        ),
-    ]
-    for prefix, key, label, quoted in extra_tests:
-        tests = [r[key].get("test", r[key]) for r in _runs(results, prefix) if key in r]
+        (("walls-increment", "feedforward"), "random_actions_10pct",
+         "feedforward, walls-increment, 10% random test actions",
+         _paper_cell(*paper.FEEDFORWARD_RANDOM_ACTIONS)),
+    ]  # fmt: skip
+    for (scenario, model), key, label, quoted in extra_tests:
+        tests = [r[key].get("test", r[key]) for r in _runs(results, scenario, model) if key in r]
         if tests:
             lines.append(_row(label, len(tests), *_cells(tests), quoted))
         else:
             lines.append(_row(label, 0, "not run yet", "", "", quoted))
+    lines += [
+        "",
+        "## Target re-drawing ablation",
+        "",
+        "Recurrent agents; validation success (greedy, 100 episodes of up to 200 steps) is",
+        "measured every 50 training episodes. '-' = never reached within the run.",
+        "",
+        _row("scenario", "re-drawing", "n", "episodes to 0.9", "minutes to 0.9", "test success"),
+        _row(*["---"] * 6),
+    ]
+    for scenario in ABLATION_SCENARIOS:
+        for relabel in RELABELS:
+            runs = _runs(results, scenario, "recurrent", relabel)
+            lines.append(_ablation_row(scenario, relabel, runs))
     lines += [
         "",
         "## Compute",
@@ -258,7 +278,7 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
     ]
     for scenario in SCENARIOS:
         for model in MODELS:
-            runs = _runs(results, f"{scenario}-{model}-")
+            runs = _runs(results, scenario, model)
             if runs:
                 minutes = np.mean(
                     [(r["collect_s"] + r["train_s"] + r["eval_s"]) / 60 for r in runs]

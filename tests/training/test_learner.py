@@ -24,7 +24,7 @@ def test_terminal_transitions_do_not_bootstrap() -> None:
 
 def test_repeated_updates_fit_a_fixed_terminal_target() -> None:
     torch.manual_seed(0)
-    online, target = QNetwork("recurrent", 720, 32), QNetwork("recurrent", 720, 32)
+    online, target = QNetwork("recurrent", None, 32), QNetwork("recurrent", None, 32)
     optimizer = torch.optim.Adam(online.parameters(), lr=1e-3)
     batch = Batch(
         frames=np.random.default_rng(0).random((16, 6, online.frame_size), dtype=np.float32),
@@ -33,6 +33,16 @@ def test_repeated_updates_fit_a_fixed_terminal_target() -> None:
         terminal=np.ones(16, dtype=bool),
     )
     first = td_update(online, target, optimizer, batch, 0.97)
-    for _ in range(200):
+    for _ in range(150):
         last = td_update(online, target, optimizer, batch, 0.97)
     assert last < first / 100
+
+
+def test_soft_update_moves_the_target_a_fraction_towards_the_online_network() -> None:
+    from training.run import soft_update
+
+    online, target = QNetwork("feedforward", None, 4), QNetwork("feedforward", None, 4)
+    before = [p.detach().clone() for p in target.parameters()]
+    soft_update(target, online, 0.25)
+    for old, new, towards in zip(before, target.parameters(), online.parameters(), strict=True):
+        torch.testing.assert_close(new, old + 0.25 * (towards - old))

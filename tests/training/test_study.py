@@ -1,0 +1,43 @@
+import json
+from pathlib import Path
+
+from training.study import RunSpec, plan, results_markdown
+
+
+def test_plan_covers_every_scenario_model_and_seed_once_walls_first() -> None:
+    specs = plan()
+    assert len(specs) == 4 * 2 * 5 == len(set(specs))
+    assert specs[0].scenario.startswith("walls")
+    assert specs[-1].scenario.startswith("obstacles")
+
+
+def _result(spec: RunSpec, success: float, **extra: object) -> dict[str, object]:
+    return {
+        "scenario": spec.scenario, "model": spec.model, "seed": spec.seed,
+        "relabel": spec.relabel,
+        "test": {"success": success, "collision": 1 - success, "unfinished": 0.0, "episodes": 200},
+        "iterations": 100, "collect_s": 60.0, "train_s": 120.0, "eval_s": 0.0, **extra,
+    }  # fmt: skip
+
+
+def test_tables_show_mean_std_best_and_the_papers_figures(tmp_path: Path) -> None:
+    for seed, success in enumerate((0.9, 1.0)):
+        spec = RunSpec("walls-inertia", "recurrent", seed)
+        (tmp_path / f"{spec.name}.json").write_text(json.dumps(_result(spec, success)))
+    ablated = RunSpec("walls-inertia", "recurrent", 0, "none")
+    (tmp_path / f"{ablated.name}.json").write_text(json.dumps(_result(ablated, 0.0)))
+    text = results_markdown(tmp_path, {})
+    assert "| Recurrent | 2 | 0.950 +- 0.050 | 0.050 +- 0.050 | 0.000 +- 0.000 |" in text
+    assert "| Recurrent (best) |  | 1.000 | 0.000 | 0.000 |  |" in text
+    assert "1.0 +- 0.0 / 0.0 +- 0.0 / 0.0 +- 0.0" in text  # the paper's Table II
+    assert "| Feedforward | 0 | not run yet |" in text
+
+
+def test_extra_tests_are_tabulated_from_their_runs(tmp_path: Path) -> None:
+    spec = RunSpec("obstacles-increment", "recurrent", 0)
+    cross = {"tested_on": "obstacles-inertia", "test": _result(spec, 0.7)["test"]}
+    (tmp_path / f"{spec.name}.json").write_text(
+        json.dumps(_result(spec, 0.8, cross_dynamics=cross))
+    )
+    text = results_markdown(tmp_path, {})
+    assert "trained on obstacles-increment, tested on obstacles-inertia | 1 | 0.700" in text
