@@ -42,6 +42,8 @@ def _batch(network: QNetwork, batch_size: int, window: int) -> Batch:
         action=rng.integers(0, 3, batch_size),
         reward=rng.random(batch_size, dtype=np.float32),
         terminal=rng.random(batch_size) < 0.1,
+        steps=np.ones(batch_size, dtype=np.int64),
+        discount=np.full(batch_size, 0.97, dtype=np.float32),
     )
 
 
@@ -64,7 +66,7 @@ def run(
     batch = _batch(online, batch_size, window)
     counter = FlopCounterMode(display=False)
     with counter:
-        td_update(online, target, optimizer, batch, 0.97)
+        td_update(online, target, optimizer, batch, window=window)
     flops = counter.get_total_flops()
     machine = matmul_gflops()
     report: dict[str, Any] = {
@@ -80,11 +82,11 @@ def run(
     }
     for name, bf16 in (("fp32", False), ("bf16_autocast", True)):
         for _ in range(3):
-            td_update(online, target, optimizer, batch, 0.97, bf16=bf16)
+            td_update(online, target, optimizer, batch, window=window, bf16=bf16)
         times = []
         for _ in range(repeats):
             start = time.perf_counter()
-            td_update(online, target, optimizer, batch, 0.97, bf16=bf16)
+            td_update(online, target, optimizer, batch, window=window, bf16=bf16)
             times.append(time.perf_counter() - start)
         median = float(np.median(times))
         report["precisions"][name] = {

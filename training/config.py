@@ -36,6 +36,8 @@ class TrainSettings:
     """Adam's learning rate (paper: 1e-4)."""
     gamma: float = 0.97
     """Discount factor (paper: 0.97)."""
+    n_step: int = 1
+    """Rewards summed before bootstrapping, recomputed for each re-drawn target (paper: 1)."""
     target_update_period: int = 10_000
     """Iterations between copies of the online network into the target (paper: 10,000)."""
     target_smoothing: float = 0.0
@@ -87,6 +89,7 @@ class TrainSettings:
         check_range(self, "batch_size", self.batch_size, 1, 1_000_000)
         check_range(self, "learning_rate", self.learning_rate, 0.0, 1.0, exclusive_low=True)
         check_range(self, "gamma", self.gamma, 0.0, 1.0)
+        check_range(self, "n_step", self.n_step, 1, 1000)
         check_range(self, "target_update_period", self.target_update_period, 1, 10**9)
         check_range(self, "target_smoothing", self.target_smoothing, 0.0, 1.0)
         check_range(self, "epsilon_start", self.epsilon_start, 0.0, 1.0)

@@ -43,16 +43,20 @@ class Episode(NamedTuple):
 
 
 class Batch(NamedTuple):
-    """Sampled transitions: windows of s_t and s_t+1 share k - 1 frames."""
+    """Sampled transitions as windows over k + n consecutive frames of one episode."""
 
     frames: NDArray[np.float32]
-    """(N, k + 1, F) encoded frames; s_t is [:, :k], s_t+1 is [:, 1:]."""
+    """(N, k + n, F) encoded frames; s_t is [:, :k], the bootstrap state [:, m : m + k]."""
     action: NDArray[np.int64]
     """(N,) action taken at s_t."""
     reward: NDArray[np.float32]
-    """(N,) reward recomputed for the sampled target."""
+    """(N,) discounted reward of the m steps taken, recomputed for the sampled target."""
     terminal: NDArray[np.bool_]
-    """(N,) s_t+1 ends the episode for the sampled target (success or collision)."""
+    """(N,) the m-th step ends the episode for the sampled target (success or collision)."""
+    steps: NDArray[np.int64]
+    """(N,) m: steps taken before bootstrapping (1 <= m <= n)."""
+    discount: NDArray[np.float32]
+    """(N,) gamma ** m, the bootstrap's discount."""
 
 
 class EpisodeReplay:
@@ -102,17 +106,38 @@ class EpisodeReplay:
         """Number of stored transitions."""
         return int(sum(t.size for t in self._transitions))
 
-    def sample(self, batch_size: int, rng: np.random.Generator, relabel: Relabel) -> Batch:
+    def sample(
+        self,
+        batch_size: int,
+        rng: np.random.Generator,
+        relabel: Relabel,
+        n_step: int = 1,
+        gamma: float = 0.97,
+    ) -> Batch:
         """Uniformly random transitions, each with its own target drawn by `relabel`."""
         if not self._transition_index.size:
             self._transition_index = np.concatenate(self._transitions)
         now = self._transition_index[rng.integers(0, self._transition_index.size, batch_size)]
-        return self.transitions_at(now, self._targets(now, rng, relabel))
+        return self.transitions_at(now, self._targets(now, rng, relabel), n_step, gamma)
 
-    def transitions_at(self, now: NDArray[np.int64], target: NDArray[np.float64]) -> Batch:
-        """The transitions leaving frames `now`, with the given targets (N, 2)."""
-        offsets = np.arange(-self.window + 1, 2)
+    def transitions_at(
+        self,
+        now: NDArray[np.int64],
+        target: NDArray[np.float64],
+        n_step: int = 1,
+        gamma: float = 0.97,
+    ) -> Batch:
+        """The transitions leaving frames `now`, with the given targets (N, 2).
+
+        With n_step > 1 the reward is the discounted sum of up to n rewards for the sampled
+        target, stopping early where the target is reached, a collision happens or the stored
+        episode ends; the bootstrap window ends where it stopped.
+        """
+        k = self.window
+        offsets = np.arange(-k + 1, n_step + 1)
         frame_index = np.maximum(now[:, None] + offsets, self.first[now][:, None])
+        # Frames past the episode's end are never bootstrapped from; repeat its last frame.
+        frame_index = np.minimum(frame_index, self.last[now][:, None])
         features = target_features(self.pose[frame_index], target[:, None, :])
         encoded_target = encode_target(features, self.max_range_m)
         frames = (
@@ -120,17 +145,26 @@ class EpisodeReplay:
             if self.num_beams
             else encoded_target
         )
-        after = now + 1
-        distance = features[:, -1, 0]
         radius = self.config.robot_radius_m
-        ending = outcome(distance, self.clearance[after], radius)
+        ahead = frame_index[:, k:]  # frames t+1 .. t+n
+        distance = features[:, k:, 0]
+        step_outcome = outcome(distance, self.clearance[ahead], radius)
+        step_reward = reward(distance, self.clearance[ahead], radius, self.config.reward)
+        # Steps taken: up to n, the first terminal step, or the episode's last frame.
+        available = np.minimum(self.last[now] - now, n_step)
+        ends = (step_outcome != Outcome.RUNNING) | (np.arange(1, n_step + 1) >= available[:, None])
+        steps = np.argmax(ends, axis=1) + 1
+        taken = np.arange(1, n_step + 1) <= steps[:, None]
+        discounts = gamma ** np.arange(n_step)
+        returns = (step_reward * discounts * taken).sum(axis=1)
+        terminal = step_outcome[np.arange(now.size), steps - 1] != Outcome.RUNNING
         return Batch(
             frames=frames.astype(np.float32, copy=False),
             action=self.action[now],
-            reward=reward(distance, self.clearance[after], radius, self.config.reward).astype(
-                np.float32
-            ),
-            terminal=ending != Outcome.RUNNING,
+            reward=returns.astype(np.float32),
+            terminal=terminal,
+            steps=steps,
+            discount=(gamma**steps).astype(np.float32),
         )
 
     def _targets(

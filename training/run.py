@@ -169,14 +169,16 @@ def train(
         losses = []
         online.train()
         while state.iterations < owed:
-            batch = replay.sample(settings.batch_size, sampler, settings.relabel)
+            batch = replay.sample(
+                settings.batch_size, sampler, settings.relabel, settings.n_step, settings.gamma
+            )
             losses.append(
                 td_update(
                     online,
                     target,
                     optimizer,
                     batch,
-                    settings.gamma,
+                    window=settings.window,
                     loss_kind=settings.loss,
                     grad_clip_norm=settings.grad_clip_norm,
                     bf16=bf16,

@@ -11,7 +11,7 @@ def test_double_dqn_evaluates_the_online_argmax_with_the_target_network() -> Non
     terminal = torch.tensor([False, False])
     online = torch.tensor([[1.0, 3.0, 2.0], [0.0, 0.0, 9.0]])
     target = torch.tensor([[10.0, 20.0, 30.0], [1.0, 2.0, 3.0]])
-    y = double_dqn_target(reward, terminal, online, target, gamma=0.5)
+    y = double_dqn_target(reward, terminal, online, target, discount=0.5)
     torch.testing.assert_close(y, torch.tensor([0.5 + 0.5 * 20.0, 0.5 + 0.5 * 3.0]))
 
 
@@ -31,10 +31,12 @@ def test_repeated_updates_fit_a_fixed_terminal_target() -> None:
         action=np.arange(16) % 3,
         reward=np.full(16, 0.7, dtype=np.float32),
         terminal=np.ones(16, dtype=bool),
+        steps=np.ones(16, dtype=np.int64),
+        discount=np.full(16, 0.97, dtype=np.float32),
     )
-    first = td_update(online, target, optimizer, batch, 0.97)
+    first = td_update(online, target, optimizer, batch, window=5)
     for _ in range(150):
-        last = td_update(online, target, optimizer, batch, 0.97)
+        last = td_update(online, target, optimizer, batch, window=5)
     assert last < first / 100
 
 

@@ -115,3 +115,18 @@ def test_hindsight_makes_some_sampled_transitions_successes() -> None:
     batch = replay.sample(512, np.random.default_rng(0), "hindsight")
     assert (batch.reward == 1.0).any()
     assert (batch.terminal[batch.reward == 1.0]).all()
+
+
+def test_n_step_returns_sum_the_simulators_discounted_rewards_to_the_episode_end() -> None:
+    episode, rewards, ends = _episode(3)
+    replay = _replay(episode)
+    gamma, n = 0.9, 4
+    now = np.arange(episode.action.size)
+    batch = replay.transitions_at(now, np.repeat(episode.target_xy[None], now.size, 0), n, gamma)
+    for t in now:
+        steps = min(n, len(rewards) - t)
+        expected = sum(gamma**j * rewards[t + j] for j in range(steps))
+        assert batch.steps[t] == steps
+        assert batch.reward[t] == pytest.approx(expected, rel=1e-5)
+        assert batch.terminal[t] == ends[t + steps - 1]
+        assert batch.discount[t] == pytest.approx(gamma**steps)
