@@ -66,7 +66,7 @@ def train(args: argparse.Namespace) -> int:
     from training.run import train as run_training
 
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
-    settings = preset(args.preset)
+    settings = preset(args.preset, world)
     if args.train_config is not None:
         settings = with_overrides(settings, load_toml(args.train_config).get("train", {}))
     if args.train_assignments:

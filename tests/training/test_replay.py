@@ -123,7 +123,7 @@ def test_n_step_returns_sum_the_simulators_discounted_rewards_to_the_episode_end
     gamma, n = 0.9, 4
     now = np.arange(episode.action.size)
     batch = replay.transitions_at(now, np.repeat(episode.target_xy[None], now.size, 0), n, gamma)
-    for t in now:
+    for t in range(now.size):
         steps = min(n, len(rewards) - t)
         expected = sum(gamma**j * rewards[t + j] for j in range(steps))
         assert batch.steps[t] == steps
