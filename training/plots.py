@@ -17,8 +17,11 @@ def plot_training(history: list[dict[str, float]], path: Path, title: str) -> Pa
     axes = figure.add_subplot()
     episodes = np.array([row["episodes"] for row in history])
     train = np.array([row["train_success"] for row in history])
-    window = max(1, min(10, len(train)))
-    smoothed = np.convolve(train, np.ones(window) / window, mode="same")
+    # Trailing mean over the last few rounds: each point uses only episodes up to it.
+    window = 6
+    cumulative = np.concatenate([[0.0], np.cumsum(train)])
+    first = np.maximum(0, np.arange(1, len(train) + 1) - window)
+    smoothed = (cumulative[1:] - cumulative[first]) / (np.arange(1, len(train) + 1) - first)
     axes.plot(episodes, smoothed, color="0.6", label="training episodes (with exploration)")
     evaluated = [row for row in history if "eval_success" in row]
     axes.plot(
@@ -26,7 +29,7 @@ def plot_training(history: list[dict[str, float]], path: Path, title: str) -> Pa
         [row["eval_success"] for row in evaluated],
         marker="o",
         color="tab:blue",
-        label="greedy test (500-step episodes)",
+        label="greedy validation (separate layouts)",
     )
     axes.set_xlabel("training episodes")
     axes.set_ylabel("success fraction")

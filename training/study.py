@@ -52,9 +52,17 @@ def plan(
     models: tuple[str, ...] = MODELS,
     seeds: tuple[int, ...] = SEEDS,
 ) -> list[RunSpec]:
-    """Every run of the study, walls-only scenarios first (they are the quickest)."""
-    order = sorted(scenarios, key=lambda s: (s.startswith("obstacles"), s))
-    return [RunSpec(s, m, seed) for s in order for m in models for seed in seeds]
+    """Every run of the study: walls-only scenarios first (they are the quickest), and within
+    them seed by seed, so that a partial study already fills every row of the tables."""
+    walls = [s for s in scenarios if not s.startswith("obstacles")]
+    obstacles = [s for s in scenarios if s.startswith("obstacles")]
+    return [
+        RunSpec(s, m, seed)
+        for group in (walls, obstacles)
+        for seed in seeds
+        for s in group
+        for m in models
+    ]
 
 
 ABLATION_SCENARIOS = ("walls-increment", "obstacles-inertia")
