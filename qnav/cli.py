@@ -78,6 +78,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _world_options(evaluate, default=None)
     evaluate.add_argument(
+        "--agent",
+        default="random",
+        choices=["random", "goto"],
+        help="without --policy: random (the paper's Random rows) or goto (turn to the target "
+        "and drive, blind to obstacles)",
+    )
+    evaluate.add_argument(
         "--policy",
         type=Path,
         metavar="RUN_DIR",

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from contracts.settings import load_toml, parse_assignments, with_overrides
 from sim.config import WorldConfig, load_world
-from sim.evaluate import Agent, EvalSettings, RandomAgent
+from sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent
 from sim.evaluate import evaluate as run_evaluation
 
 
@@ -25,7 +25,11 @@ def evaluate(args: argparse.Namespace) -> int:
     agent: Agent
     if args.policy is None:
         world = load_world(args.scenario or "walls-inertia", args.world_config, args.assignments)
-        agent, label = RandomAgent(worlds, seed=args.seed), "random agent"
+        agent, label = (
+            (RandomAgent(worlds, seed=args.seed), "random agent")
+            if args.agent == "random"
+            else (GoToTargetAgent(), "go-to-target baseline")
+        )
     else:
         from training.policy import load_network
         from training.run import policy_agent

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from contracts.actions import NUM_ACTIONS
+from contracts.actions import NUM_ACTIONS, Action
 from contracts.settings import check_range
 from sim import rng
 from sim.config import WorldConfig
@@ -56,6 +56,26 @@ class RandomAgent:
         draw = rng.uniform_at(self.keys, _ACTION_STREAM, self.steps)
         self.steps += 1
         return np.minimum((draw * NUM_ACTIONS).astype(np.int64), NUM_ACTIONS - 1)
+
+
+class GoToTargetAgent:
+    """A hand-written baseline: turn towards the target, drive when facing it; blind to obstacles.
+
+    It shows what target seeking alone achieves in a world, so a learned agent can be judged
+    against it.
+    """
+
+    def __init__(self, aligned_cos: float = 0.97) -> None:
+        self.aligned_cos = aligned_cos
+
+    def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
+        """No memory to reset."""
+
+    def act(self, observation: Observation) -> NDArray[np.int64]:
+        features = observation.target_features()
+        left, ahead = features[:, 1], features[:, 2]
+        turn = np.where(left > 0, Action.LEFT, Action.RIGHT)
+        return np.where(ahead >= self.aligned_cos, Action.FORWARD, turn).astype(np.int64)
 
 
 @dataclass(frozen=True)

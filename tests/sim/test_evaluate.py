@@ -19,3 +19,11 @@ def test_fractions_cover_every_episode() -> None:
     )
     assert result.episodes == 50
     assert result.success + result.collision + result.unfinished == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("name", ["walls-inertia", "walls-increment"])
+def test_turning_to_the_target_and_driving_always_succeeds_without_obstacles(name: str) -> None:
+    from sim.evaluate import GoToTargetAgent
+
+    result = evaluate(scenario(name), GoToTargetAgent(), EvalSettings(episodes=100))
+    assert result.success == 1.0
