@@ -48,6 +48,12 @@ class LidarSpec:
         return np.arange(self.num_beams, dtype=np.float64) * self.angle_increment_rad
 
 
+def distance_scale_m(lidar: LidarSpec | None) -> float:
+    """The length that scales distances for the network: the lidar's maximum range, or the
+    default lidar's for the toy car that has none (its target distance is scaled the same)."""
+    return (lidar or LidarSpec()).max_range_m
+
+
 def encode_scan(scan_m: NDArray[np.floating], max_range_m: float) -> NDArray[np.float32]:
     """Scale ranges to [0, 1] as the paper does (divide by the maximum range).
 

@@ -318,11 +318,6 @@ class WorldConfig:
                     f"(0, {2 * self.robot_radius_m}) (the robot must not fit through an opening)"
                 )
 
-    @property
-    def has_lidar(self) -> bool:
-        """Whether observations include a scan."""
-        return self.lidar is not None
-
 
 SCENARIOS: dict[str, WorldConfig] = {
     "walls-inertia": WorldConfig(name="walls-inertia"),

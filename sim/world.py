@@ -69,11 +69,6 @@ class Observation(NamedTuple):
         """(N, 3) distance to target and sin, cos of its bearing."""
         return target_features(self.pose, self.target_xy)
 
-    def take(self, index: NDArray[np.intp] | NDArray[np.bool_]) -> Observation:
-        """The observations of some worlds."""
-        scan = None if self.scan_m is None else self.scan_m[index]
-        return Observation(self.pose[index], self.target_xy[index], scan, self.clearance_m[index])
-
 
 class Transition(NamedTuple):
     """What one step produced in each world."""

@@ -12,6 +12,7 @@ import torch
 from numpy.typing import NDArray
 
 from contracts.actions import Action
+from contracts.observation import distance_scale_m
 from sim.config import WorldConfig
 from sim.task import Outcome
 from sim.world import observe, reset, step
@@ -46,8 +47,7 @@ def action_grid(
     state = reset(world, np.zeros(n, np.int64), np.zeros(n, np.int64))
     pose = np.stack([centre + gx.ravel(), centre + gy.ravel(), np.full(n, math.pi / 2)], axis=1)
     state = state._replace(pose=pose, target_xy=np.full((n, 2), centre))
-    max_range = world.lidar.max_range_m if world.lidar else 20.0
-    frames = observation_frames(observe(world, state), max_range)
+    frames = observation_frames(observe(world, state), distance_scale_m(world.lidar))
     with torch.no_grad():
         device = next(network.parameters()).device
         windows = torch.from_numpy(np.repeat(frames[:, None], window, axis=1)).to(device)

@@ -16,7 +16,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.observation import encode_scan, encode_target, target_features
+from contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
 from sim.config import WorldConfig
 from sim.task import Outcome, outcome, reward
 
@@ -66,7 +66,7 @@ class EpisodeReplay:
         self.config = config
         self.window = window
         self.num_beams = config.lidar.num_beams if config.lidar else 0
-        self.max_range_m = config.lidar.max_range_m if config.lidar else 20.0
+        self.max_range_m = distance_scale_m(config.lidar)
         self.pose = np.zeros((capacity_frames, 3))
         self.scan = np.zeros((capacity_frames, self.num_beams), dtype=np.float32)
         self.clearance = np.zeros(capacity_frames)
@@ -100,11 +100,6 @@ class EpisodeReplay:
         self._transition_index = np.zeros(0, dtype=np.int64)
         self.size += frames
         self.episodes += 1
-
-    @property
-    def transitions(self) -> int:
-        """Number of stored transitions."""
-        return int(sum(t.size for t in self._transitions))
 
     def sample(
         self,

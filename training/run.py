@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from contracts.errors import ConfigError
+from contracts.observation import distance_scale_m
 from contracts.settings import from_dict, to_dict, to_toml
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate
@@ -72,8 +73,7 @@ def policy_agent(
     network: QNetwork, world: WorldConfig, num_worlds: int, window: int, **kwargs: Any
 ) -> TorchAgent:
     """A greedy (or epsilon-greedy) agent of the network for this world."""
-    max_range = world.lidar.max_range_m if world.lidar else 20.0
-    return TorchAgent(network, num_worlds, window, max_range, **kwargs)
+    return TorchAgent(network, num_worlds, window, distance_scale_m(world.lidar), **kwargs)
 
 
 @dataclass(frozen=True)
