@@ -117,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fast: our schedule for 2 CPU cores (default); paper: the paper's exact schedule",
     )
     train.add_argument(
-        "--relabel", choices=["paper", "hindsight", "none"], help="target re-drawing"
+        "--relabel", choices=["paper", "local", "hindsight", "none"], help="target re-drawing"
     )
     train.add_argument("--episodes", type=int, help="training episodes")
     train.add_argument(

@@ -96,17 +96,7 @@ def reset(
     robot_xy = margin + (size - 2 * margin) * robot[:, :2]
     heading = 2 * math.pi * robot[:, 2] - math.pi
 
-    # Uniform over the part of the annulus dmin <= d <= dmax around the robot that lies in the
-    # spawn square: area-uniform draws in the annulus, keeping those inside the square.
-    lo, hi = config.spawn.target_min_distance_m, config.spawn.target_max_distance_m
-    draw = rng.uniform(keys, _TARGET, (_CANDIDATES, 2))
-    reach = np.sqrt(lo * lo + (hi * hi - lo * lo) * draw[..., 0])
-    angle = 2 * math.pi * draw[..., 1]
-    target_candidates = robot_xy[:, None, :] + reach[..., None] * np.stack(
-        [np.cos(angle), np.sin(angle)], axis=-1
-    )
-    inside = ((target_candidates >= margin) & (target_candidates <= size - margin)).all(-1)
-    target_xy = np.clip(_first_valid(target_candidates, inside), margin, size - margin)
+    target_xy = targets_around(config, robot_xy, rng.uniform(keys, _TARGET, (_CANDIDATES, 2)))
 
     m = config.obstacles.count
     radius = config.obstacles.radius_m
@@ -131,6 +121,23 @@ def reset(
         seed=seeds,
         episode=episodes,
     )
+
+
+def targets_around(config: WorldConfig, robot_xy: F64, draw: F64) -> F64:
+    """Targets (N, 2) by the spawn law, from uniform draws (N, K, 2) in [0, 1).
+
+    Uniform over the part of the annulus dmin <= d <= dmax around each robot position that lies
+    in the spawn square: area-uniform candidates in the annulus, the first inside the square.
+    """
+    size, margin = config.arena.size_m, config.spawn.wall_margin_m
+    lo, hi = config.spawn.target_min_distance_m, config.spawn.target_max_distance_m
+    reach = np.sqrt(lo * lo + (hi * hi - lo * lo) * draw[..., 0])
+    angle = 2 * math.pi * draw[..., 1]
+    candidates = robot_xy[:, None, :] + reach[..., None] * np.stack(
+        [np.cos(angle), np.sin(angle)], axis=-1
+    )
+    inside = ((candidates >= margin) & (candidates <= size - margin)).all(-1)
+    return np.clip(_first_valid(candidates, inside), margin, size - margin)
 
 
 def _first_valid(candidates: F64, valid: NDArray[np.bool_]) -> F64:

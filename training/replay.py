@@ -19,10 +19,15 @@ from numpy.typing import NDArray
 from contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
 from sim.config import WorldConfig
 from sim.task import Outcome, outcome, reward
+from sim.world import targets_around
 
-Relabel = Literal["paper", "hindsight", "none"]
-"""How a sampled transition gets its target: a fresh uniform one (the paper), a position the
-robot reached later in the same episode (hindsight), or the episode's own (none)."""
+_LOCAL_CANDIDATES = 64
+"""Candidates per local target (as in the simulator's spawn)."""
+
+Relabel = Literal["paper", "local", "hindsight", "none"]
+"""How a sampled transition gets its target: a fresh uniform one in the arena (the paper), a
+fresh one drawn as the simulator spawns targets around the robot's pose at that step (local),
+a position the robot reached later in the same episode (hindsight), or the episode's own."""
 
 
 class Episode(NamedTuple):
@@ -173,4 +178,7 @@ class EpisodeReplay:
             return self.pose[later, :2]
         low = self.config.spawn.wall_margin_m
         high = self.config.arena.size_m - low
+        if relabel == "local":
+            draws = rng.random((now.size, _LOCAL_CANDIDATES, 2))
+            return targets_around(self.config, self.pose[now, :2], draws)
         return rng.uniform(low, high, size=(now.size, 2))

@@ -88,7 +88,7 @@ def test_next_window_is_the_following_transitions_window() -> None:
     assert not np.array_equal(now[0], now[-1])
 
 
-@pytest.mark.parametrize("relabel", ["paper", "hindsight", "none"])
+@pytest.mark.parametrize("relabel", ["paper", "local", "hindsight", "none"])
 def test_sampled_targets_follow_the_relabel_rule(relabel: str) -> None:
     episode, _, _ = _episode(5)
     replay = _replay(episode)
@@ -107,6 +107,9 @@ def test_sampled_targets_follow_the_relabel_rule(relabel: str) -> None:
         margin = CONFIG.spawn.wall_margin_m
         assert (targets >= margin).all() and (targets <= CONFIG.arena.size_m - margin).all()
         assert np.unique(targets[:, 0]).size == now.size
+    if relabel == "local":
+        distance = np.linalg.norm(targets - episode.pose[now, :2], axis=1)
+        assert distance.max() <= CONFIG.spawn.target_max_distance_m + 1e-9
 
 
 def test_hindsight_makes_some_sampled_transitions_successes() -> None:
