@@ -73,10 +73,6 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def _field_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
-
-
 def _coerce(cls: type, name: str, annotation: Any, value: Any, path: str) -> Any:
     """Turn a TOML or command-line value into the field's type, or say what was expected."""
     origin = typing.get_origin(annotation)
@@ -143,7 +139,7 @@ def _kind_of(option: Any) -> object:
 def from_dict(cls: type[T], values: dict[str, Any], path: str = "") -> T:
     """Build settings `cls` from a nested dict, refusing unknown keys by name."""
     assert dataclasses.is_dataclass(cls)
-    hints = _field_types(cls)
+    hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     kwargs: dict[str, Any] = {}
     for key, value in values.items():

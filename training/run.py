@@ -379,7 +379,7 @@ def _write_progress(run_dir: Path, history: list[dict[str, float]], title: str) 
         writer.writeheader()
         writer.writerows(history)
     partial.replace(run_dir / "progress.csv")
-    if any("eval_success" in row for row in history):
+    if "eval_success" in history[-1]:  # the picture changes only with a new evaluation
         from training.plots import plot_training
 
         plot_training(history, run_dir / "success.png", title)
