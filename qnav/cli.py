@@ -12,7 +12,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from contracts.errors import ConfigError
+from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from qnav import __version__
 
 Handler = Callable[[argparse.Namespace], int]
@@ -87,8 +87,15 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--policy",
         type=Path,
-        metavar="RUN_DIR",
-        help="a training run folder; without it the random agent acts",
+        metavar="RUN_DIR|FILE.onnx",
+        help="a training run folder (torch) or an exported policy file (the onboard runtime); "
+        "without it the random agent acts",
+    )
+    evaluate.add_argument(
+        "--backend",
+        default="onnxruntime",
+        choices=["onnxruntime", "numpy"],
+        help="runtime backend for a policy file (default onnxruntime)",
     )
     evaluate.add_argument(
         "--random-action-prob",
@@ -134,6 +141,22 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--run-dir", type=Path, help="run folder (default runs/SCENARIO/...)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(handler=_lazy("qnav.commands:train"))
+
+    export = verbs.add_parser(
+        "export", help="write a run's policy as one ONNX file with its contract, and test it"
+    )
+    export.add_argument("run", type=Path, help="training run folder")
+    export.add_argument(
+        "-o", "--output", type=Path, default=None, help="policy file (default RUN/policy.onnx)"
+    )
+    export.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=200,
+        help="test-protocol episodes run on the exported file and recorded in it (0: none)",
+    )
+    export.add_argument("--quiet", action="store_true", help="no progress bar")
+    export.set_defaults(handler=_lazy("qnav.commands:export"))
 
     calibrate = verbs.add_parser(
         "calibrate", help="random agent in each of the paper's scenarios, beside the paper's rows"
@@ -223,6 +246,23 @@ def build_parser() -> argparse.ArgumentParser:
     bench_learner.add_argument("--threads", type=int, default=2, help="torch threads (2)")
     bench_learner.add_argument("--json", action="store_true", help="print one JSON object")
     bench_learner.set_defaults(handler=_lazy("qnav.commands:bench_learner"))
+    bench_policy = benches.add_parser(
+        "policy", help="per-decision latency of the onboard runtime, per backend, one thread"
+    )
+    bench_policy.add_argument(
+        "--policy",
+        type=Path,
+        default=None,
+        help="policy file (default: an untrained paper-sized recurrent policy, exported here)",
+    )
+    bench_policy.add_argument(
+        "--backends", default="onnxruntime,numpy", help="comma-separated (onnxruntime,numpy)"
+    )
+    bench_policy.add_argument(
+        "--decisions", type=int, default=3000, help="timed decisions per backend (3000)"
+    )
+    bench_policy.add_argument("--json", action="store_true", help="print one JSON object")
+    bench_policy.set_defaults(handler=_lazy("qnav.commands:bench_policy"))
     return parser
 
 
@@ -231,7 +271,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.handler(args))
-    except ConfigError as error:
+    except (ConfigError, PolicyFileError, PolicyInputError) as error:
         print(f"qnav {args.verb}: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

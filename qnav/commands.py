@@ -9,7 +9,7 @@ from pathlib import Path
 
 from contracts.settings import load_toml, parse_assignments, with_overrides
 from sim.config import WorldConfig, load_world
-from sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent
+from sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
 from sim.evaluate import evaluate as run_evaluation
 
 
@@ -23,7 +23,23 @@ def evaluate(args: argparse.Namespace) -> int:
     )
     worlds = min(args.num_worlds, args.episodes)
     agent: Agent
-    if args.policy is None:
+    if args.policy is not None and args.policy.suffix == ".onnx":
+        from controller.policy import Expectation, PolicyRuntime
+
+        probe = PolicyRuntime(args.policy, backend=args.backend)
+        world = load_world(
+            args.scenario or probe.contract.scenario, args.world_config, args.assignments
+        )
+        expect = Expectation(
+            num_beams=world.lidar.num_beams if world.lidar else 0,
+            control_period_s=world.control_period_s,
+        )
+        runtime = PolicyRuntime(
+            args.policy, backend=args.backend, num_streams=worlds, expect=expect
+        )
+        agent = StreamPolicyAgent(runtime, worlds, args.random_action_prob, seed=args.seed)
+        label = f"policy file {args.policy} ({args.backend})"
+    elif args.policy is None:
         world = load_world(args.scenario or "walls-inertia", args.world_config, args.assignments)
         agent, label = (
             (RandomAgent(worlds, seed=args.seed), "random agent")
@@ -50,8 +66,8 @@ def evaluate(args: argparse.Namespace) -> int:
             seed=args.seed,
         )
         label = f"{run.train.model} policy {args.policy}"
-        if args.random_action_prob:
-            label += f" with {args.random_action_prob:.0%} random actions"
+    if args.random_action_prob:
+        label += f" with {args.random_action_prob:.0%} random actions"
     result = run_evaluation(world, agent, eval_settings, progress=not args.json)
     if args.json:
         print(json.dumps({k: v for k, v in asdict(result).items() if k != "mean_steps"}))
@@ -150,4 +166,51 @@ def figures(args: argparse.Namespace) -> int:
 
     for path in write_figures(args.run, args.out):
         print(f"wrote {path}")
+    return 0
+
+
+def export(args: argparse.Namespace) -> int:
+    """A run's network as one ONNX policy file, tested and stamped with its results."""
+    from training.export import export_run
+
+    output = args.output or args.run / "policy.onnx"
+    contract = export_run(
+        args.run, output, eval_episodes=args.eval_episodes, progress=not args.quiet
+    )
+    print(f"wrote {output} ({output.stat().st_size / 1e6:.1f} MB, weights inside)")
+    print(
+        f"  {contract.model_kind}, {contract.scenario}, window {contract.window_length}, "
+        f"{contract.num_beams} beams, period {contract.control_period_s} s"
+    )
+    if contract.evaluation:
+        e = contract.evaluation
+        print(
+            f"  this file under the test protocol ({int(e['episodes'])} episodes): success "
+            f"{e['success']:.3f}, collision {e['collision']:.3f}, unfinished {e['unfinished']:.3f}"
+        )
+    return 0
+
+
+def bench_policy(args: argparse.Namespace) -> int:
+    """Per-decision latency of each runtime backend."""
+    import tempfile
+
+    from controller.bench import format_report, run
+
+    with tempfile.TemporaryDirectory() as scratch:
+        policy = args.policy
+        if policy is None:
+            from sim.config import scenario
+            from training.export import export_onnx, policy_contract
+            from training.networks import QNetwork
+
+            world = scenario("obstacles-inertia")
+            network = QNetwork("recurrent", 720)
+            policy = Path(scratch) / "paper-sized.onnx"
+            contract = policy_contract(network, world, 5, "untrained (bench)", "")
+            export_onnx(network, contract, policy)
+        report = run(policy, args.backends.split(","), args.decisions)
+        if args.policy is None:
+            report["policy"] = "untrained paper-sized recurrent (720 beams, LSTM 512, k = 5)"
+    print(json.dumps(report) if args.json else format_report(report))
     return 0

@@ -7,7 +7,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.actions import forward_command, turn_command
+from contracts.actions import NUM_ACTIONS, forward_command, turn_command
 from sim.config import IncrementDynamics, InertiaDynamics
 
 F64 = NDArray[np.float64]
@@ -69,3 +69,22 @@ def move_obstacles(
 def wrap_angle(angle: F64) -> F64:
     """Angles wrapped to [-pi, pi)."""
     return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def action_velocities(
+    dynamics: InertiaDynamics | IncrementDynamics, period_s: float
+) -> list[tuple[float, float]]:
+    """(forward m/s, turn rad/s) each action commands, in `Action` order.
+
+    With inertia these are the steady velocities the lags approach; with increments, the step
+    spread over one control period (what a real car must do to match the simulator).
+    """
+    actions = np.arange(NUM_ACTIONS)
+    if isinstance(dynamics, InertiaDynamics):
+        speed, rate = dynamics.max_speed_mps, dynamics.max_turn_rate_radps
+    else:
+        speed, rate = dynamics.forward_step_m / period_s, dynamics.turn_step_rad / period_s
+    return [
+        (float(f * speed), float(t * rate))
+        for f, t in zip(forward_command(actions), turn_command(actions), strict=True)
+    ]

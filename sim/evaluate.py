@@ -78,6 +78,66 @@ class GoToTargetAgent:
         return np.where(ahead >= self.aligned_cos, Action.FORWARD, turn).astype(np.int64)
 
 
+class ExplorationHold:
+    """Epsilon-greedy over a greedy choice, each random choice held for `hold_steps` steps.
+
+    The paper explores this way in training (holding random choices for five steps); with
+    `hold_steps` = 1 it is the test of a policy with a chance of a random action at every step.
+    """
+
+    def __init__(self, num_worlds: int, epsilon: float, hold_steps: int, seed: int = 0) -> None:
+        self.epsilon = np.full(num_worlds, epsilon)
+        self.hold_steps = hold_steps
+        self.held_action = np.zeros(num_worlds, dtype=np.int64)
+        self.held_for = np.zeros(num_worlds, dtype=np.int64)
+        self.rng = np.random.default_rng(seed)
+
+    def start(self, worlds: NDArray[np.intp]) -> None:
+        """New episodes in these worlds: no random choice is held any more."""
+        self.held_for[worlds] = 0
+
+    def __call__(self, greedy: NDArray[np.int64]) -> NDArray[np.int64]:
+        """The action of each world: the greedy one, or a random one drawn or held."""
+        holding = self.held_for > 0
+        draw = ~holding & (self.rng.random(greedy.size) < self.epsilon)
+        self.held_action[draw] = self.rng.integers(0, NUM_ACTIONS, int(draw.sum()))
+        self.held_for[draw] = self.hold_steps
+        random = self.held_for > 0
+        self.held_for[random] -= 1
+        return np.where(random, self.held_action, greedy)
+
+
+class StreamPolicy(Protocol):
+    """A policy keeping one observation window per world (the onboard `PolicyRuntime`)."""
+
+    def reset(self, streams: NDArray[np.intp] | None = None) -> None:
+        """Episodes restart in these streams."""
+
+    def step_batch(
+        self, scan_m: NDArray[np.floating] | None, target_features: NDArray[np.floating]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+        """Push one observation per stream; greedy actions and Q values."""
+        ...
+
+
+class StreamPolicyAgent:
+    """A `StreamPolicy` acting in a batch of worlds, optionally with random test actions."""
+
+    def __init__(
+        self, policy: StreamPolicy, num_worlds: int, epsilon: float = 0.0, seed: int = 0
+    ) -> None:
+        self.policy = policy
+        self.exploration = ExplorationHold(num_worlds, epsilon, hold_steps=1, seed=seed)
+
+    def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
+        self.policy.reset(worlds)
+        self.exploration.start(worlds)
+
+    def act(self, observation: Observation) -> NDArray[np.int64]:
+        greedy, _ = self.policy.step_batch(observation.scan_m, observation.target_features())
+        return self.exploration(greedy)
+
+
 @dataclass(frozen=True)
 class EvalSettings:
     """How to run the test protocol."""

@@ -8,6 +8,7 @@ from numpy.typing import NDArray
 
 from contracts.actions import NUM_ACTIONS
 from contracts.observation import FrameWindow, encode_frame
+from sim.evaluate import ExplorationHold
 from sim.world import Observation
 from training.networks import QNetwork
 
@@ -39,16 +40,12 @@ class TorchAgent:
         self.max_range_m = max_range_m
         self.window = FrameWindow(num_worlds, network.frame_size, window)
         self.fresh = np.ones(num_worlds, dtype=bool)
-        self.epsilon = np.full(num_worlds, epsilon)
-        self.hold_steps = hold_steps
-        self.held_action = np.zeros(num_worlds, dtype=np.int64)
-        self.held_for = np.zeros(num_worlds, dtype=np.int64)
-        self.rng = np.random.default_rng(seed)
+        self.exploration = ExplorationHold(num_worlds, epsilon, hold_steps, seed)
         self.last_q = np.zeros((num_worlds, NUM_ACTIONS), dtype=np.float32)
 
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
         self.fresh[worlds] = True
-        self.held_for[worlds] = 0
+        self.exploration.start(worlds)
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
         frames = observation_frames(observation, self.max_range_m)
@@ -64,13 +61,4 @@ class TorchAgent:
             q = self.network(torch.from_numpy(self.window.frames).to(device)).cpu().numpy()
         self.last_q = q
         action = q.argmax(axis=1)
-        return self._explore(action)
-
-    def _explore(self, greedy: NDArray[np.int64]) -> NDArray[np.int64]:
-        holding = self.held_for > 0
-        draw = ~holding & (self.rng.random(greedy.size) < self.epsilon)
-        self.held_action[draw] = self.rng.integers(0, NUM_ACTIONS, int(draw.sum()))
-        self.held_for[draw] = self.hold_steps
-        random = self.held_for > 0
-        self.held_for[random] -= 1
-        return np.where(random, self.held_action, greedy)
+        return self.exploration(action)

@@ -14,13 +14,9 @@ from torch import Tensor, nn
 
 from contracts.actions import NUM_ACTIONS
 from contracts.observation import TARGET_FEATURES
+from contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
 
 ModelKind = Literal["recurrent", "feedforward"]
-
-CONV_CHANNELS = 8
-CONV_KERNEL = 6
-CONV_STRIDE = 3
-CONV_LAYERS = 3
 
 
 def conv_output_length(num_beams: int) -> int:

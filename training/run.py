@@ -20,6 +20,7 @@ import copy
 import csv
 import json
 import math
+import subprocess
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field, replace
@@ -274,9 +275,29 @@ def train(
         "collect_s": round(state.collect_s, 1),
         "train_s": round(state.train_s, 1),
         "eval_s": round(state.eval_s + time.perf_counter() - started, 1),
+        "commit": source_commit(),
     }
     results_path.write_text(json.dumps(results, indent=2) + "\n")
     return results
+
+
+def source_commit() -> str:
+    """The git revision of this source tree ("+dirty" if it has uncommitted changes)."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
 
 
 def _cpu_has_bf16() -> bool:
@@ -318,7 +339,7 @@ def _collect(
         hold_steps=settings.hold_steps,
         seed=settings.seed * 1_000_000 + round_index,
     )
-    agent.epsilon[:] = [settings.epsilon(int(i)) for i in ids]
+    agent.exploration.epsilon[:] = [settings.epsilon(int(i)) for i in ids]
     online.eval()
     return collect_round(world, agent, _TRAIN_LAYOUT_SEED + settings.seed, ids)
 

@@ -1,0 +1,125 @@
+"""The policy file's contract: what an exported ONNX policy takes, returns and promises.
+
+The exporter writes a `PolicyContract` into the ONNX file's metadata; the onboard runtime reads
+it back and configures itself from it (window length, beams, range scaling, control period,
+what each action means in m/s and rad/s), refusing a file that lacks it or does not fit.
+
+The graph's input is the window of frames produced by `contracts.observation.encode_frame`
+(scans in metres and target features go in there, and nowhere else, to be scaled and cleaned of
+inf and NaN); its output is the Q value of each action of `contracts.actions.Action`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+from contracts.actions import NUM_ACTIONS, Action
+from contracts.errors import PolicyFileError
+from contracts.observation import TARGET_FEATURES
+
+POLICY_FORMAT = "qnav-policy/1"
+"""Value of the `qnav.format` metadata key; a new major number means an incompatible layout."""
+
+INPUT_NAME = "frames"
+"""The graph's input: (batch, window_length, frame_size) float32 encoded frames."""
+
+OUTPUT_NAME = "q_values"
+"""The graph's output: (batch, 3) float32 Q values, indexed by `Action`."""
+
+BEAM_CONVENTION = "ccw-from-heading-0-to-2pi"
+"""Beam i points at i * 2*pi / num_beams radians, counter-clockwise from the robot's heading."""
+
+METADATA_PREFIX = "qnav."
+
+CONV_LAYERS, CONV_CHANNELS, CONV_KERNEL, CONV_STRIDE = 3, 8, 6, 3
+"""The paper's lidar encoder (3 x Conv1d, 8 channels, kernel 6, stride 3): the training network
+is built from these, and the numpy backend runs the file's weights with them."""
+
+
+@dataclass(frozen=True)
+class ActionVelocity:
+    """What one action commands, as a body velocity (REP 103: x forward, z up)."""
+
+    linear_mps: float
+    """Forward speed commanded."""
+    angular_radps: float
+    """Turn rate commanded, counter-clockwise positive."""
+
+
+@dataclass(frozen=True)
+class PolicyContract:
+    """Everything the runtime needs to feed a policy file and act on its output."""
+
+    model_kind: str
+    """recurrent (LSTM over the window) or feedforward (last frame only)."""
+    window_length: int
+    """Frames per input (the paper's k)."""
+    num_beams: int
+    """Lidar beams per frame; 0 for the lidar-less (pose and target only) policy."""
+    max_range_m: float
+    """Range that scans and target distances are divided by."""
+    control_period_s: float
+    """Time between decisions the policy was trained with."""
+    actions: tuple[ActionVelocity, ...]
+    """Velocity commanded by each action, in `Action` order (forward, left, right)."""
+    dynamics: str
+    """Dynamics model of the training world (inertia or increment)."""
+    scenario: str
+    """Name of the training world."""
+    training_run: str
+    """Run folder the weights came from."""
+    commit: str
+    """Source revision the policy was trained (or, failing that, exported) with."""
+    evaluation: Mapping[str, float] = field(default_factory=dict)
+    """Test-protocol results of this file (success, collision, unfinished, episodes)."""
+    beam_convention: str = BEAM_CONVENTION
+    """How beam indices map to angles."""
+    format: str = POLICY_FORMAT
+    """File layout version."""
+
+    def __post_init__(self) -> None:
+        if len(self.actions) != NUM_ACTIONS:
+            raise PolicyFileError(
+                f"actions lists {len(self.actions)} velocities; the action table has "
+                f"{NUM_ACTIONS} ({', '.join(a.name.lower() for a in Action)})"
+            )
+
+    @property
+    def frame_size(self) -> int:
+        """Values per encoded frame: the beams, then the target features."""
+        return self.num_beams + TARGET_FEATURES
+
+    def to_metadata(self) -> dict[str, str]:
+        """ONNX metadata entries: one `qnav.<field>` key per field, each value JSON."""
+        return {METADATA_PREFIX + name: json.dumps(value) for name, value in asdict(self).items()}
+
+    @classmethod
+    def from_metadata(cls, metadata: Mapping[str, str], source: str) -> PolicyContract:
+        """Read the contract back; `source` names the file in errors."""
+        if METADATA_PREFIX + "format" not in metadata:
+            raise PolicyFileError(
+                f"{source} is not a qnav policy: its metadata has no '{METADATA_PREFIX}format' "
+                "entry (export policies with `qnav export`)"
+            )
+        found = metadata[METADATA_PREFIX + "format"]
+        if json.loads(found) != POLICY_FORMAT:
+            raise PolicyFileError(
+                f"{source} has policy format {found}; this runtime reads {POLICY_FORMAT!r}"
+            )
+        values: dict[str, Any] = {}
+        for spec in fields(cls):
+            key = METADATA_PREFIX + spec.name
+            if key not in metadata:
+                raise PolicyFileError(f"{source} lacks the metadata entry '{key}'")
+            try:
+                values[spec.name] = json.loads(metadata[key])
+            except json.JSONDecodeError as error:
+                raise PolicyFileError(f"{source}: metadata '{key}' is not JSON: {error}") from None
+        try:
+            values["actions"] = tuple(ActionVelocity(**a) for a in values["actions"])
+            return cls(**values)
+        except TypeError as error:
+            raise PolicyFileError(f"{source}: malformed metadata: {error}") from None

@@ -1,0 +1,87 @@
+"""Zenoh session settings shared by every daemon (controller, bridge, sim-car, recorder).
+
+Defaults keep a session on this machine: listen on a loopback endpoint or connect to one, with
+multicast scouting off, so nothing is exposed or discovered by accident. A zenoh configuration
+file, when given, is used as is (TLS, access control, routers): mode, endpoints and scouting
+then come from it, and only `extra` is applied over it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from contracts.errors import ConfigError
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+"""Where the first daemon listens and the others connect, unless configured otherwise."""
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """How a daemon joins the zenoh network."""
+
+    SECTION = "zenoh"
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    """Zenoh session mode."""
+    listen: tuple[str, ...] = ()
+    """Endpoints to listen on, e.g. tcp/127.0.0.1:7447 (none: listen nowhere)."""
+    connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    """Endpoints to connect to (a router, or a peer that listens)."""
+    multicast_scouting: bool = False
+    """Discover peers by UDP multicast (off: only the endpoints above are used)."""
+    namespace: str = ""
+    """Prefix of every key, as zenoh-bridge-ros2dds's namespace (e.g. car1)."""
+    config_file: str = ""
+    """A zenoh JSON5 configuration file used as is (mode, endpoints, scouting come from it)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Further zenoh settings by path, e.g. {"transport/unicast/lowlatency" = true}."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("peer", "client", "router"):
+            raise ConfigError(f"zenoh.mode = {self.mode!r} is not one of peer, client, router")
+        for name in ("listen", "connect"):
+            for endpoint in getattr(self, name):
+                if "/" not in endpoint:
+                    raise ConfigError(
+                        f"zenoh.{name} endpoint {endpoint!r} is not of the form "
+                        "PROTOCOL/ADDRESS:PORT (e.g. tcp/127.0.0.1:7447)"
+                    )
+        if self.config_file and not Path(self.config_file).is_file():
+            raise ConfigError(f"zenoh.config_file {self.config_file!r} does not exist")
+
+
+def zenoh_config(settings: ZenohSettings) -> Any:
+    """A `zenoh.Config` for these settings."""
+    import zenoh
+
+    if settings.config_file:
+        config = zenoh.Config.from_file(settings.config_file)
+    else:
+        config = zenoh.Config()
+        config.insert_json5("mode", json.dumps(settings.mode))
+        config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
+        config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
+        config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    for path, value in settings.extra.items():
+        try:
+            config.insert_json5(path, json.dumps(value))
+        except Exception as error:  # zenoh raises its own error type
+            raise ConfigError(f"zenoh.extra[{path!r}] = {value!r} is refused: {error}") from None
+    return config
+
+
+def open_session(settings: ZenohSettings) -> Any:
+    """An open zenoh session (close it, or use it in a `with` block)."""
+    import zenoh
+
+    try:
+        return zenoh.open(zenoh_config(settings))
+    except Exception as error:
+        raise ConfigError(
+            f"cannot open a zenoh session (listen {list(settings.listen)}, "
+            f"connect {list(settings.connect)}): {error}"
+        ) from None
