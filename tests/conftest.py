@@ -1,0 +1,60 @@
+"""Shared fixtures: exported policy files (real ONNX, made once per test session)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pytest
+
+if TYPE_CHECKING:
+    from sim.config import WorldConfig
+    from training.networks import QNetwork
+
+PolicyFactory = Callable[..., Path]
+
+
+@pytest.fixture(scope="session")
+def make_policy(tmp_path_factory: pytest.TempPathFactory) -> PolicyFactory:
+    """`make_policy(scenario, kind, hidden_size, seed)` -> an untrained exported policy file.
+
+    Files are cached for the session: exporting takes seconds. Weights come from
+    `torch.manual_seed(seed)`, so a test can rebuild the same torch network with
+    `policy_network(...)`.
+    """
+    cache: dict[tuple[str, str, int, int], Path] = {}
+    root = tmp_path_factory.mktemp("policies")
+
+    def make(
+        scenario: str = "walls-inertia",
+        kind: str = "recurrent",
+        hidden_size: int = 64,
+        seed: int = 0,
+    ) -> Path:
+        spec = (scenario, kind, hidden_size, seed)
+        if spec not in cache:
+            from training.export import export_onnx, policy_contract
+
+            world, network = policy_network(*spec)
+            path = root / f"{scenario}-{kind}-h{hidden_size}-s{seed}.onnx"
+            export_onnx(network, policy_contract(network, world, 5, "tests", "test"), path)
+            cache[spec] = path
+        return cache[spec]
+
+    return make
+
+
+def policy_network(
+    scenario: str, kind: str, hidden_size: int, seed: int
+) -> tuple[WorldConfig, QNetwork]:
+    """The world and the (untrained, seeded) torch network behind `make_policy`'s file."""
+    import torch
+
+    from sim.config import scenario as load_scenario
+    from training.networks import QNetwork
+
+    world = load_scenario(scenario)
+    torch.manual_seed(seed)
+    beams = world.lidar.num_beams if world.lidar else None
+    return world, QNetwork(kind, beams, hidden_size).eval()  # type: ignore[arg-type]
