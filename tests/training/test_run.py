@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 
 from contracts.errors import ConfigError
+from contracts.policy_file import PolicyContract
+from controller.onnx_file import read_onnx
 from sim.config import scenario
 from training.config import FAST
 from training.episode_log import read_rounds
@@ -57,6 +59,38 @@ def test_a_run_writes_settings_progress_model_and_results(tmp_path: Path) -> Non
     )  # fmt: skip
     assert policy.returncode == 0, policy.stderr
     assert json.loads(policy.stdout)["episodes"] == 3
+
+
+def test_an_exported_run_scores_what_its_torch_network_scores(tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    trained = subprocess.run(
+        _train_command(run_dir, 8), capture_output=True, text=True, timeout=300, check=False
+    )
+    assert trained.returncode == 0, trained.stderr
+    policy = tmp_path / "policy.onnx"
+    exported = subprocess.run(
+        [sys.executable, "-m", "qnav", "export", str(run_dir), "-o", str(policy),
+         "--eval-episodes", "6", "--quiet"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert exported.returncode == 0, exported.stderr
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("policy")] == ["policy.onnx"]
+    contract = PolicyContract.from_metadata(read_onnx(policy).metadata, "policy")
+    assert contract.training_run == str(run_dir)
+    assert contract.evaluation["episodes"] == 6
+
+    def evaluate(target: Path, *extra: str) -> dict[str, float]:
+        done = subprocess.run(
+            [sys.executable, "-m", "qnav", "eval", "--policy", str(target), "--episodes", "6",
+             "--max-steps", "60", "--json", *extra],
+            capture_output=True, text=True, timeout=300, check=False,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        return dict(json.loads(done.stdout))
+
+    from_torch = evaluate(run_dir)
+    assert evaluate(policy) == from_torch
+    assert evaluate(policy, "--backend", "numpy") == from_torch
 
 
 def test_a_killed_run_resumes_without_losing_a_completed_episode(tmp_path: Path) -> None:

@@ -1,0 +1,119 @@
+"""The onboard policy runtime: refuses what is not ours or does not fit, and never returns NaN."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+
+from contracts.errors import PolicyFileError, PolicyInputError
+from controller.policy import Expectation, PolicyRuntime
+from tests.conftest import PolicyFactory
+
+BEAMS = 720
+
+
+@pytest.fixture(params=["onnxruntime", "numpy"])
+def runtime(request: pytest.FixtureRequest, make_policy: PolicyFactory) -> PolicyRuntime:
+    return PolicyRuntime(make_policy("walls-inertia"), backend=request.param)
+
+
+def _features() -> np.ndarray:
+    return np.array([2.0, 0.6, 0.8])
+
+
+def test_a_file_that_is_not_onnx_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "junk.onnx"
+    path.write_bytes(b"\xff" * 64)
+    with pytest.raises(PolicyFileError, match=r"junk\.onnx"):
+        PolicyRuntime(path)
+
+
+def test_an_onnx_model_without_our_metadata_is_not_a_policy(tmp_path: Path) -> None:
+    graph = onnx.helper.make_graph(
+        [onnx.helper.make_node("Identity", ["x"], ["y"])],
+        "plain",
+        [onnx.helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+        [onnx.helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])],
+    )
+    path = tmp_path / "plain.onnx"
+    onnx.save(onnx.helper.make_model(graph), str(path))
+    with pytest.raises(PolicyFileError, match="not a qnav policy"):
+        PolicyRuntime(path)
+
+
+def test_a_missing_metadata_entry_is_named(make_policy: PolicyFactory, tmp_path: Path) -> None:
+    model = onnx.load(str(make_policy("walls-inertia")))
+    kept = [p for p in model.metadata_props if p.key != "qnav.window_length"]
+    del model.metadata_props[:]
+    model.metadata_props.extend(kept)
+    path = tmp_path / "incomplete.onnx"
+    onnx.save(model, str(path))
+    with pytest.raises(PolicyFileError, match=r"qnav\.window_length"):
+        PolicyRuntime(path)
+
+
+@pytest.mark.parametrize(
+    ("expect", "named"),
+    [
+        (Expectation(num_beams=360), "num_beams is 720 in the file but 360 here"),
+        (Expectation(window_length=8), "window_length is 5 in the file but 8 here"),
+        (Expectation(num_beams=0), "num_beams is 720 in the file but 0 here"),
+    ],
+)
+def test_a_policy_that_does_not_fit_the_inputs_is_refused_at_load(
+    make_policy: PolicyFactory, expect: Expectation, named: str
+) -> None:
+    with pytest.raises(PolicyFileError, match=named):
+        PolicyRuntime(make_policy("walls-inertia"), expect=expect)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, -3.0, 1e30])
+def test_non_finite_or_negative_ranges_never_give_nan_q_values(
+    runtime: PolicyRuntime, bad: float
+) -> None:
+    scan = np.full(BEAMS, 3.0, dtype=np.float32)
+    scan[::7] = bad
+    decision = runtime.step(scan, _features())
+    assert np.isfinite(decision.q_values).all()
+
+
+def test_no_return_reads_as_maximum_range_and_negative_as_zero(runtime: PolicyRuntime) -> None:
+    max_range = runtime.contract.max_range_m
+    as_inf = runtime.encode(np.full((1, BEAMS), np.inf), _features()[None])
+    as_max = runtime.encode(np.full((1, BEAMS), max_range), _features()[None])
+    np.testing.assert_array_equal(as_inf, as_max)
+    as_negative = runtime.encode(np.full((1, BEAMS), -1.0), _features()[None])
+    assert (as_negative[0, :BEAMS] == 0.0).all()
+
+
+@pytest.mark.parametrize("beams", [0, 360, 721])
+def test_a_scan_of_the_wrong_length_is_refused(runtime: PolicyRuntime, beams: int) -> None:
+    with pytest.raises(PolicyInputError, match="720 beams"):
+        runtime.step(np.ones(beams), _features())
+
+
+def test_non_finite_target_features_are_refused(runtime: PolicyRuntime) -> None:
+    with pytest.raises(PolicyInputError, match="NaN or inf"):
+        runtime.step(np.ones(BEAMS), np.array([np.nan, 0.0, 1.0]))
+
+
+def test_the_window_restarts_padded_with_the_first_frame(runtime: PolicyRuntime) -> None:
+    near, far = np.full(BEAMS, 1.0), np.full(BEAMS, 9.0)
+    first = runtime.step(near, _features())
+    for _ in range(4):
+        runtime.step(far, _features())
+    runtime.reset()
+    again = runtime.step(near, _features())
+    np.testing.assert_allclose(again.q_values, first.q_values, rtol=0, atol=1e-6)
+    assert (runtime.window.frames[0, :, :BEAMS] == np.float32(1.0 / 20.0)).all()
+
+
+def test_the_lidarless_policy_takes_pose_and_target_only(make_policy: PolicyFactory) -> None:
+    runtime = PolicyRuntime(make_policy("toycar-inertia"), expect=Expectation(num_beams=0))
+    decision = runtime.step(None, _features())
+    assert np.isfinite(decision.q_values).all()
+    with pytest.raises(PolicyInputError, match="no lidar"):
+        runtime.step(np.ones(BEAMS), _features())
