@@ -40,6 +40,8 @@ POSE = Topic("pose", "geometry_msgs/msg/PoseStamped")
 TARGET_POSE = Topic("goal_pose", "geometry_msgs/msg/PoseStamped")
 TARGET_POINT = Topic("goal_point", "geometry_msgs/msg/PointStamped")
 ESTOP = Topic("estop", "std_msgs/msg/Bool")
+ESTOP_RELEASE = Topic("qnav/estop_release", "std_msgs/msg/Bool")
+"""A Bool true here asks the controller to release its latched emergency stop."""
 COMMAND = Topic("cmd_vel", "geometry_msgs/msg/Twist")
 CONTROLLER_STATUS = Topic("qnav/controller_status", "std_msgs/msg/String")
 VEHICLE_STATE = Topic("qnav/vehicle_state", "std_msgs/msg/String")
@@ -51,6 +53,7 @@ TOPICS = (
     TARGET_POSE,
     TARGET_POINT,
     ESTOP,
+    ESTOP_RELEASE,
     COMMAND,
     CONTROLLER_STATUS,
     VEHICLE_STATE,

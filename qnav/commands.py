@@ -198,19 +198,41 @@ def bench_policy(args: argparse.Namespace) -> int:
     from controller.bench import format_report, run
 
     with tempfile.TemporaryDirectory() as scratch:
-        policy = args.policy
-        if policy is None:
-            from sim.config import scenario
-            from training.export import export_onnx, policy_contract
-            from training.networks import QNetwork
-
-            world = scenario("obstacles-inertia")
-            network = QNetwork("recurrent", 720)
-            policy = Path(scratch) / "paper-sized.onnx"
-            contract = policy_contract(network, world, 5, "untrained (bench)", "")
-            export_onnx(network, contract, policy)
+        policy = args.policy or _paper_sized_policy(Path(scratch))
         report = run(policy, args.backends.split(","), args.decisions)
         if args.policy is None:
-            report["policy"] = "untrained paper-sized recurrent (720 beams, LSTM 512, k = 5)"
+            report["policy"] = PAPER_SIZED
+    print(json.dumps(report) if args.json else format_report(report))
+    return 0
+
+
+PAPER_SIZED = "untrained paper-sized recurrent (720 beams, LSTM 512, k = 5)"
+
+
+def _paper_sized_policy(folder: Path) -> Path:
+    """An untrained policy file of the paper's size (the benches time its arithmetic)."""
+    from sim.config import scenario
+    from training.export import export_onnx, policy_contract
+    from training.networks import QNetwork
+
+    world = scenario("obstacles-inertia")
+    network = QNetwork("recurrent", 720)
+    policy = folder / "paper-sized.onnx"
+    export_onnx(network, policy_contract(network, world, 5, "untrained (bench)", ""), policy)
+    return policy
+
+
+def bench_controller(args: argparse.Namespace) -> int:
+    """End-to-end latency of the controller daemon: scan published -> command received."""
+    import tempfile
+
+    from controller.bench_e2e import format_report, run
+
+    rates = [float(r) for r in args.rates.split(",")]
+    with tempfile.TemporaryDirectory() as scratch:
+        policy = args.policy or _paper_sized_policy(Path(scratch))
+        report = run(policy, rates, args.seconds)
+        if args.policy is None:
+            report["policy"] = PAPER_SIZED
     print(json.dumps(report) if args.json else format_report(report))
     return 0

@@ -1,0 +1,273 @@
+"""`qnav bench controller`: end-to-end latency of the daemon, in three processes on loopback.
+
+1. The daemon, started as a user starts it (`qnav controller --config FILE`), with
+   `trigger = "scan"` so that a decision follows each scan's arrival, listening on a loopback
+   port with scouting off.
+2. A publisher process: a target, then at the chosen rate a pose and a 720-reading LaserScan
+   over [-pi, pi) (so the resampling is timed too), each scan stamped with the monotonic clock
+   just before it is encoded and published.
+3. This process: subscribes to the command and the status. Every command is followed by its
+   status, which names the scan the decision used (`scan_stamp_s`); the latency of a scan is
+   the command's arrival (monotonic, taken in the zenoh callback) minus that stamp. Linux's
+   monotonic clock is shared by all processes of the machine.
+
+So one figure covers: encoding the scan, zenoh to the daemon, decoding, resampling, the
+policy's step (onnxruntime, one thread), encoding the Twist, zenoh to the receiver. The
+daemon's own share (`loop.decide_ms` in status: decide and publish) is reported beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from contracts import wire
+from contracts.settings import to_toml
+from contracts.transport import ZenohSettings, open_session
+from controller.config import ControllerSettings, DaemonConfig, SafetySettings
+
+_ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+WARMUP_S = 1.0
+"""Scans published before the timed ones, to let connections and caches settle."""
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+def daemon_config(policy: Path, endpoint: str) -> DaemonConfig:
+    """The daemon's settings for the bench: decide on scan arrival, listen on `endpoint`."""
+    return DaemonConfig(
+        controller=ControllerSettings(policy=str(policy), trigger="scan", log_level="warning"),
+        safety=SafetySettings(scan_timeout_s=1.0, pose_timeout_s=1.0),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+    )
+
+
+def publish(endpoint: str, rate_hz: float, count: int, beams: int) -> float:
+    """Publish a target, then `count` (pose, scan) pairs at `rate_hz`, warm-up first.
+
+    Returns the stamp of the first timed scan."""
+    rng = np.random.default_rng(0)
+    ranges = rng.uniform(0.3, 8.0, size=(16, beams)).astype(np.float32)
+    session = open_session(ZenohSettings(connect=(endpoint,)))
+    import zenoh
+
+    try:
+        options: dict[str, Any] = {
+            "congestion_control": zenoh.CongestionControl.BLOCK,
+            "express": True,
+        }
+        scan_pub = session.declare_publisher(wire.key(wire.SCAN), **options)
+        pose_pub = session.declare_publisher(wire.key(wire.POSE), **options)
+        target_pub = session.declare_publisher(wire.key(wire.TARGET_POSE), **options)
+        target = wire.encode_pose_msg(wire.Pose2D(0.0, "map", 8.0, 8.0))
+        period = 1.0 / rate_hz
+        warmup = max(3, math.ceil(WARMUP_S * rate_hz))
+        first_timed = math.nan
+        deadline = time.monotonic() + 0.2
+        for i in range(warmup + count):
+            time.sleep(max(0.0, deadline - time.monotonic()))
+            deadline += period
+            if i % max(1, round(rate_hz / 2)) == 0:
+                target_pub.put(target)
+            now = time.monotonic()
+            pose_pub.put(wire.encode_pose_msg(wire.Pose2D(now, "map", 1.0, 1.0, 0.3)))
+            stamp = time.monotonic()
+            scan = wire.Scan(
+                stamp, "laser", -math.pi, 2 * math.pi / beams, 0.1, 30.0, ranges[i % 16]
+            )
+            scan_pub.put(wire.encode_scan_msg(scan))
+            if i == warmup:
+                first_timed = stamp
+        time.sleep(0.3)
+        return first_timed
+    finally:
+        session.close()
+
+
+class Receiver:
+    """Commands and statuses in arrival order, stamped in the zenoh callback."""
+
+    def __init__(self, endpoint: str) -> None:
+        import zenoh
+
+        self.lock = threading.Lock()
+        self.events: list[tuple[str, float, bytes]] = []
+        self.session = open_session(ZenohSettings(connect=(endpoint,)))
+        self.subscribers = [
+            self.session.declare_subscriber(
+                wire.key(topic), zenoh.handlers.Callback(self._on(kind), indirect=False)
+            )
+            for kind, topic in (("command", wire.COMMAND), ("status", wire.CONTROLLER_STATUS))
+        ]
+
+    def _on(self, kind: str) -> Any:
+        def on_sample(sample: Any) -> None:
+            arrived = time.monotonic()
+            with self.lock:
+                self.events.append((kind, arrived, sample.payload.to_bytes()))
+
+        return on_sample
+
+    def take(self) -> list[tuple[str, float, bytes]]:
+        """Events so far (and forget them)."""
+        with self.lock:
+            events, self.events = self.events, []
+        return events
+
+    def close(self) -> None:
+        """Close the session."""
+        self.session.close()
+
+
+def latencies(
+    events: list[tuple[str, float, bytes]], since: float
+) -> tuple[list[float], list[float]]:
+    """(scan publish -> command arrival, daemon decide-and-publish) in ms for each policy
+    decision on a scan stamped at or after `since`."""
+    end_to_end, daemon = [], []
+    last_command: float | None = None
+    seen: set[float] = set()
+    for kind, arrived, payload in events:
+        if kind == "command":
+            last_command = arrived
+            continue
+        status = wire.decode_json_msg(payload)
+        stamp = status.get("scan_stamp_s")
+        if status["reason"] != "policy" or stamp is None or stamp < since or stamp in seen:
+            continue
+        if last_command is None:
+            continue
+        seen.add(stamp)
+        end_to_end.append((last_command - stamp) * 1e3)
+        daemon.append(float(status["loop"]["decide_ms"]))
+    return end_to_end, daemon
+
+
+def run(policy: Path, rates: list[float], seconds: float) -> dict[str, Any]:
+    """Start the daemon, time each rate, stop the daemon; the report as a dict."""
+    from controller.policy import PolicyRuntime
+
+    beams = PolicyRuntime(policy, backend="numpy").contract.num_beams
+    if not beams:
+        raise ValueError("the bench needs a policy that reads a lidar")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = os.environ | _ONE_THREAD
+    results = []
+    with tempfile.TemporaryDirectory() as scratch:
+        config = Path(scratch) / "controller.toml"
+        config.write_text(to_toml(daemon_config(policy.resolve(), endpoint)))
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "qnav", "controller", "--config", str(config)], env=env
+        )
+        receiver = Receiver(endpoint)
+        try:
+            _wait_for_status(receiver, daemon)
+            for rate in rates:
+                count = max(10, round(seconds * rate))
+                receiver.take()
+                done = subprocess.run(
+                    [
+                        sys.executable,
+                        "-m",
+                        "controller.bench_e2e",
+                        endpoint,
+                        str(rate),
+                        str(count),
+                        str(beams),
+                    ],
+                    env=env,
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
+                since = float(done.stdout.strip())
+                ms, daemon_ms = latencies(receiver.take(), since)
+                results.append(_summary(rate, count, ms, daemon_ms))
+        finally:
+            daemon.terminate()
+            daemon.wait(timeout=30)
+            receiver.close()
+    return {
+        "measured": "scan publish (publisher process) -> command arrival (receiver process), "
+        "loopback, daemon with trigger = scan",
+        "policy": str(policy),
+        "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "results": results,
+    }
+
+
+def _wait_for_status(receiver: Receiver, daemon: subprocess.Popen[bytes]) -> None:
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline:
+        if daemon.poll() is not None:
+            raise RuntimeError(f"the controller daemon exited with {daemon.returncode}")
+        if any(kind == "status" for kind, _, _ in receiver.take()):
+            return
+        time.sleep(0.05)
+    raise RuntimeError("no status from the controller daemon within 60 s")
+
+
+def _summary(rate: float, scans: int, ms: list[float], daemon_ms: list[float]) -> dict[str, Any]:
+    values = np.asarray(ms) if ms else np.full(1, np.nan)
+    inside = np.asarray(daemon_ms) if daemon_ms else np.full(1, np.nan)
+
+    def stat(array: np.ndarray[Any, Any], q: float) -> float:
+        return round(float(np.percentile(array, q)), 3)
+
+    return {
+        "rate_hz": rate,
+        "p50_ms": stat(values, 50),
+        "p99_ms": stat(values, 99),
+        "max_ms": round(float(values.max()), 3),
+        "scans": scans,
+        "commands": len(ms),
+        "daemon_p50_ms": stat(inside, 50),
+        "daemon_p99_ms": stat(inside, 99),
+    }
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """A table of the rates' latencies."""
+    lines = [
+        f"end to end: {report['measured']}",
+        f"policy {report['policy']}",
+        f"{'rate Hz':>8} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'commands':>9} "
+        f"{'daemon p50':>11} {'daemon p99':>11}",
+    ]
+    for r in report["results"]:
+        lines.append(
+            f"{r['rate_hz']:>8g} {r['p50_ms']:>8.3f} {r['p99_ms']:>8.3f} {r['max_ms']:>8.3f} "
+            f"{r['commands']:>4}/{r['scans']:<4} {r['daemon_p50_ms']:>11.3f} "
+            f"{r['daemon_p99_ms']:>11.3f}"
+        )
+    lines.append("goal: p99 <= 3 ms")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description="publisher of `qnav bench controller`")
+    parser.add_argument("endpoint")
+    parser.add_argument("rate", type=float)
+    parser.add_argument("count", type=int)
+    parser.add_argument("beams", type=int)
+    args = parser.parse_args()
+    print(publish(args.endpoint, args.rate, args.count, args.beams))

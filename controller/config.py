@@ -1,0 +1,185 @@
+"""Settings of the controller daemon (`qnav controller --config FILE`).
+
+A settings file has one table per section below; every key is optional except
+`controller.policy`. `qnav controller --example-config` prints them all with their meanings, and
+`config/controller.toml` is that output, commented.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+from contracts import wire
+from contracts.errors import ConfigError
+from contracts.settings import check_range, from_dict, load_toml, parse_assignments, with_overrides
+from contracts.transport import ZenohSettings
+from controller.scan import BelowRangeMin
+
+Trigger = Literal["period", "scan"]
+TargetKind = Literal["pose", "point"]
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """The policy to run and how the daemon paces its decisions."""
+
+    SECTION = "controller"
+
+    policy: str = ""
+    """The exported policy file (ONNX); a relative path is taken from the settings file's folder."""
+    backend: Literal["onnxruntime", "numpy"] = "onnxruntime"
+    """Runtime backend: onnxruntime, or numpy on boards without an onnxruntime wheel."""
+    trigger: Trigger = "period"
+    """When to decide: "period" (every control period of the policy, on absolute monotonic
+    deadlines, with the newest inputs) or "scan" (as soon as a scan arrives; the safety rules are
+    still checked every period). Use "scan" only with a lidar that runs at the policy's rate."""
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    """Logging threshold."""
+    log_interval_s: float = 5.0
+    """Malformed-input warnings of one input are logged at most once per this interval (the
+    rest are counted and summarised in the next warning)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "log_interval_s", self.log_interval_s, 0.0, 3600.0)
+
+
+@dataclass(frozen=True)
+class LidarSettings:
+    """How a scan of any lidar becomes the policy's beams (docs/controller.md: resampling)."""
+
+    SECTION = "lidar"
+
+    mount_yaw_rad: float = 0.0
+    """Yaw of the lidar's x axis from the car's heading, counter-clockwise (pi: facing back)."""
+    frame_id: str = ""
+    """Required header frame_id of scans ("": any); a scan in another frame is malformed."""
+    below_range_min: BelowRangeMin = "invalid"
+    """Finite readings below the scan's range_min (0 included): "invalid" (ignored, like NaN),
+    "no_return" (drivers that write 0 for no echo) or "obstacle" (read as 0 m)."""
+    uncovered_range_m: float = math.inf
+    """Range of a policy beam that no valid reading covers (outside a partial field of view, or
+    only invalid readings): inf reads as no return, 0 as blocked."""
+    max_invalid_fraction: float = 0.5
+    """A scan with a larger fraction of invalid readings is malformed (not used), so a failing
+    lidar stops the car through the scan timeout."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "mount_yaw_rad", self.mount_yaw_rad, -2 * math.pi, 2 * math.pi)
+        if math.isnan(self.uncovered_range_m) or self.uncovered_range_m < 0:
+            raise ConfigError(
+                f"lidar.uncovered_range_m = {self.uncovered_range_m!r} is out of range: "
+                "allowed [0, inf]"
+            )
+        check_range(self, "max_invalid_fraction", self.max_invalid_fraction, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class SafetySettings:
+    """When the controller stops the car instead of asking the policy."""
+
+    SECTION = "safety"
+
+    scan_timeout_s: float = 0.0
+    """A scan older than this (since it arrived) stops the car; 0: two control periods."""
+    pose_timeout_s: float = 0.0
+    """A pose older than this (since it arrived) stops the car; 0: two control periods."""
+    target_kind: TargetKind = "pose"
+    """Target message: "pose" (geometry_msgs/PoseStamped) or "point" (PointStamped)."""
+    target_tolerance_m: float = 0.5
+    """The target is reached within this distance (the simulator's reach radius is 0.5 m); the car
+    then stops until a different target arrives."""
+    frame_id: str = ""
+    """Required header frame_id of poses and targets ("": any, but the two must agree when both
+    name one); a pose or target in another frame is malformed."""
+    estop_start_latched: bool = False
+    """Start with the emergency stop latched, so that the car moves only after a release."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "scan_timeout_s", self.scan_timeout_s, 0.0, 60.0)
+        check_range(self, "pose_timeout_s", self.pose_timeout_s, 0.0, 60.0)
+        check_range(
+            self, "target_tolerance_m", self.target_tolerance_m, 0.0, 100.0, exclusive_low=True
+        )
+
+
+@dataclass(frozen=True)
+class TopicSettings:
+    """ROS topic names (without namespace); zenoh keys are `[zenoh.namespace/]NAME`, as
+    zenoh-bridge-ros2dds maps them."""
+
+    SECTION = "topics"
+
+    scan: str = wire.SCAN.name
+    """Lidar scans in (sensor_msgs/msg/LaserScan)."""
+    pose: str = wire.POSE.name
+    """Motion-capture poses in (geometry_msgs/msg/PoseStamped)."""
+    target: str = ""
+    """Targets in ("": goal_pose for safety.target_kind = "pose", goal_point for "point")."""
+    estop: str = wire.ESTOP.name
+    """Emergency stop in (std_msgs/msg/Bool: true presses it)."""
+    estop_release: str = wire.ESTOP_RELEASE.name
+    """Release requests in (std_msgs/msg/Bool: true asks to release a latched emergency stop)."""
+    command: str = wire.COMMAND.name
+    """Motor commands out (geometry_msgs/msg/Twist: linear.x, angular.z)."""
+    status: str = wire.CONTROLLER_STATUS.name
+    """Status out (std_msgs/msg/String holding one JSON object per decision)."""
+
+    def __post_init__(self) -> None:
+        for name in ("scan", "pose", "estop", "estop_release", "command", "status"):
+            value = getattr(self, name)
+            if not value.strip("/") or any(c in value for c in "*$?# "):
+                raise ConfigError(f"topics.{name} = {value!r} is not a usable topic name")
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    """Everything `qnav controller` reads from its settings file."""
+
+    SECTION = ""
+
+    controller: ControllerSettings = field(default_factory=ControllerSettings)
+    """The policy and the pacing."""
+    lidar: LidarSettings = field(default_factory=LidarSettings)
+    """Scan resampling."""
+    safety: SafetySettings = field(default_factory=SafetySettings)
+    """Stop rules."""
+    topics: TopicSettings = field(default_factory=TopicSettings)
+    """Topic names."""
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    """How to join the zenoh network."""
+
+    def target_topic(self) -> wire.Topic:
+        """The target topic, named by `topics.target` or by the target kind."""
+        topic = wire.TARGET_POSE if self.safety.target_kind == "pose" else wire.TARGET_POINT
+        return wire.Topic(self.topics.target or topic.name, topic.ros_type)
+
+    def policy_path(self) -> Path:
+        """The policy file; ConfigError naming `controller.policy` if unset or missing."""
+        if not self.controller.policy:
+            raise ConfigError("controller.policy is not set: name the exported policy file")
+        path = Path(self.controller.policy)
+        if not path.is_file():
+            raise ConfigError(f"controller.policy = {str(path)!r}: no such file")
+        return path
+
+
+def load_config(path: Path | None, assignments: list[str] | None = None) -> DaemonConfig:
+    """Settings from a TOML file (defaults without one) and `section.field=value` overrides.
+
+    A relative `controller.policy` in the file is taken from the file's folder.
+    """
+    config = DaemonConfig()
+    if path is not None:
+        config = from_dict(DaemonConfig, load_toml(path))
+        policy = config.controller.policy
+        if policy and not Path(policy).is_absolute():
+            config = replace(
+                config,
+                controller=replace(config.controller, policy=str(path.parent / policy)),
+            )
+    if assignments:
+        config = with_overrides(config, parse_assignments(assignments))
+    return config

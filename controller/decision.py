@@ -1,0 +1,462 @@
+"""The controller's decision logic, without any I/O: inputs in, a command and a status out.
+
+`Controller` is what the daemon runs between zenoh and the car, and what playback of a recording
+and the sim-in-the-loop stack run the same way. It holds the newest input of each kind with the
+monotonic time it arrived, and the policy's k-frame window; it reads no clock, opens no socket
+and writes no log: callers pass the time and do the I/O.
+
+    controller = Controller(PolicyRuntime("policy.onnx"), SafetySettings(), LidarSettings())
+    controller.receive(Input.SCAN, cdr_bytes, now)      # raw payloads, as they come off the wire
+    controller.on_pose(Pose2D(...), now)                  # or values already decoded
+    output = controller.decide(now)                       # once per control period
+    publish(output.command, output.status.to_dict())
+
+Safety rules, checked in this order by `decide` (the first that applies names the stop in
+`status.reason`; every stop also restarts the policy's window, so a resumed run starts a fresh
+episode):
+
+1. `estop_latched`: an emergency stop was pressed (Bool true on the estop topic), and has not
+   been released on purpose: a release request (Bool true on the release topic) is honoured only
+   while the last estop message says false (the button is out); one that comes while the
+   button is still pressed is refused and counted.
+2. `no_scan` / `scan_stale`: the policy reads a lidar and no scan has arrived, or the newest
+   arrived longer than the scan timeout ago (default two control periods).
+3. `no_pose` / `pose_stale`: the same for the motion-capture pose.
+4. `no_target`: no target yet.
+5. `frame_mismatch`: the pose and the target name different frames.
+6. `target_reached`: the car is within the tolerance of the target; it stays stopped until a
+   different target arrives.
+7. `policy_input_error`: the policy refused the observation (not expected after the checks
+   above, but it never moves the car).
+
+Otherwise the policy decides (`policy`) and the command is its action's velocity from the policy
+file's contract. A malformed payload (bad CDR, NaN, wrong frame, a scan with too many invalid
+readings) is counted and its error returned; it never replaces the last good input, so it can
+only make the car stop (through the timeouts), never move.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts import wire
+from contracts.actions import Action
+from contracts.errors import PolicyInputError
+from contracts.observation import target_features
+from contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
+from controller.config import LidarSettings, SafetySettings
+from controller.policy import PolicyRuntime
+from controller.scan import ScanRules, resample_scan
+
+TARGET_MOVED_M = 1e-3
+"""A target this far from the current one is a different target (new episode)."""
+
+
+class Input(StrEnum):
+    """The inputs the controller listens to."""
+
+    SCAN = "scan"
+    POSE = "pose"
+    TARGET = "target"
+    ESTOP = "estop"
+    ESTOP_RELEASE = "estop_release"
+
+
+class Reason(StrEnum):
+    """Why the command is what it is (`status.reason`)."""
+
+    POLICY = "policy"
+    ESTOP_LATCHED = "estop_latched"
+    NO_SCAN = "no_scan"
+    SCAN_STALE = "scan_stale"
+    NO_POSE = "no_pose"
+    POSE_STALE = "pose_stale"
+    NO_TARGET = "no_target"
+    FRAME_MISMATCH = "frame_mismatch"
+    TARGET_REACHED = "target_reached"
+    POLICY_INPUT_ERROR = "policy_input_error"
+    SHUTDOWN = "shutdown"
+
+
+@dataclass
+class Counters:
+    """Running totals reported in every status."""
+
+    received: dict[str, int] = field(default_factory=lambda: {i.value: 0 for i in Input})
+    """Payloads received per input (malformed ones included)."""
+    malformed: dict[str, int] = field(default_factory=lambda: {i.value: 0 for i in Input})
+    """Payloads refused per input."""
+    decisions: int = 0
+    """Outputs produced (policy decisions and stops)."""
+    policy_steps: int = 0
+    """Decisions taken by the policy."""
+    stops: int = 0
+    """Outputs that stopped the car."""
+    overruns: int = 0
+    """Control periods missed because a decision ran past the next deadline (set by the loop)."""
+    estop_presses: int = 0
+    """Emergency-stop messages that pressed it."""
+    releases_refused: int = 0
+    """Release requests refused because the emergency stop was still pressed."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """As plain JSON values."""
+        return {
+            "received": dict(self.received),
+            "malformed": dict(self.malformed),
+            "decisions": self.decisions,
+            "policy_steps": self.policy_steps,
+            "stops": self.stops,
+            "overruns": self.overruns,
+            "estop_presses": self.estop_presses,
+            "releases_refused": self.releases_refused,
+        }
+
+
+@dataclass(frozen=True)
+class Status:
+    """What the controller decided and why, with the state of its inputs."""
+
+    time_s: float
+    """Monotonic time of the decision (the caller's clock)."""
+    sequence: int
+    """Number of this output, from 1."""
+    reason: Reason
+    """Why the command is what it is."""
+    command: Twist2D
+    """The command sent."""
+    action: Action | None
+    """The policy's action (None when stopped by a rule)."""
+    q_values: tuple[float, ...] | None
+    """The policy's Q values, indexed by action (None when stopped by a rule)."""
+    scan_stamp_s: float | None
+    """Header stamp of the scan used (None without one)."""
+    target_distance_m: float | None
+    """Distance from the pose to the target (None without both)."""
+    ages_s: dict[str, float | None]
+    """Seconds since each input last arrived well-formed (None: never)."""
+    estop_latched: bool
+    """Whether the emergency stop is latched."""
+    estop_pressed: bool | None
+    """The last emergency-stop message (None: none yet)."""
+    counters: dict[str, Any]
+    """A copy of the running totals."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """As one JSON object (the status message)."""
+        return {
+            "time_s": self.time_s,
+            "sequence": self.sequence,
+            "reason": self.reason.value,
+            "command": {
+                "linear_mps": self.command.linear_mps,
+                "angular_radps": self.command.angular_radps,
+            },
+            "action": None if self.action is None else self.action.name.lower(),
+            "q_values": None if self.q_values is None else list(self.q_values),
+            "scan_stamp_s": self.scan_stamp_s,
+            "target_distance_m": self.target_distance_m,
+            "ages_s": dict(self.ages_s),
+            "estop": {"latched": self.estop_latched, "pressed": self.estop_pressed},
+            "counters": self.counters,
+        }
+
+
+class Output(NamedTuple):
+    """One decision: the command to publish and the status that explains it."""
+
+    command: Twist2D
+    """The motor command."""
+    status: Status
+    """Why."""
+
+
+@dataclass
+class _Latest:
+    """The newest well-formed value of one input and when it arrived."""
+
+    value: Any = None
+    arrived_s: float | None = None
+
+    def age(self, now: float) -> float | None:
+        return None if self.arrived_s is None else max(0.0, now - self.arrived_s)
+
+
+class Controller:
+    """Newest inputs + monotonic time -> command and status (module docstring: the rules)."""
+
+    def __init__(
+        self,
+        runtime: PolicyRuntime,
+        safety: SafetySettings | None = None,
+        lidar: LidarSettings | None = None,
+    ) -> None:
+        self.runtime = runtime
+        self.safety = safety or SafetySettings()
+        self.lidar = lidar or LidarSettings()
+        contract = runtime.contract
+        self.period_s = contract.control_period_s
+        self.scan_timeout_s = self.safety.scan_timeout_s or 2 * self.period_s
+        self.pose_timeout_s = self.safety.pose_timeout_s or 2 * self.period_s
+        self.uses_scan = contract.num_beams > 0
+        self.scan_rules = ScanRules(
+            num_beams=max(contract.num_beams, 1),
+            mount_yaw_rad=self.lidar.mount_yaw_rad,
+            below_range_min=self.lidar.below_range_min,
+            uncovered_range_m=self.lidar.uncovered_range_m,
+        )
+        self.commands = tuple(Twist2D(a.linear_mps, a.angular_radps) for a in contract.actions)
+        self.counters = Counters()
+        self._latest = {i: _Latest() for i in Input}
+        self._scan: NDArray[np.float32] | None = None
+        self._scan_stamp_s: float | None = None
+        self.estop_latched = self.safety.estop_start_latched
+        self.estop_pressed: bool | None = None
+        self.target_reached = False
+        self._sequence = 0
+        self._window_fresh = True
+
+    # ---- inputs -------------------------------------------------------------------------
+
+    def receive(self, source: Input, payload: bytes, now: float) -> str | None:
+        """Decode one payload as it came off the wire and take it in.
+
+        Returns None, or why the payload was refused (it is then counted as malformed and the
+        previous input of its kind stays in force).
+        """
+        self.counters.received[source.value] += 1
+        try:
+            if source is Input.SCAN:
+                self._take_scan(wire.decode_scan_msg(payload), now)
+            elif source is Input.POSE:
+                self._take_pose(wire.decode_pose_msg(payload), now)
+            elif source is Input.TARGET:
+                decode = (
+                    wire.decode_pose_msg
+                    if self.safety.target_kind == "pose"
+                    else wire.decode_point_msg
+                )
+                self._take_target(decode(payload), now)
+            elif source is Input.ESTOP:
+                self._take_estop(wire.decode_bool_msg(payload), now)
+            else:
+                return self._take_release(wire.decode_bool_msg(payload), now)
+        except WireError as error:
+            self.counters.malformed[source.value] += 1
+            return str(error)
+        return None
+
+    def on_scan(self, scan: Scan, now: float) -> str | None:
+        """Take a decoded scan; returns why it was refused, if it was."""
+        return self._checked(Input.SCAN, lambda: self._take_scan(scan, now))
+
+    def on_pose(self, pose: Pose2D, now: float) -> str | None:
+        """Take a decoded motion-capture pose; returns why it was refused, if it was."""
+        return self._checked(Input.POSE, lambda: self._take_pose(pose, now))
+
+    def on_target(self, target: Pose2D, now: float) -> str | None:
+        """Take a decoded target (its yaw is ignored); returns why it was refused, if it was."""
+        return self._checked(Input.TARGET, lambda: self._take_target(target, now))
+
+    def on_estop(self, pressed: bool, now: float) -> None:
+        """Take an emergency-stop message: true presses (and latches) it."""
+        self.counters.received[Input.ESTOP.value] += 1
+        self._take_estop(pressed, now)
+
+    def request_release(self, now: float) -> str | None:
+        """Ask to release a latched emergency stop; returns why it was refused, if it was."""
+        self.counters.received[Input.ESTOP_RELEASE.value] += 1
+        return self._take_release(True, now)
+
+    def _checked(self, source: Input, take: Callable[[], None]) -> str | None:
+        self.counters.received[source.value] += 1
+        try:
+            take()
+        except WireError as error:
+            self.counters.malformed[source.value] += 1
+            return str(error)
+        return None
+
+    def _take_scan(self, scan: Scan, now: float) -> None:
+        if self.lidar.frame_id and scan.frame_id != self.lidar.frame_id:
+            raise WireError(
+                f"scan in frame {scan.frame_id!r}; lidar.frame_id is {self.lidar.frame_id!r}"
+            )
+        if not self.uses_scan:
+            return  # the lidar-less policy has no use for it
+        resampled = resample_scan(scan, self.scan_rules)
+        if resampled.invalid_fraction > self.lidar.max_invalid_fraction:
+            raise WireError(
+                f"scan has {resampled.invalid_fraction:.0%} invalid readings (more than "
+                f"lidar.max_invalid_fraction = {self.lidar.max_invalid_fraction})"
+            )
+        self._scan, self._scan_stamp_s = resampled.ranges_m, scan.stamp_s
+        self._mark(Input.SCAN, None, now)
+
+    def _check_frame(self, what: str, value: Pose2D) -> None:
+        if not all(math.isfinite(v) for v in (value.x_m, value.y_m, value.yaw_rad)):
+            raise WireError(f"{what} has NaN or infinite values")
+        wanted = self.safety.frame_id
+        if wanted and value.frame_id != wanted:
+            raise WireError(f"{what} in frame {value.frame_id!r}; safety.frame_id is {wanted!r}")
+
+    def _take_pose(self, pose: Pose2D, now: float) -> None:
+        self._check_frame("pose", pose)
+        self._mark(Input.POSE, pose, now)
+
+    def _take_target(self, target: Pose2D, now: float) -> None:
+        self._check_frame("target", target)
+        current = self._latest[Input.TARGET].value
+        if (
+            current is None
+            or math.hypot(target.x_m - current.x_m, target.y_m - current.y_m) > TARGET_MOVED_M
+            or target.frame_id != current.frame_id
+        ):
+            self.target_reached = False
+            self._restart_window()
+        self._mark(Input.TARGET, target, now)
+
+    def _take_estop(self, pressed: bool, now: float) -> None:
+        self.estop_pressed = pressed
+        if pressed:
+            self.estop_latched = True
+            self.counters.estop_presses += 1
+        self._mark(Input.ESTOP, pressed, now)
+
+    def _take_release(self, request: bool, now: float) -> str | None:
+        if not request:
+            return None
+        if self.estop_pressed:
+            self.counters.releases_refused += 1
+            return "release refused: the emergency stop is still pressed (send false first)"
+        self.estop_latched = False
+        self._mark(Input.ESTOP_RELEASE, True, now)
+        return None
+
+    def _mark(self, source: Input, value: Any, now: float) -> None:
+        latest = self._latest[source]
+        latest.value, latest.arrived_s = value, now
+
+    # ---- decisions ----------------------------------------------------------------------
+
+    def decide(self, now: float) -> Output:
+        """One decision at monotonic time `now`: a stop by the first rule that applies, or the
+        policy's action on the newest inputs (which pushes one frame into its window)."""
+        reason = self._stop_reason(now)
+        if reason is not None:
+            return self._stop(now, reason)
+        pose: Pose2D = self._latest[Input.POSE].value
+        target: Pose2D = self._latest[Input.TARGET].value
+        features = target_features(
+            np.array([pose.x_m, pose.y_m, pose.yaw_rad]), np.array([target.x_m, target.y_m])
+        )
+        try:
+            decision = self.runtime.step(self._scan if self.uses_scan else None, features)
+        except PolicyInputError:
+            return self._stop(now, Reason.POLICY_INPUT_ERROR)
+        self._window_fresh = False
+        self.counters.policy_steps += 1
+        command = self.commands[decision.action]
+        q_values = tuple(float(q) for q in decision.q_values)
+        return self._output(now, Reason.POLICY, command, decision.action, q_values)
+
+    def warm_up(self) -> None:
+        """Run the policy once on a neutral observation (first runs are slow) and restart its
+        window; changes nothing else."""
+        scan = np.full(self.runtime.contract.num_beams, np.inf) if self.uses_scan else None
+        self.runtime.step(scan, np.array([1.0, 0.0, 1.0]))
+        self.runtime.reset()
+        self._window_fresh = True
+
+    def check(self, now: float) -> Output | None:
+        """The safety rules alone (no policy step): a stop if one applies, else None.
+
+        With `trigger = "scan"` the daemon decides on scan arrival and calls this every period,
+        so the car still stops when the scans stop coming.
+        """
+        reason = self._stop_reason(now)
+        return None if reason is None else self._stop(now, reason)
+
+    def shutdown(self, now: float) -> Output:
+        """The last output before the process exits: a stop."""
+        return self._stop(now, Reason.SHUTDOWN)
+
+    def note_overruns(self, missed: int) -> None:
+        """Count control periods the loop missed (reported in status)."""
+        self.counters.overruns += missed
+
+    def _stop_reason(self, now: float) -> Reason | None:
+        if self.estop_latched:
+            return Reason.ESTOP_LATCHED
+        if self.uses_scan:
+            age = self._latest[Input.SCAN].age(now)
+            if age is None:
+                return Reason.NO_SCAN
+            if age > self.scan_timeout_s:
+                return Reason.SCAN_STALE
+        age = self._latest[Input.POSE].age(now)
+        if age is None:
+            return Reason.NO_POSE
+        if age > self.pose_timeout_s:
+            return Reason.POSE_STALE
+        pose: Pose2D = self._latest[Input.POSE].value
+        target: Pose2D | None = self._latest[Input.TARGET].value
+        if target is None:
+            return Reason.NO_TARGET
+        if pose.frame_id and target.frame_id and pose.frame_id != target.frame_id:
+            return Reason.FRAME_MISMATCH
+        distance = math.hypot(target.x_m - pose.x_m, target.y_m - pose.y_m)
+        if self.target_reached or distance <= self.safety.target_tolerance_m:
+            self.target_reached = True
+            return Reason.TARGET_REACHED
+        return None
+
+    def _distance(self) -> float | None:
+        pose: Pose2D | None = self._latest[Input.POSE].value
+        target: Pose2D | None = self._latest[Input.TARGET].value
+        if pose is None or target is None:
+            return None
+        return math.hypot(target.x_m - pose.x_m, target.y_m - pose.y_m)
+
+    def _restart_window(self) -> None:
+        if not self._window_fresh:
+            self.runtime.reset()
+            self._window_fresh = True
+
+    def _stop(self, now: float, reason: Reason) -> Output:
+        self._restart_window()
+        self.counters.stops += 1
+        return self._output(now, reason, STOP, None, None)
+
+    def _output(
+        self,
+        now: float,
+        reason: Reason,
+        command: Twist2D,
+        action: Action | None,
+        q_values: tuple[float, ...] | None,
+    ) -> Output:
+        self._sequence += 1
+        self.counters.decisions += 1
+        status = Status(
+            time_s=now,
+            sequence=self._sequence,
+            reason=reason,
+            command=command,
+            action=action,
+            q_values=q_values,
+            scan_stamp_s=self._scan_stamp_s if self.uses_scan else None,
+            target_distance_m=self._distance(),
+            ages_s={i.value: self._latest[i].age(now) for i in Input},
+            estop_latched=self.estop_latched,
+            estop_pressed=self.estop_pressed,
+            counters=self.counters.to_dict(),
+        )
+        return Output(command, status)

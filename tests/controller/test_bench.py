@@ -1,0 +1,36 @@
+"""`qnav bench controller`: three processes, one command per scan, the documented JSON."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.conftest import PolicyFactory
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_bench_controller_times_one_command_per_published_scan_and_prints_json(
+    make_policy: PolicyFactory,
+) -> None:
+    policy = make_policy("walls-inertia")
+    done = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "qnav"),
+            *("bench", "controller", "--policy", str(policy)),
+            *("--rates", "20,50", "--seconds", "0.5", "--json"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    report = json.loads(done.stdout)
+    assert [r["rate_hz"] for r in report["results"]] == [20.0, 50.0]
+    for result in report["results"]:
+        assert result["commands"] == result["scans"]  # a decision for every scan, none lost
+        assert 0 < result["p50_ms"] <= result["p99_ms"] <= result["max_ms"]
+        assert 0 < result["daemon_p50_ms"] < result["p50_ms"]

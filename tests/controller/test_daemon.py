@@ -1,0 +1,244 @@
+"""The daemon as a user runs it: `qnav controller --config FILE` in its own process, sensors from
+another process, this process listening to its commands and status, all on a loopback port with
+scouting off."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from contracts import wire
+from contracts.policy_file import PolicyContract
+from contracts.settings import to_toml
+from contracts.transport import ZenohSettings, open_session
+from controller.bench_e2e import free_port
+from controller.config import ControllerSettings, DaemonConfig, SafetySettings
+from controller.onnx_file import read_onnx
+from tests.conftest import PolicyFactory
+
+ROOT = Path(__file__).resolve().parents[2]
+QNAV = str(Path(sys.executable).parent / "qnav")
+
+
+class Listener:
+    """Commands and statuses from the daemon, in arrival order."""
+
+    def __init__(self, endpoint: str, namespace: str = "") -> None:
+        self.lock = threading.Lock()
+        self.commands: list[wire.Twist2D] = []
+        self.statuses: list[dict[str, Any]] = []
+        self.session = open_session(ZenohSettings(connect=(endpoint,)))
+        self.subscribers = [
+            self.session.declare_subscriber(wire.key(wire.COMMAND, namespace), self._on_command),
+            self.session.declare_subscriber(
+                wire.key(wire.CONTROLLER_STATUS, namespace), self._on_status
+            ),
+        ]
+        self.namespace = namespace
+
+    def _on_command(self, sample: Any) -> None:
+        with self.lock:
+            self.commands.append(wire.decode_twist_msg(sample.payload.to_bytes()))
+
+    def _on_status(self, sample: Any) -> None:
+        with self.lock:
+            self.statuses.append(wire.decode_json_msg(sample.payload.to_bytes()))
+
+    def put(self, topic: wire.Topic | str, payload: bytes) -> None:
+        self.session.put(wire.key(topic, self.namespace), payload)
+
+    def last_status(self) -> dict[str, Any]:
+        with self.lock:
+            return self.statuses[-1]
+
+    def mark(self) -> int:
+        """A place in the status list to `wait_for` from."""
+        with self.lock:
+            return len(self.statuses)
+
+    def wait_for(
+        self,
+        predicate: Callable[[dict[str, Any]], bool],
+        timeout: float = 15.0,
+        since: int | None = None,
+    ) -> dict[str, Any]:
+        """The first status from now (or from the mark `since`) that satisfies `predicate`."""
+        start = self.mark() if since is None else since
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                for status in self.statuses[start:]:
+                    if predicate(status):
+                        return status
+                start = len(self.statuses)
+            time.sleep(0.02)
+        raise AssertionError(f"no such status within {timeout} s; last: {self.statuses[-1:]}")
+
+
+def reason_is(*reasons: str) -> Callable[[dict[str, Any]], bool]:
+    return lambda status: status["reason"] in reasons
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def start_daemon(tmp_path: Path, config: DaemonConfig) -> subprocess.Popen[str]:
+    path = tmp_path / "controller.toml"
+    path.write_text(to_toml(config))
+    return subprocess.Popen(
+        [QNAV, "controller", "--config", str(path)],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def start_feeder(endpoint: str, *options: str) -> subprocess.Popen[str]:
+    feeder = subprocess.Popen(
+        [sys.executable, "-m", "tests.controller.feeder", endpoint, *options],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert feeder.stdout is not None
+    assert feeder.stdout.readline().strip() == "ready"
+    return feeder
+
+
+@pytest.fixture
+def processes() -> Iterator[list[subprocess.Popen[str]]]:
+    """Processes to kill if a test fails before it ends them."""
+    started: list[subprocess.Popen[str]] = []
+    yield started
+    for process in started:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+def action_commands(policy: Path) -> set[tuple[float, float]]:
+    contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
+    return {(a.linear_mps, a.angular_radps) for a in contract.actions}
+
+
+def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the_car_on_sigterm(
+    tmp_path: Path,
+    endpoint: str,
+    make_policy: PolicyFactory,
+    processes: list[subprocess.Popen[str]],
+) -> None:
+    policy = make_policy("walls-inertia")
+    config = DaemonConfig(
+        controller=ControllerSettings(policy=str(policy)),
+        safety=SafetySettings(frame_id="map"),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+    )
+    daemon = start_daemon(tmp_path, config)
+    processes.append(daemon)
+    listener = Listener(endpoint)
+    try:
+        first = listener.wait_for(lambda s: True, timeout=30)
+        assert first["reason"] == "no_scan"
+        assert listener.commands[0] == wire.STOP
+
+        feeder = start_feeder(endpoint)
+        processes.append(feeder)
+        assert feeder.stdin is not None
+        driving = listener.wait_for(reason_is("policy"))
+        assert driving["action"] in ("forward", "left", "right")
+        assert len(driving["q_values"]) == 3
+        with listener.lock:
+            command = listener.commands[-1]
+        assert (command.linear_mps, command.angular_radps) in action_commands(policy)
+
+        # Malformed payloads are counted and change nothing.
+        listener.put(wire.SCAN, b"\x00\x01\x00\x00garbage")
+        listener.put(wire.POSE, wire.encode_pose_msg(wire.Pose2D(0.0, "map", float("nan"), 1.0)))
+        listener.put(wire.POSE, wire.encode_pose_msg(wire.Pose2D(0.0, "odom", 1.0, 1.0)))
+        counted = listener.wait_for(
+            lambda s: (
+                s["counters"]["malformed"]["scan"] >= 1 and s["counters"]["malformed"]["pose"] >= 2
+            )
+        )
+        assert counted["reason"] == "policy"
+        assert daemon.poll() is None
+
+        # Scans stop coming: the car stops; they come back: it drives.
+        feeder.stdin.write("scan off\n")
+        feeder.stdin.flush()
+        stale = listener.wait_for(reason_is("scan_stale"))
+        assert stale["command"] == {"linear_mps": 0.0, "angular_radps": 0.0}
+        assert stale["ages_s"]["scan"] > 0.4
+        feeder.stdin.write("scan on\n")
+        feeder.stdin.flush()
+        listener.wait_for(reason_is("policy"))
+
+        # The emergency stop latches until released on purpose.
+        listener.put(wire.ESTOP, wire.encode_bool_msg(True))
+        listener.wait_for(reason_is("estop_latched"))
+        listener.put(wire.ESTOP_RELEASE, wire.encode_bool_msg(True))  # still pressed: refused
+        listener.wait_for(lambda s: s["counters"]["releases_refused"] == 1)
+        listener.put(wire.ESTOP, wire.encode_bool_msg(False))
+        released_too_soon = listener.wait_for(lambda s: s["estop"]["pressed"] is False)
+        assert released_too_soon["reason"] == "estop_latched"
+        listener.put(wire.ESTOP_RELEASE, wire.encode_bool_msg(True))
+        listener.wait_for(reason_is("policy"))
+
+        # SIGTERM while driving: a stop goes out before the process ends.
+        before = listener.mark()
+        daemon.send_signal(signal.SIGTERM)
+        _, stderr = daemon.communicate(timeout=20)
+        assert daemon.returncode == 0, stderr
+        listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
+        time.sleep(0.1)
+        with listener.lock:
+            assert listener.commands[-1] == wire.STOP
+        assert "scan refused" in stderr and "pose refused" in stderr
+    finally:
+        listener.session.close()
+
+
+def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_on_sigint(
+    tmp_path: Path,
+    endpoint: str,
+    make_policy: PolicyFactory,
+    processes: list[subprocess.Popen[str]],
+) -> None:
+    policy = make_policy("toycar-inertia")
+    config = DaemonConfig(
+        controller=ControllerSettings(policy=str(policy)),
+        safety=SafetySettings(target_kind="point"),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=(), namespace="car1"),
+    )
+    daemon = start_daemon(tmp_path, config)
+    processes.append(daemon)
+    listener = Listener(endpoint, namespace="car1")
+    try:
+        assert listener.wait_for(lambda s: True, timeout=30)["reason"] == "no_pose"
+        feeder = start_feeder(endpoint, "--namespace", "car1", "--beams", "0", "--target", "point")
+        processes.append(feeder)
+        driving = listener.wait_for(reason_is("policy"))
+        assert driving["scan_stamp_s"] is None
+        assert driving["target_distance_m"] == pytest.approx(7.0 * 2**0.5)
+
+        before = listener.mark()
+        daemon.send_signal(signal.SIGINT)
+        _, stderr = daemon.communicate(timeout=20)
+        assert daemon.returncode == 0, stderr
+        listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
+        time.sleep(0.1)
+        with listener.lock:
+            assert listener.commands[-1] == wire.STOP
+    finally:
+        listener.session.close()

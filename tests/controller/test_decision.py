@@ -1,0 +1,297 @@
+"""The decision step without I/O (controller.decision): each safety rule, and the policy's path."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from contracts import wire
+from contracts.wire import STOP, Pose2D, Scan, Twist2D
+from controller.config import LidarSettings, SafetySettings
+from controller.decision import Controller, Input, Output, Reason
+from controller.policy import PolicyRuntime
+from tests.conftest import PolicyFactory
+
+PERIOD = 0.2  # the scenarios' control period
+
+
+def scan_payload(stamp: float = 0.0, frame: str = "laser", count: int = 1080) -> bytes:
+    ranges = np.random.default_rng(0).uniform(0.5, 8.0, count).astype(np.float32)
+    return wire.encode_scan_msg(Scan(stamp, frame, -math.pi, 2 * math.pi / count, 0.1, 30, ranges))
+
+
+def pose_payload(x: float = 1.0, y: float = 1.0, yaw: float = 0.3, frame: str = "map") -> bytes:
+    return wire.encode_pose_msg(Pose2D(0.0, frame, x, y, yaw))
+
+
+def target_payload(x: float = 8.0, y: float = 8.0, frame: str = "map") -> bytes:
+    return wire.encode_pose_msg(Pose2D(0.0, frame, x, y))
+
+
+@pytest.fixture
+def policy(make_policy: PolicyFactory) -> Path:
+    return make_policy("walls-inertia")
+
+
+def controller(policy: Path, **safety: object) -> Controller:
+    return Controller(PolicyRuntime(policy), SafetySettings(**safety))  # type: ignore[arg-type]
+
+
+def feed(c: Controller, now: float, scan: bool = True, pose: bool = True) -> None:
+    if scan:
+        assert c.receive(Input.SCAN, scan_payload(now), now) is None
+    if pose:
+        assert c.receive(Input.POSE, pose_payload(), now) is None
+
+
+def ready(policy: Path, **safety: object) -> Controller:
+    c = controller(policy, **safety)
+    assert c.receive(Input.TARGET, target_payload(), 0.0) is None
+    feed(c, 0.0)
+    return c
+
+
+def assert_stop(output: Output, reason: Reason) -> None:
+    assert output.status.reason is reason
+    assert output.command == STOP
+    assert output.status.action is None and output.status.q_values is None
+
+
+def test_fresh_inputs_let_the_policy_command_its_actions_velocity(policy: Path) -> None:
+    c = ready(policy)
+    output = c.decide(0.05)
+    assert output.status.reason is Reason.POLICY
+    assert output.status.action is not None and output.status.q_values is not None
+    velocity = c.runtime.contract.actions[output.status.action]
+    assert output.command == Twist2D(velocity.linear_mps, velocity.angular_radps)
+    assert int(np.argmax(output.status.q_values)) == output.status.action
+
+
+def test_the_policy_sees_what_a_runtime_fed_the_same_observation_sees(policy: Path) -> None:
+    from contracts.observation import target_features
+    from controller.scan import ScanRules, resample_scan
+
+    c = ready(policy)
+    q = c.decide(0.05).status.q_values
+    runtime = PolicyRuntime(policy)
+    scan = resample_scan(wire.decode_scan_msg(scan_payload()), ScanRules(720)).ranges_m
+    expected = runtime.step(scan, target_features(np.array([1.0, 1.0, 0.3]), np.array([8, 8])))
+    assert q is not None
+    np.testing.assert_allclose(np.array(q), expected.q_values, rtol=1e-6)
+
+
+def test_nothing_moves_the_car_before_every_input_has_arrived(policy: Path) -> None:
+    c = controller(policy)
+    assert_stop(c.decide(0.0), Reason.NO_SCAN)
+    c.receive(Input.SCAN, scan_payload(), 0.0)
+    assert_stop(c.decide(0.01), Reason.NO_POSE)
+    c.receive(Input.POSE, pose_payload(), 0.01)
+    assert_stop(c.decide(0.02), Reason.NO_TARGET)
+    c.receive(Input.TARGET, target_payload(), 0.02)
+    assert c.decide(0.03).status.reason is Reason.POLICY
+
+
+def test_a_scan_older_than_two_control_periods_stops_the_car(policy: Path) -> None:
+    c = ready(policy)
+    assert c.decide(2 * PERIOD - 1e-6).status.reason is Reason.POLICY
+    c.receive(Input.POSE, pose_payload(), 2 * PERIOD)
+    output = c.decide(2 * PERIOD + 1e-3)
+    assert_stop(output, Reason.SCAN_STALE)
+    assert output.status.ages_s["scan"] == pytest.approx(2 * PERIOD + 1e-3)
+
+
+def test_a_pose_older_than_two_control_periods_stops_the_car(policy: Path) -> None:
+    c = ready(policy)
+    c.receive(Input.SCAN, scan_payload(), 2 * PERIOD)
+    assert_stop(c.decide(2 * PERIOD + 1e-3), Reason.POSE_STALE)
+
+
+def test_configured_timeouts_replace_two_control_periods(policy: Path) -> None:
+    c = ready(policy, scan_timeout_s=1.0, pose_timeout_s=0.1)
+    assert_stop(c.decide(0.11), Reason.POSE_STALE)
+    c.receive(Input.POSE, pose_payload(), 0.9)
+    assert c.decide(0.95).status.reason is Reason.POLICY
+    c.receive(Input.POSE, pose_payload(), 1.0)
+    assert_stop(c.decide(1.01), Reason.SCAN_STALE)
+
+
+def test_the_car_stops_at_the_target_until_a_different_target_arrives(policy: Path) -> None:
+    c = ready(policy, target_tolerance_m=0.3)
+    c.receive(Input.TARGET, target_payload(1.2, 1.1), 0.0)
+    output = c.decide(0.01)
+    assert_stop(output, Reason.TARGET_REACHED)
+    assert output.status.target_distance_m == pytest.approx(math.hypot(0.2, 0.1))
+    c.receive(Input.POSE, pose_payload(x=3.0), 0.02)  # pushed away: still done
+    c.receive(Input.TARGET, target_payload(1.2, 1.1), 0.02)  # the same target again
+    assert_stop(c.decide(0.03), Reason.TARGET_REACHED)
+    c.receive(Input.TARGET, target_payload(5.0, 5.0), 0.04)
+    assert c.decide(0.05).status.reason is Reason.POLICY
+
+
+@pytest.mark.parametrize(
+    ("source", "payload"),
+    [
+        pytest.param(Input.SCAN, b"", id="scan-empty"),
+        pytest.param(Input.SCAN, b"\x00\x01\x00\x00" + b"\x07" * 40, id="scan-garbage"),
+        pytest.param(Input.SCAN, scan_payload()[:-9], id="scan-truncated"),
+        pytest.param(Input.SCAN, pose_payload(), id="scan-another-type"),
+        pytest.param(
+            Input.POSE, wire.encode_pose_msg(Pose2D(0.0, "map", math.nan, 1.0)), id="pose-nan"
+        ),
+        pytest.param(
+            Input.POSE, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, math.inf)), id="pose-inf"
+        ),
+        pytest.param(Input.POSE, b"\x00\x01", id="pose-truncated"),
+        pytest.param(
+            Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", math.nan, 1.0)), id="target-nan"
+        ),
+        pytest.param(Input.TARGET, scan_payload()[:30], id="target-garbage"),
+        pytest.param(Input.ESTOP, b"\xff", id="estop-garbage"),
+        pytest.param(Input.ESTOP_RELEASE, b"", id="release-empty"),
+    ],
+)
+def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
+    policy: Path, source: Input, payload: bytes
+) -> None:
+    c = ready(policy)
+    reference = ready(policy)
+    received = c.counters.received[source.value]
+    assert c.receive(source, payload, 0.1)
+    status = c.decide(0.1).status
+    assert status.counters["received"][source.value] == received + 1
+    assert status.counters["malformed"][source.value] == 1
+    assert status.q_values == reference.decide(0.1).status.q_values
+    # The age is still that of the last good input (arrived at 0.0; estop never).
+    good_age = None if source in (Input.ESTOP, Input.ESTOP_RELEASE) else 0.1
+    assert status.ages_s[source.value] == good_age
+
+
+def test_payloads_in_the_wrong_frame_are_malformed_when_a_frame_is_configured(
+    policy: Path,
+) -> None:
+    c = Controller(
+        PolicyRuntime(policy), SafetySettings(frame_id="map"), LidarSettings(frame_id="laser")
+    )
+    assert c.receive(Input.POSE, pose_payload(frame="odom"), 0.0)
+    assert c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
+    assert c.receive(Input.SCAN, scan_payload(frame="base_link"), 0.0)
+    assert c.counters.malformed == {
+        "scan": 1,
+        "pose": 1,
+        "target": 1,
+        "estop": 0,
+        "estop_release": 0,
+    }
+    assert_stop(c.decide(0.0), Reason.NO_SCAN)
+
+
+def test_a_pose_and_target_in_different_frames_stop_the_car(policy: Path) -> None:
+    c = ready(policy)
+    c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
+    assert_stop(c.decide(0.01), Reason.FRAME_MISMATCH)
+
+
+def test_a_scan_of_mostly_invalid_readings_is_refused(policy: Path) -> None:
+    c = ready(policy)
+    ranges = np.full(720, np.nan, dtype=np.float32)
+    ranges[:300] = 3.0
+    payload = wire.encode_scan_msg(Scan(0.0, "laser", 0.0, 2 * math.pi / 720, 0.1, 30, ranges))
+    assert "invalid" in (c.receive(Input.SCAN, payload, 0.3) or "")
+    assert_stop(c.decide(0.5), Reason.SCAN_STALE)
+
+
+def test_random_bytes_on_every_input_never_move_the_car_nor_raise(policy: Path) -> None:
+    rng = np.random.default_rng(7)
+    c = controller(policy)
+    for step in range(300):
+        source = list(Input)[step % len(Input)]
+        size = int(rng.integers(0, 200))
+        payload = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        if rng.random() < 0.5:  # a valid CDR header and a plausible start
+            payload = b"\x00\x01\x00\x00" + payload
+        c.receive(source, payload, step * 0.01)
+        assert c.decide(step * 0.01).command == STOP
+    assert sum(c.counters.malformed.values()) > 250
+
+
+def test_the_emergency_stop_latches_until_released_after_it_reads_false(policy: Path) -> None:
+    c = ready(policy)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.01)
+    assert_stop(c.decide(0.02), Reason.ESTOP_LATCHED)
+    assert c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 0.03)  # still pressed
+    assert c.counters.releases_refused == 1
+    c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.04)
+    status = c.decide(0.05).status
+    assert status.reason is Reason.ESTOP_LATCHED  # the button is out, but nobody released it
+    assert (status.estop_latched, status.estop_pressed) == (True, False)
+    c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(False), 0.06)  # false asks nothing
+    assert_stop(c.decide(0.06), Reason.ESTOP_LATCHED)
+    assert c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 0.07) is None
+    feed(c, 0.07)
+    assert c.decide(0.08).status.reason is Reason.POLICY
+
+
+def test_an_emergency_stop_overrides_every_other_rule(policy: Path) -> None:
+    c = controller(policy)
+    c.on_estop(True, 0.0)
+    assert_stop(c.decide(0.0), Reason.ESTOP_LATCHED)
+
+
+def test_a_controller_configured_to_start_latched_moves_only_after_a_release(
+    policy: Path,
+) -> None:
+    c = ready(policy, estop_start_latched=True)
+    assert_stop(c.decide(0.01), Reason.ESTOP_LATCHED)
+    assert c.request_release(0.02) is None
+    assert c.decide(0.03).status.reason is Reason.POLICY
+
+
+def test_after_a_stop_the_policy_starts_a_fresh_window(policy: Path) -> None:
+    c = ready(policy)
+    first = c.decide(0.01).status.q_values
+    c.receive(Input.POSE, pose_payload(x=2.0, yaw=1.0), 0.02)
+    second = c.decide(0.03).status.q_values
+    assert second != first  # the window now holds two different frames
+    c.on_estop(True, 0.04)
+    c.on_estop(False, 0.04)
+    assert c.decide(0.05).command == STOP
+    c.request_release(0.06)
+    feed(c, 0.06)
+    assert c.decide(0.07).status.q_values == first  # restarted: the same as the first decision
+
+
+def test_the_lidarless_policy_decides_on_pose_and_target_alone(make_policy: PolicyFactory) -> None:
+    c = controller(make_policy("toycar-inertia"), target_kind="point")
+    assert_stop(c.decide(0.0), Reason.NO_POSE)
+    c.receive(Input.POSE, pose_payload(), 0.0)
+    assert c.receive(Input.TARGET, wire.encode_point_msg(Pose2D(0.0, "map", 4.0, 2.0)), 0.0) is None
+    assert c.receive(Input.SCAN, scan_payload(), 0.0) is None  # ignored, not needed
+    status = c.decide(0.01).status
+    assert status.reason is Reason.POLICY
+    assert status.scan_stamp_s is None and status.ages_s["scan"] is None
+
+
+def test_check_stops_on_the_same_rules_but_never_steps_the_policy(policy: Path) -> None:
+    c = ready(policy)
+    assert c.check(0.01) is None
+    assert c.counters.policy_steps == 0
+    assert_stop(c.check(1.0) or c.decide(1.0), Reason.SCAN_STALE)
+
+
+def test_the_status_is_one_json_object_with_the_decision_and_its_reasons(policy: Path) -> None:
+    c = ready(policy)
+    c.note_overruns(2)
+    status = c.decide(0.05).status.to_dict()
+    decoded = wire.decode_json_msg(wire.encode_json_msg(status))
+    assert decoded == json.loads(json.dumps(status))
+    assert decoded["reason"] == "policy"
+    assert decoded["action"] in ("forward", "left", "right")
+    assert decoded["counters"]["overruns"] == 2
+    assert set(decoded["ages_s"]) == {i.value for i in Input}
+    stop = c.shutdown(0.06).status.to_dict()
+    assert stop["reason"] == "shutdown" and stop["q_values"] is None
+    wire.encode_json_msg(stop)
