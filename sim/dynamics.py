@@ -23,6 +23,26 @@ def step_inertia(
     """
     speed_target = forward_command(action) * params.max_speed_mps
     rate_target = turn_command(action) * params.max_turn_rate_radps
+    return step_velocity_lag(
+        pose, velocity, speed_target, rate_target, params=params, period_s=period_s
+    )
+
+
+def step_velocity_lag(
+    pose: F64,
+    velocity: F64,
+    speed_target_mps: F64,
+    rate_target_radps: F64,
+    *,
+    params: InertiaDynamics,
+    period_s: float,
+) -> tuple[F64, F64]:
+    """`step_inertia` for any commanded velocities (N,) rather than the action table's.
+
+    The MAVLink test vehicle drives with this: a throttle or a guided velocity target sets the
+    steady speed the lag approaches.
+    """
+    speed_target, rate_target = speed_target_mps, rate_target_radps
     substeps = max(1, round(period_s / params.physics_dt_s))
     dt = period_s / substeps
     tau_v, tau_w = params.linear_time_constant_s, params.angular_time_constant_s

@@ -1,0 +1,286 @@
+"""The bridge driving the test vehicle over real UDP, fed over real zenoh, all on loopback."""
+
+from __future__ import annotations
+
+import math
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack
+
+import pytest
+
+from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
+from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, key
+from firmware_bridge.bench import free_port
+from firmware_bridge.daemon import Bridge
+from sim.mavlink_vehicle import MavlinkVehicle
+from tests.firmware_bridge.rig import (
+    Rig,
+    bridge_settings,
+    start_rig,
+    vehicle_settings,
+    wait_until,
+)
+
+NEUTRAL = (1500, 1500)
+MakeRig = Callable[..., Rig]
+
+
+def _overrides(rig: Rig, since_s: float = -math.inf) -> list[tuple[float, tuple[int, int]]]:
+    """(arrival time, (ch1, ch3)) of the RC overrides the vehicle took in since `since_s`."""
+    return [
+        (r.time_s, (r.fields["chan1_raw"], r.fields["chan3_raw"]))
+        for r in rig.vehicle.received("RC_CHANNELS_OVERRIDE")
+        if r.time_s >= since_s
+    ]
+
+
+def test_forward_command_moves_the_vehicle_forward(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    rig.ready()
+    rig.drive(0.5, 0.0, 0.6)
+    x, y, yaw = rig.vehicle.pose()
+    assert x > 0.05
+    assert abs(y) < 0.01 and abs(yaw) < 0.01
+
+
+def test_left_command_turns_the_vehicle_left_in_place(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    rig.ready()
+    rig.drive(0.0, 0.5, 0.6)
+    x, y, yaw = rig.vehicle.pose()
+    assert yaw > 0.05  # counter-clockwise
+    assert math.hypot(x, y) < 0.01
+
+
+def test_right_command_turns_the_vehicle_right(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    rig.ready()
+    rig.drive(0.0, -0.5, 0.6)
+    assert rig.vehicle.pose()[2] < -0.05
+
+
+def test_silence_stops_the_vehicle_within_the_timeout_and_keeps_stopping(
+    make_rig: MakeRig,
+) -> None:
+    rig = make_rig()
+    rig.ready()
+    last_command_s = rig.drive(0.8, 0.0, 0.4)
+    assert rig.vehicle.velocity()[0] > 0.1
+    first_stop = wait_until(
+        lambda: [t for t, pwm in _overrides(rig, last_command_s) if pwm == NEUTRAL],
+        what="a neutral override",
+    )[0]
+    timeout_s = 0.2  # failsafe.command_timeout_s of the rig
+    # The deadline is timeout + 50 ms; the slack above it is for this loaded test machine.
+    assert timeout_s - 0.01 <= first_stop - last_command_s <= timeout_s + 0.15
+    time.sleep(0.5)
+    after = _overrides(rig, last_command_s + 0.05)
+    assert all(pwm == NEUTRAL for _, pwm in after), "an old command was replayed"
+    assert len(after) >= 5, "the stop is repeated while commands stay away"
+    wait_until(lambda: abs(rig.vehicle.velocity()[0]) < 0.02, what="the car to stop")
+
+
+def test_commands_resume_motion_after_a_failsafe_stop(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    rig.ready()
+    rig.drive(0.8, 0.0, 0.1)
+    time.sleep(0.4)
+    x_stopped = rig.vehicle.pose()[0]
+    rig.drive(0.8, 0.0, 0.4)
+    assert rig.vehicle.pose()[0] > x_stopped + 0.02
+
+
+def test_lost_heartbeat_reports_link_down_reconnects_and_waits_for_a_fresh_command(
+    make_rig: MakeRig,
+) -> None:
+    rig = make_rig()
+    bridge = rig.bridge
+    assert bridge is not None
+    rig.ready()
+    rig.drive(0.8, 0.0, 0.2)
+    rig.vehicle.set_link_enabled(False)
+    wait_until(lambda: rig.state().get("link_up") is False, what="link reported down")
+    wait_until(lambda: bridge.counters["reconnects"] >= 1, what="a reconnection attempt")
+    rig.drive(0.8, 0.0, 0.2)  # commands while the link is down are dropped
+    assert bridge.counters["dropped"] >= 1
+    rig.vehicle.set_link_enabled(True)
+    link_back_s = time.monotonic()
+    wait_until(lambda: rig.state().get("link_up") is True, what="link reported up again")
+    time.sleep(0.4)
+    after = _overrides(rig, link_back_s)
+    assert after, "stops are sent once the link is back"
+    assert all(pwm == NEUTRAL for _, pwm in after), "motion resumed without a fresh command"
+    fresh_s = time.monotonic()
+    rig.drive(0.8, 0.0, 0.2)
+    assert any(pwm != NEUTRAL for _, pwm in _overrides(rig, fresh_s))
+
+
+def test_malformed_command_is_counted_and_never_moves_the_car(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    bridge = rig.bridge
+    assert bridge is not None
+    rig.ready()
+    start_s = time.monotonic()
+    for payload in (b"", b"\x00\x01\x00\x00garbage", b"\xff" * 60):
+        rig.publish(key(COMMAND), payload)
+    wait_until(lambda: bridge.counters["malformed"] == 3, what="three malformed counted")
+    time.sleep(0.1)
+    assert all(pwm == NEUTRAL for _, pwm in _overrides(rig, start_s))
+    rig.drive(0.8, 0.0, 0.3)  # the daemon lives on
+    assert rig.vehicle.pose()[0] > 0.01
+
+
+def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"output": {"manual_message": "manual_control"}})
+    rig.ready()
+    rig.drive(0.5, 0.0, 0.5)
+    assert rig.vehicle.pose()[0] > 0.03
+    sent = rig.vehicle.received("MANUAL_CONTROL")
+    assert sent and {r.src_system for r in sent} == {255}
+    assert any(r.fields["z"] == 500 and r.fields["y"] == 0 for r in sent)
+
+
+def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    assert not rig.vehicle.armed
+    rig.request({"arm": True})
+    wait_until(lambda: rig.vehicle.armed, what="armed")
+    wait_until(lambda: rig.state().get("armed") is True, what="armed in the state")
+    rig.request({"mode": "hold"})
+    wait_until(lambda: rig.vehicle.mode == "HOLD", what="HOLD")
+    wait_until(lambda: rig.state().get("mode") == "HOLD", what="HOLD in the state")
+    rig.request({"arm": False, "mode": "MANUAL"})
+    wait_until(lambda: not rig.vehicle.armed and rig.vehicle.mode == "MANUAL", what="disarmed")
+    rig.publish(key(VEHICLE_REQUEST), b"not json")
+    rig.request({"launch": "missiles"})
+    wait_until(lambda: rig.counters().get("malformed") == 2, what="bad requests counted")
+    assert not rig.vehicle.armed
+
+
+def test_state_reports_link_arming_mode_position_and_battery(make_rig: MakeRig) -> None:
+    rig = make_rig(vehicle={"x_m": 1.5, "y_m": -2.0, "yaw_rad": 0.7})
+    rig.ready()
+    state = wait_until(lambda: rig.state() if rig.state().get("position") else {})
+    assert state["link_up"] is True and state["armed"] is True and state["mode"] == "MANUAL"
+    assert state["position"]["x_m"] == pytest.approx(1.5, abs=1e-4)
+    assert state["position"]["y_m"] == pytest.approx(-2.0, abs=1e-4)
+    assert state["position"]["yaw_rad"] == pytest.approx(0.7, abs=1e-4)
+    assert state["battery"]["voltage_v"] == pytest.approx(12.6)
+
+
+@pytest.fixture
+def mocap(make_rig: MakeRig) -> Iterator[Callable[..., Rig]]:
+    """A rig factory whose vehicle's pose is published on zenoh at 20 Hz, as motion capture."""
+    stop = threading.Event()
+    threads: list[threading.Thread] = []
+
+    def make(**kwargs: object) -> Rig:
+        rig = make_rig(**kwargs)
+
+        def publish() -> None:
+            while not stop.wait(0.05):
+                rig.publish_pose()
+
+        thread = threading.Thread(target=publish, daemon=True)
+        thread.start()
+        threads.append(thread)
+        return rig
+
+    yield make
+    stop.set()
+    for thread in threads:
+        thread.join()
+
+
+def test_guided_output_forwards_the_pose_and_drives_with_velocity_targets(
+    mocap: MakeRig,
+) -> None:
+    rig = mocap(bridge={"output": {"mode": "guided"}})
+    wait_until(lambda: rig.vehicle.mode == "GUIDED" and rig.vehicle.armed, what="armed GUIDED")
+    start_x = rig.vehicle.pose()[0]
+    rig.drive(0.5, 0.0, 0.5)
+    assert rig.vehicle.pose()[0] > start_x + 0.03
+    start_yaw = rig.vehicle.pose()[2]
+    rig.drive(0.0, 0.5, 0.5)
+    assert rig.vehicle.pose()[2] > start_yaw + 0.03
+    last_command_s = time.monotonic()
+    targets = wait_until(
+        lambda: [
+            r
+            for r in rig.vehicle.received("SET_POSITION_TARGET_LOCAL_NED")
+            if r.time_s > last_command_s and r.fields["vx"] == 0.0 and r.fields["yaw_rate"] == 0.0
+        ],
+        what="a zero-velocity target",
+    )
+    assert all(
+        t.fields["vx"] == 0.0
+        for t in rig.vehicle.received("SET_POSITION_TARGET_LOCAL_NED")
+        if t.time_s > targets[0].time_s
+    )
+    assert len(rig.vehicle.received("SET_GPS_GLOBAL_ORIGIN")) == 1
+    assert len(rig.vehicle.received("VISION_POSITION_ESTIMATE")) >= 5
+
+
+def test_guided_mode_waits_for_a_pose_before_asking_for_guided(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"output": {"mode": "guided"}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    time.sleep(0.3)
+    assert rig.vehicle.mode == "MANUAL"
+    modes = [
+        r
+        for r in rig.vehicle.received("COMMAND_LONG")
+        if r.fields["command"] != MAV_CMD_COMPONENT_ARM_DISARM
+    ]
+    assert not modes, "GUIDED requested before any position went to the autopilot"
+    for _ in range(3):
+        rig.publish_pose()
+    wait_until(lambda: rig.vehicle.mode == "GUIDED", what="GUIDED once a pose went out")
+    rig.publish(key(POSE), b"broken")
+    wait_until(lambda: rig.counters().get("malformed") == 1, what="bad pose counted")
+
+
+def test_garbage_on_the_mavlink_port_is_counted_and_changes_nothing(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    rig.ready()
+    assert rig.bridge is not None
+    bridge_address = rig.bridge.link.connection.port.getsockname()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
+        for junk in (b"\xfd\x09\x00\x00\x00\x01\x01" + b"\x00" * 14, b"hello", b"\xfe" * 40):
+            rogue.sendto(junk, bridge_address)
+    wait_until(lambda: rig.counters().get("bad_data", 0) >= 2, what="garbage counted")
+    time.sleep(0.1)
+    assert rig.state()["link_up"] is True
+    rig.drive(0.8, 0.0, 0.3)
+    assert rig.vehicle.pose()[0] > 0.01
+
+
+def test_tcp_link_drives_and_recovers_after_the_vehicle_restarts() -> None:
+    with ExitStack() as stack:
+        rig = start_rig(stack, start_bridge=False)
+        port = free_port(socket.SOCK_STREAM)
+        serve = {"connection": f"tcpin:127.0.0.1:{port}"}
+        vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
+        settings = bridge_settings(
+            rig.zenoh_port, 0, mavlink={"connection": f"tcp:127.0.0.1:{port}"}
+        )
+        bridge = stack.enter_context(Bridge(settings))
+        rig.vehicle, rig.bridge = vehicle, bridge
+        rig.ready()
+        rig.drive(0.8, 0.0, 0.3)
+        assert vehicle.pose()[0] > 0.01
+        vehicle.stop()
+        wait_until(lambda: rig.state().get("link_up") is False, what="link down")
+        rig.vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
+        wait_until(lambda: rig.state().get("link_up") is True, what="link back over TCP")
+        assert bridge.counters["reconnects"] >= 1
+        # Arming was asked for once, at the first link-up: the restarted car stays disarmed.
+        time.sleep(0.3)
+        assert not rig.vehicle.armed
+        rig.request({"arm": True})
+        wait_until(lambda: rig.vehicle.armed, what="armed on request")
+        rig.drive(0.8, 0.0, 0.3)
+        assert rig.vehicle.pose()[0] > 0.01

@@ -1,0 +1,53 @@
+"""Bridge settings: the example file is complete, wrong values are refused by name."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from contracts.errors import ConfigError
+from contracts.settings import from_dict, to_dict
+from firmware_bridge.settings import BridgeSettings, load_settings
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_example_config_sets_every_setting_to_its_default() -> None:
+    settings = load_settings(ROOT / "config" / "bridge.toml")
+    assert settings == BridgeSettings()
+    # Every field appears in the example file, so it documents them all.
+    text = (ROOT / "config" / "bridge.toml").read_text()
+    for section in dataclasses.fields(BridgeSettings):
+        for item in dataclasses.fields(getattr(settings, section.name)):
+            if item.name not in ("config_file", "extra"):
+                assert f"\n{item.name} =" in text, f"{section.name}.{item.name} missing"
+
+
+@pytest.mark.parametrize(
+    ("values", "named"),
+    [
+        ({"failsafe": {"command_timeout_s": -1.0}}, "failsafe.command_timeout_s"),
+        ({"failsafe": {"stop_period_s": 0.0}}, "failsafe.stop_period_s"),
+        ({"mavlink": {"gcs_system_id": 0}}, "mavlink.gcs_system_id"),
+        ({"mavlink": {"connection": "bluetooth:car"}}, "mavlink.connection"),
+        ({"output": {"mode": "auto"}}, "output.mode"),
+        ({"output": {"throttle_pwm_max_us": 1400}}, "output.throttle_pwm_max_us"),
+        ({"output": {"steering_pwm_trim_us": 1000}}, "output.steering_pwm_trim_us"),
+        ({"output": {"speed_at_full_throttle_mps": 0.0}}, "output.speed_at_full_throttle_mps"),
+        ({"signing": {"enabled": True}}, "signing.key_file"),
+        ({"signing": {"enabled": True, "key_file": "/nonexistent"}}, "signing.key_file"),
+        ({"failsafe": {"timeout": 1.0}}, "failsafe.timeout"),
+    ],
+)
+def test_wrong_setting_is_refused_with_its_name(values: dict[str, Any], named: str) -> None:
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
+        from_dict(BridgeSettings, values)
+
+
+def test_settings_survive_a_round_trip_through_a_dict() -> None:
+    settings = from_dict(BridgeSettings, {"output": {"mode": "guided"}})
+    assert from_dict(BridgeSettings, to_dict(settings)) == settings
+    assert settings.rover_mode == 15
