@@ -55,6 +55,9 @@ from controller.config import LidarSettings, SafetySettings
 from controller.policy import PolicyRuntime
 from controller.scan import ScanRules, resample_scan
 
+MAX_SCAN_READINGS = 100_000
+"""Scans with more readings are refused (no planar lidar has as many)."""
+
 TARGET_MOVED_M = 1e-3
 """A target this far from the current one is a different target (new episode)."""
 
@@ -248,9 +251,11 @@ class Controller:
                 self._take_estop(wire.decode_bool_msg(payload), now)
             else:
                 return self._take_release(wire.decode_bool_msg(payload), now)
-        except WireError as error:
+        except Exception as error:  # whatever a payload does, it is only ever refused
             self.counters.malformed[source.value] += 1
-            return str(error)
+            return (
+                str(error) if isinstance(error, WireError) else f"{type(error).__name__}: {error}"
+            )
         return None
 
     def on_scan(self, scan: Scan, now: float) -> str | None:
@@ -291,6 +296,12 @@ class Controller:
             )
         if not self.uses_scan:
             return  # the lidar-less policy has no use for it
+        count, increment = len(scan.ranges_m), abs(scan.angle_increment_rad)
+        if count > MAX_SCAN_READINGS or increment > math.pi or count * increment > 4 * math.pi:
+            raise WireError(
+                f"scan of {count} readings {increment:.4g} rad apart is not a planar scan of at "
+                f"most two turns and {MAX_SCAN_READINGS} readings"
+            )
         resampled = resample_scan(scan, self.scan_rules)
         if resampled.invalid_fraction > self.lidar.max_invalid_fraction:
             raise WireError(
@@ -335,7 +346,7 @@ class Controller:
             return None
         if self.estop_pressed:
             self.counters.releases_refused += 1
-            return "release refused: the emergency stop is still pressed (send false first)"
+            return "the emergency stop is still pressed (send false on the estop topic first)"
         self.estop_latched = False
         self._mark(Input.ESTOP_RELEASE, True, now)
         return None

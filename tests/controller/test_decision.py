@@ -295,3 +295,17 @@ def test_the_status_is_one_json_object_with_the_decision_and_its_reasons(policy:
     stop = c.shutdown(0.06).status.to_dict()
     assert stop["reason"] == "shutdown" and stop["q_values"] is None
     wire.encode_json_msg(stop)
+
+
+@pytest.mark.parametrize(
+    ("count", "increment"),
+    [(200_000, 1e-5), (10, 4.0), (1000, 0.1), (5, -1e30)],
+)
+def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
+    policy: Path, count: int, increment: float
+) -> None:
+    c = ready(policy)
+    ranges = np.ones(count, dtype=np.float32)
+    payload = wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, 0.1, 30, ranges))
+    assert "not a planar scan" in (c.receive(Input.SCAN, payload, 0.1) or "")
+    assert c.counters.malformed["scan"] == 1
