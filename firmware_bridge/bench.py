@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from contracts.errors import ConfigError
 from contracts.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
@@ -142,6 +143,8 @@ def _commands(count: int) -> list[Twist2D]:
 
 def bench(args: argparse.Namespace) -> int:
     """Run the benchmark and print its figures."""
+    if args.commands < 1 or args.stops < 1:
+        raise ConfigError("qnav bench bridge needs --commands and --stops of at least 1")
     zenoh_port, mavlink_port = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
     settings = BridgeSettings(
         zenoh=ZenohSettings(connect=(f"tcp/127.0.0.1:{zenoh_port}",)),

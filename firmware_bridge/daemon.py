@@ -32,6 +32,7 @@ from contracts.mavlink import (
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
     MAV_STATE_ACTIVE,
+    MAV_TYPE_GCS,
     MAV_TYPE_ONBOARD_CONTROLLER,
     RC_IGNORE,
     ROVER_MODES,
@@ -65,8 +66,8 @@ from firmware_bridge.settings import BridgeSettings, load_settings
 
 log = logging.getLogger("firmware_bridge")
 
-LOOP_MAX_WAIT_S = 0.05
-"""The bridge thread looks at its clocks at least this often."""
+LOOP_MAX_WAIT_S = 0.1
+"""The bridge thread looks at its clocks at least this often (requests from zenoh wait for it)."""
 REQUEST_RETRY_S = 0.5
 """An arm or mode request not yet seen in the vehicle's heartbeat is sent again this often."""
 REQUEST_ATTEMPTS = 10
@@ -281,11 +282,19 @@ class Bridge:
         )
 
     def _send_heartbeat(self) -> None:
+        encoder = self.link.encoder
         self.link.send(
-            self.link.encoder.heartbeat_encode(
+            encoder.heartbeat_encode(
                 MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
             )
         )
+        if self.settings.mavlink.gcs_heartbeat:
+            self.link.send(
+                encoder.heartbeat_encode(
+                    MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
+                ),
+                as_gcs=True,
+            )
 
     def _send_origin(self) -> None:
         vision = self.settings.vision
@@ -374,9 +383,16 @@ class Bridge:
                 log.exception("bridge loop error (continuing)")
 
     def _next_deadline(self, now: float) -> float:
+        """When the bridge thread must next act, whatever arrives before."""
         with self._lock:
-            failsafe = self._gate.next_check_s(now)
-        return min(failsafe, self._next_heartbeat_s, self._next_state_s)
+            deadlines = [self._gate.next_check_s(now), self._next_heartbeat_s, self._next_state_s]
+            if self._want_mode is not None or self._want_armed is not None:
+                deadlines.append(self._next_request_s)
+        if self._link_up:
+            deadlines.append(self._last_heartbeat_s + self.settings.mavlink.link_timeout_s)
+        else:
+            deadlines.append(self._next_reconnect_s)
+        return min(deadlines)
 
     def _duties(self, now: float) -> None:
         with self._lock:

@@ -45,6 +45,9 @@ class MavlinkSettings:
     """Component id of the bridge's heartbeat and other messages (191: onboard computer)."""
     heartbeat_period_s: float = 1.0
     """Period of the bridge's companion heartbeat."""
+    gcs_heartbeat: bool = True
+    """Also send a ground-station heartbeat from `gcs_system_id`, so the autopilot's GCS
+    failsafe (FS_GCS_ENABLE) stops the car if the bridge dies."""
     link_timeout_s: float = 2.5
     """The link is down when no vehicle heartbeat arrived for this long (ArduPilot sends 1 Hz)."""
     reconnect_period_s: float = 2.0

@@ -99,3 +99,9 @@ def test_bench_bridge_json_has_the_documented_figures() -> None:
     assert set(report) == {"p50_ms", "p99_ms", "failsafe_stop_ms"}
     assert 0 < report["p50_ms"] <= report["p99_ms"]
     assert report["failsafe_stop_ms"] >= 100
+
+
+@pytest.mark.parametrize("verb", [["bridge"], ["fake-vehicle"], ["bench", "bridge"]])
+def test_bridge_verbs_have_help(verb: list[str]) -> None:
+    result = _qnav(*verb, "--help")
+    assert result.returncode == 0 and "usage: qnav" in result.stdout

@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from contracts.errors import ConfigError
-from contracts.settings import from_dict, to_dict
+from contracts.settings import from_dict, to_dict, to_markdown
 from firmware_bridge.settings import BridgeSettings, load_settings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -51,3 +51,10 @@ def test_settings_survive_a_round_trip_through_a_dict() -> None:
     settings = from_dict(BridgeSettings, {"output": {"mode": "guided"}})
     assert from_dict(BridgeSettings, to_dict(settings)) == settings
     assert settings.rover_mode == 15
+
+
+def test_settings_table_in_the_docs_is_current() -> None:
+    table = to_markdown(BridgeSettings())
+    assert table in (ROOT / "docs" / "bridge.md").read_text(), (
+        "paste `to_markdown(BridgeSettings())` into docs/bridge.md"
+    )
