@@ -27,7 +27,9 @@ ENTRYPOINT ["qnav"]
 CMD ["--help"]
 
 FROM base AS train
-RUN pip install --no-cache-dir "/opt/qnav[train]" \
+# torch's CPU wheels: the default index would pull gigabytes of CUDA libraries.
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
+RUN pip install --no-cache-dir --extra-index-url "${TORCH_INDEX}" "/opt/qnav[train]" \
     && useradd --uid 10001 --create-home --shell /usr/sbin/nologin qnav
 USER 10001
 WORKDIR /home/qnav

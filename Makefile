@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow lint typecheck pytest docker-lint bench-sim calibrate docs clean
+.PHONY: install demo test test-slow lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -39,6 +39,14 @@ test-slow: $(STAMP)
 
 bench-sim: $(STAMP)
 	$(BIN)/qnav bench sim
+
+# End-to-end latency of the controller daemon (three processes on loopback, 5 Hz and 50 Hz scans).
+bench-controller: $(STAMP)
+	$(BIN)/qnav bench controller
+
+# Command on zenoh to MAVLink on the wire (p50, p99), and the failsafe stop's delay.
+bench-bridge: $(STAMP)
+	$(BIN)/qnav bench bridge --baseline
 
 calibrate: $(STAMP)
 	$(BIN)/qnav calibrate

@@ -25,8 +25,10 @@ class ZenohSettings:
 
     SECTION = "zenoh"
 
-    mode: Literal["peer", "client", "router"] = "peer"
-    """Zenoh session mode."""
+    mode: Literal["auto", "peer", "client", "router"] = "auto"
+    """Zenoh session mode; auto: peer when listening (a hub others connect to), else client
+    (a client's traffic is routed through the peer or router it connects to; two peers that
+    only connect to a hub do not hear each other)."""
     listen: tuple[str, ...] = ()
     """Endpoints to listen on, e.g. tcp/127.0.0.1:7447 (none: listen nowhere)."""
     connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)
@@ -41,8 +43,12 @@ class ZenohSettings:
     """Further zenoh settings by path, e.g. {"transport/unicast/lowlatency" = true}."""
 
     def __post_init__(self) -> None:
-        if self.mode not in ("peer", "client", "router"):
-            raise ConfigError(f"zenoh.mode = {self.mode!r} is not one of peer, client, router")
+        if self.mode not in ("auto", "peer", "client", "router"):
+            raise ConfigError(
+                f"zenoh.mode = {self.mode!r} is not one of auto, peer, client, router"
+            )
+        if self.mode == "client" and self.listen:
+            raise ConfigError("zenoh.listen: a client cannot listen; use mode = peer or auto")
         for name in ("listen", "connect"):
             for endpoint in getattr(self, name):
                 if "/" not in endpoint:
@@ -53,6 +59,13 @@ class ZenohSettings:
         if self.config_file and not Path(self.config_file).is_file():
             raise ConfigError(f"zenoh.config_file {self.config_file!r} does not exist")
 
+    @property
+    def session_mode(self) -> str:
+        """The mode the session opens in (auto resolved)."""
+        if self.mode != "auto":
+            return self.mode
+        return "peer" if self.listen else "client"
+
 
 def zenoh_config(settings: ZenohSettings) -> Any:
     """A `zenoh.Config` for these settings."""
@@ -62,10 +75,14 @@ def zenoh_config(settings: ZenohSettings) -> Any:
         config = zenoh.Config.from_file(settings.config_file)
     else:
         config = zenoh.Config()
-        config.insert_json5("mode", json.dumps(settings.mode))
+        config.insert_json5("mode", json.dumps(settings.session_mode))
         config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
         config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
         config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+        if settings.session_mode == "client":
+            # A client needs its router (or listening peer) to open: keep trying rather than
+            # fail, so daemons may start in any order.
+            config.insert_json5("connect/timeout_ms", "-1")
     for path, value in settings.extra.items():
         try:
             config.insert_json5(path, json.dumps(value))
@@ -76,8 +93,15 @@ def zenoh_config(settings: ZenohSettings) -> Any:
 
 def open_session(settings: ZenohSettings) -> Any:
     """An open zenoh session (close it, or use it in a `with` block)."""
+    import logging
+
     import zenoh
 
+    if settings.session_mode == "client" and not settings.config_file:
+        logging.getLogger(__name__).info(
+            "zenoh: connecting to %s (waiting until something listens there)",
+            ", ".join(settings.connect),
+        )
     try:
         return zenoh.open(zenoh_config(settings))
     except Exception as error:

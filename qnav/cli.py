@@ -52,6 +52,17 @@ def _world_options(parser: argparse.ArgumentParser, default: str | None = "walls
     )
 
 
+def _zenoh_options(parser: argparse.ArgumentParser) -> None:
+    """--connect/--listen/--namespace, applied over the configuration's [zenoh] table."""
+    parser.add_argument(
+        "--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to"
+    )
+    parser.add_argument(
+        "--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on"
+    )
+    parser.add_argument("--namespace", help="key prefix (as zenoh-bridge-ros2dds's namespace)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every verb."""
     parser = argparse.ArgumentParser(
@@ -222,6 +233,55 @@ def build_parser() -> argparse.ArgumentParser:
     )
     reproduce.set_defaults(handler=_lazy("qnav.commands:reproduce"))
 
+    controller = verbs.add_parser(
+        "controller",
+        help="the onboard daemon: scans, poses, targets in over zenoh, motor commands out",
+    )
+    controller.add_argument(
+        "--config", type=Path, metavar="FILE", help="TOML settings (config/controller.toml)"
+    )
+    controller.add_argument(
+        "--policy", type=Path, metavar="FILE.onnx", help="policy file (over controller.policy)"
+    )
+    controller.add_argument(
+        "--set",
+        dest="assignments",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="change one setting, e.g. --set controller.trigger=scan (repeatable)",
+    )
+    controller.add_argument(
+        "--example-config",
+        action="store_true",
+        help="print every setting with its meaning as a TOML file, and exit",
+    )
+    controller.set_defaults(handler=_lazy("controller.daemon:main"))
+
+    record = verbs.add_parser(
+        "record", help="record the project's zenoh topics to MCAP (ROS 2 profile, CDR)"
+    )
+    record.add_argument("--config", type=Path, metavar="FILE", help="recorder TOML file")
+    record.add_argument("--out", type=Path, help="output folder (default recordings/)")
+    record.add_argument(
+        "--folder", type=Path, help="write into exactly this folder (no timestamped subfolder)"
+    )
+    record.add_argument(
+        "--duration-s", type=float, default=0.0, help="stop after this long (0: at SIGINT)"
+    )
+    _zenoh_options(record)
+    record.set_defaults(handler=_lazy("qnav.recording:record_verb"))
+
+    playback = verbs.add_parser(
+        "playback", help="publish MCAP recordings back onto zenoh at their recorded timing"
+    )
+    playback.add_argument("files", type=Path, nargs="+", help="MCAP files or folders of them")
+    playback.add_argument("--speed", type=float, default=1.0, help="time factor (2: twice as fast)")
+    _zenoh_options(playback)
+    playback.set_defaults(handler=_lazy("qnav.recording:playback_verb"))
+
+    _bridge_verbs(verbs)
+
     bench = verbs.add_parser("bench", help="benchmarks")
     benches = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
     bench_sim = benches.add_parser("sim", help="simulator env-steps per second on one core")
@@ -263,7 +323,100 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench_policy.add_argument("--json", action="store_true", help="print one JSON object")
     bench_policy.set_defaults(handler=_lazy("qnav.commands:bench_policy"))
+    bench_controller = benches.add_parser(
+        "controller",
+        help="end to end: scan published by one process to command received by another",
+    )
+    bench_controller.add_argument(
+        "--policy",
+        type=Path,
+        default=None,
+        help="policy file (default: an untrained paper-sized recurrent policy, exported here)",
+    )
+    bench_controller.add_argument(
+        "--rates", default="5,50", help="comma-separated scan rates in Hz (5,50)"
+    )
+    bench_controller.add_argument(
+        "--seconds", type=float, default=30.0, help="timed seconds per rate (30)"
+    )
+    bench_controller.add_argument("--json", action="store_true", help="print one JSON object")
+    bench_controller.set_defaults(handler=_lazy("qnav.commands:bench_controller"))
+    _bench_bridge(benches)
     return parser
+
+
+def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """`qnav bridge` (zenoh to MAVLink) and `qnav fake-vehicle` (a MAVLink car for tests)."""
+    bridge = verbs.add_parser(
+        "bridge", help="the firmware bridge: commands from zenoh to the car over MAVLink"
+    )
+    bridge.add_argument(
+        "--config", type=Path, metavar="FILE", help="TOML settings (see config/bridge.toml)"
+    )
+    bridge.add_argument(
+        "--set",
+        dest="assignments",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="change one setting, e.g. --set mavlink.connection=udpin:0.0.0.0:14550",
+    )
+    bridge.add_argument(
+        "--print-config", action="store_true", help="print every setting as TOML and exit"
+    )
+    bridge.add_argument(
+        "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
+    )
+    bridge.set_defaults(handler=_lazy("firmware_bridge.daemon:run"))
+
+    vehicle = verbs.add_parser(
+        "fake-vehicle", help="a small MAVLink car that behaves like ArduPilot Rover"
+    )
+    vehicle.add_argument(
+        "--config", type=Path, metavar="FILE", help="TOML file of vehicle settings"
+    )
+    vehicle.add_argument(
+        "--connection", help="MAVLink connection string it serves (udpin:127.0.0.1:14550)"
+    )
+    vehicle.add_argument(
+        "--signing-key-file", metavar="FILE", help="sign, and accept only signed messages"
+    )
+    vehicle.add_argument(
+        "--set",
+        dest="assignments",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="change one setting, e.g. --set dynamics.max_speed_mps=1.0 (repeatable)",
+    )
+    vehicle.add_argument(
+        "--pose-period-s", type=float, default=1.0, help="log the pose this often (0: never)"
+    )
+    vehicle.add_argument(
+        "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
+    )
+    vehicle.set_defaults(handler=_lazy("sim.mavlink_vehicle:run"))
+
+
+def _bench_bridge(benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    bench = benches.add_parser(
+        "bridge", help="command on zenoh to MAVLink on the wire, and the failsafe stop's delay"
+    )
+    bench.add_argument("--commands", type=int, default=1000, help="timed commands (1000)")
+    bench.add_argument(
+        "--output", default="manual", choices=["manual", "guided"], help="output mode (manual)"
+    )
+    bench.add_argument(
+        "--timeout-s", type=float, default=0.5, help="failsafe.command_timeout_s (0.5)"
+    )
+    bench.add_argument("--stops", type=int, default=5, help="failsafe stops timed (5)")
+    bench.add_argument(
+        "--baseline",
+        action="store_true",
+        help="also time a bare zenoh-to-UDP echo process: the floor this machine sets",
+    )
+    bench.add_argument("--json", action="store_true", help="print one JSON object")
+    bench.set_defaults(handler=_lazy("firmware_bridge.bench:bench"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,12 +1,22 @@
 """The `qnav` command as a user runs it: a real process, real arguments."""
 
+import argparse
 import json
 import subprocess
 import sys
 
 import pytest
 
-VERBS = ["scenarios", "settings", "eval", "calibrate", "render", "bench"]
+from qnav.cli import build_parser
+
+
+def _verbs() -> list[str]:
+    parser = build_parser()
+    verbs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sorted(verbs.choices)
+
+
+VERBS = _verbs()
 
 
 def _qnav(*args: str) -> subprocess.CompletedProcess[str]:
