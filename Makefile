@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs clean
+.PHONY: install demo test test-slow test-stack playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -36,6 +36,16 @@ pytest: $(STAMP)
 # Long checks (many-episode evaluations, training runs): not part of `make test`.
 test-slow: $(STAMP)
 	$(BIN)/pytest -m slow
+
+# The full stack (sim-car, controller, bridge, recorder as processes) against in-process eval.
+test-stack: $(STAMP)
+	$(BIN)/pytest -m stack -s
+
+# Regenerate the playback tests' reference decisions on purpose, and show what changed
+# (tests/data/make_playback_data.py --refs; docs/recordings.md). Commit the new references.
+playback-refs: $(STAMP)
+	$(BIN)/python tests/data/make_playback_data.py --refs
+	git diff --stat -- tests/data/playback
 
 bench-sim: $(STAMP)
 	$(BIN)/qnav bench sim

@@ -273,14 +273,73 @@ def build_parser() -> argparse.ArgumentParser:
     record.set_defaults(handler=_lazy("qnav.recording:record_verb"))
 
     playback = verbs.add_parser(
-        "playback", help="publish MCAP recordings back onto zenoh at their recorded timing"
+        "playback",
+        help="publish MCAP recordings back onto zenoh at their recorded timing, or feed them "
+        "into the controller's decision step (--into-controller)",
     )
     playback.add_argument("files", type=Path, nargs="+", help="MCAP files or folders of them")
     playback.add_argument("--speed", type=float, default=1.0, help="time factor (2: twice as fast)")
     _zenoh_options(playback)
+    replay = playback.add_argument_group(
+        "into the controller",
+        "no zenoh: the recording's inputs through a fresh controller, on "
+        "the recording's clock (docs/recordings.md)",
+    )
+    replay.add_argument(
+        "--into-controller",
+        action="store_true",
+        help="feed the recording into the controller's decision step and report its decisions",
+    )
+    replay.add_argument("--policy", type=Path, metavar="FILE.onnx", help="policy file")
+    replay.add_argument(
+        "--config", type=Path, metavar="FILE", help="controller TOML (safety, lidar, topics)"
+    )
+    replay.add_argument(
+        "--set",
+        dest="assignments",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="change one controller setting, e.g. --set safety.pose_timeout_s=1.0",
+    )
+    replay.add_argument(
+        "--trigger",
+        choices=["scan", "period"],
+        help="decide on each scan (default, as `qnav stack` runs the daemon) or every period",
+    )
+    replay.add_argument("--json", action="store_true", help="print the decisions as JSON lines")
     playback.set_defaults(handler=_lazy("qnav.recording:playback_verb"))
 
     _bridge_verbs(verbs)
+
+    sim_car = verbs.add_parser(
+        "sim-car",
+        help="the simulator as the car: scans and poses out on zenoh, motion in over MAVLink",
+    )
+    _world_options(sim_car, "walls-increment")
+    sim_car.add_argument("--episodes", type=int, default=50, help="episodes to run (50)")
+    sim_car.add_argument("--first-episode", type=int, default=0, help="index of the first")
+    sim_car.add_argument("--seed", type=int, default=12345, help="layout seed (the test seed)")
+    sim_car.add_argument(
+        "--vehicle",
+        default="udpin:127.0.0.1:14550",
+        help="MAVLink connection the simulated autopilot serves (udpin:127.0.0.1:14550)",
+    )
+    sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
+    _zenoh_options(sim_car)
+    sim_car.set_defaults(handler=_lazy("qnav.stack:sim_car_verb"))
+
+    stack = verbs.add_parser(
+        "stack",
+        help="the full stack as separate processes (sim-car, controller, bridge, recorder)",
+    )
+    stack.add_argument("--policy", type=Path, required=True, help="policy file (.onnx)")
+    stack.add_argument("--scenario", help="world (default: the policy's training scenario)")
+    stack.add_argument("--episodes", type=int, default=20, help="episodes (20)")
+    stack.add_argument("--out", type=Path, default=Path("out/stack"), help="output folder")
+    stack.add_argument("--no-record", action="store_true", help="do not record to MCAP")
+    stack.add_argument("--json", action="store_true", help="print one JSON object")
+    stack.set_defaults(handler=_lazy("qnav.stack:stack_verb"))
 
     bench = verbs.add_parser("bench", help="benchmarks")
     benches = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)

@@ -1,62 +1,112 @@
-"""`make demo`: a short, visible tour of what works today.
+"""`make demo`: train a policy, export it, and drive the simulated car with the whole stack.
 
-It evaluates the random agent under the paper's test protocol in the four scenarios, draws one
-episode to PNG and GIF, and measures the simulator's speed, then says where everything went.
-(The full demo, training and running a policy through the whole stack, arrives with the
-learner and the onboard daemons.)
+1. Train the paper's recurrent Q-network on walls-increment (64 episodes; a couple of minutes).
+2. Export it to one ONNX file, which is then tested under the paper's protocol by the onboard
+   runtime.
+3. Start the full stack as separate processes on loopback: the simulator playing the car
+   (`qnav sim-car`), the controller daemon, the MAVLink bridge and the recorder; run episodes.
+4. Print the stack's results beside the same episodes run in process and the paper's row, and
+   write a trajectory picture (PNG, GIF) and the MCAP recording.
+
+Everything goes to out/demo/. A second run reuses the trained run and starts from step 2.
 """
 
 from __future__ import annotations
 
+import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from sim import paper
-from sim.bench import steps_per_second
 from sim.config import scenario
-from sim.evaluate import EvalSettings, RandomAgent, evaluate
 
 OUT = Path("out/demo")
+SCENARIO = "walls-increment"
+TRAIN_EPISODES = 64
+STACK_EPISODES = 20
+
+
+def _step(number: int, text: str) -> None:
+    print(f"\n{number}/4  {text}", flush=True)
 
 
 def main() -> int:
     """Run the demo."""
+    from controller.policy import PolicyRuntime
+    from qnav.stack import run_stack
+    from sim.car import EpisodeLog, episode_record
+    from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+    from training.config import preset
+    from training.export import export_run
+    from training.run import train
+
     started = time.perf_counter()
-    print("qnav demo: the simulator and the paper's test protocol\n")
-    print("1/3  Random agent, 400 test episodes per scenario (paper's Random rows beside ours)")
-    rows = []
-    for name, theirs in paper.RANDOM.items():
-        result = evaluate(
-            scenario(name),
-            RandomAgent(200, seed=1),
-            EvalSettings(episodes=400, num_worlds=200),
-            progress=True,
-        )
-        rows.append(
-            f"  {name:<20} ours {result.success:.3f} / {result.collision:.3f} / "
-            f"{result.unfinished:.3f}   paper {theirs.success:.3f} / {theirs.collision:.3f} / "
-            f"{theirs.unfinished:.3f}"
-        )
-    print("  success / collision / unfinished")
-    print("\n".join(rows))
+    world = scenario(SCENARIO)
+    print(f"qnav demo: learn {SCENARIO}, export the policy, drive the car through the full stack")
 
-    print("\n2/3  Drawing one episode of obstacles-inertia with lidar rays")
+    _step(1, f"Training the recurrent Q-network, {TRAIN_EPISODES} episodes of {SCENARIO}")
+    settings = replace(
+        preset("fast", world),
+        episodes=TRAIN_EPISODES,
+        eval_every_episodes=32,
+        eval_episodes=50,
+    )
+    run_dir = OUT / "run"
+    results = train(world, settings, run_dir, progress=True)
+    test = results["test"]
+    print(
+        f"  torch network, test protocol (200 episodes): success {test['success']:.3f}, "
+        f"collision {test['collision']:.3f}, unfinished {test['unfinished']:.3f}"
+    )
+
+    _step(2, "Exporting to ONNX and testing the file with the onboard runtime")
+    policy = OUT / "policy.onnx"
+    contract = export_run(run_dir, policy, progress=True)
+    tested = contract.evaluation
+    print(
+        f"  wrote {policy}: success {tested['success']:.3f}, collision "
+        f"{tested['collision']:.3f} over {int(tested['episodes'])} episodes"
+    )
+
+    _step(3, f"Full stack: sim-car, controller, bridge, recorder; {STACK_EPISODES} episodes")
+    stack = run_stack(policy, OUT / "stack", episodes=STACK_EPISODES, progress=True)
+    same = evaluate(
+        world,
+        StreamPolicyAgent(PolicyRuntime(policy, num_streams=STACK_EPISODES), STACK_EPISODES),
+        EvalSettings(episodes=STACK_EPISODES, num_worlds=STACK_EPISODES),
+    )
+
+    _step(4, "Results and pictures")
+    theirs, _ = paper.RECURRENT[SCENARIO]
+    rows = [
+        ("full stack (separate processes)", stack["success"], stack["collision"],
+         stack["unfinished"], stack["episodes"]),
+        ("same episodes in process", same.success, same.collision, same.unfinished,
+         same.episodes),
+        ("policy file, test protocol", tested["success"], tested["collision"],
+         tested["unfinished"], int(tested["episodes"])),
+        ("paper, Table III recurrent", theirs.success, theirs.collision, theirs.unfinished, 200),
+    ]  # fmt: skip
+    print(f"  {'':<34} {'success':>8} {'collision':>10} {'unfinished':>11} {'episodes':>9}")
+    for label, success, collision, unfinished, count in rows:
+        print(f"  {label:<34} {success:>8.3f} {collision:>10.3f} {unfinished:>11.3f} {count:>9}")
+
+    logs = [json.loads(line) for line in (OUT / "stack" / "episodes.jsonl").read_text().split("\n")
+            if line]  # fmt: skip
     try:
-        from sim.render import render_episode
+        from sim.render import draw_gif, draw_png
 
-        png, gif = render_episode(
-            scenario("obstacles-inertia"), RandomAgent(1, seed=3), OUT, seed=3, rays=True
-        )
-        print(f"  wrote {png}\n  wrote {gif}")
+        record = episode_record(world, EpisodeLog(**logs[0]))
+        png = draw_png(record, OUT / "stack-episode-0.png")
+        gif = draw_gif(record, OUT / "stack-episode-0.gif")
+        print(f"  trajectory of the stack's first episode: {png} and {gif}")
     except RuntimeError as error:
-        print(f"  skipped: {error}")
-
-    print("\n3/3  Simulator speed, obstacles-inertia (720 beams, 5 moving obstacles), batch 64")
-    rate = steps_per_second(scenario("obstacles-inertia"), 64, seconds=1.5)
-    print(f"  {rate['steps_per_second']:,.0f} env-steps per second (median of 7 chunks)")
-    print("  full benchmark on one core: qnav bench sim")
-
-    print(f"\ndone in {time.perf_counter() - started:.0f} s; pictures in {OUT}/")
+        print(f"  pictures skipped: {error}")
+    for path in stack["recording"]:
+        print(f"  MCAP recording (open it in Foxglove): {path}")
+    print(f"  daemon configurations and logs: {OUT / 'stack'}/")
+    print(f"\ndone in {time.perf_counter() - started:.0f} s")
     return 0
 
 

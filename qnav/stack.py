@@ -1,0 +1,280 @@
+"""The whole system as separate processes on loopback: sim-car, controller, bridge, recorder.
+
+`qnav stack --policy FILE` writes the daemons' configuration files, starts
+
+    qnav sim-car     the simulated world: LaserScan and PoseStamped out on zenoh (the hub the
+                     others connect to), its car a MAVLink vehicle on a UDP port
+    qnav controller  the policy file, deciding on each scan
+    qnav bridge      Twist to RC overrides over MAVLink, arming the car
+    qnav record      every topic to MCAP
+
+as a user would start them, waits for the sim-car's episodes, stops the daemons with SIGTERM and
+reports the outcomes beside `qnav eval` of the same file on the same episodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+from contracts.errors import ConfigError
+from contracts.settings import from_dict, to_toml
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A loopback port nothing listens on now."""
+    with socket.socket(socket.AF_INET, kind) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@dataclass(frozen=True)
+class StackFiles:
+    """Where one stack run keeps its configuration, logs and outputs."""
+
+    root: Path
+    """The run's folder."""
+
+    @property
+    def controller_toml(self) -> Path:
+        """The controller's configuration."""
+        return self.root / "controller.toml"
+
+    @property
+    def bridge_toml(self) -> Path:
+        """The bridge's configuration."""
+        return self.root / "bridge.toml"
+
+    @property
+    def episodes(self) -> Path:
+        """The sim-car's episode log (JSON lines)."""
+        return self.root / "episodes.jsonl"
+
+    @property
+    def recording(self) -> Path:
+        """The MCAP recording folder."""
+        return self.root / "recording"
+
+    def log(self, name: str) -> Path:
+        """A daemon's stderr."""
+        return self.root / f"{name}.log"
+
+
+def write_configs(
+    files: StackFiles, policy: Path, zenoh_endpoint: str, mavlink_port: int, tolerance_m: float
+) -> None:
+    """The controller's and the bridge's TOML files for this stack."""
+    from controller.config import DaemonConfig
+    from firmware_bridge.settings import BridgeSettings
+
+    zenoh = {"connect": [zenoh_endpoint], "listen": []}
+    controller = from_dict(
+        DaemonConfig,
+        {
+            "controller": {"policy": str(policy.resolve()), "trigger": "scan"},
+            "safety": {"target_tolerance_m": tolerance_m},
+            "zenoh": zenoh,
+        },
+    )
+    bridge = from_dict(
+        BridgeSettings,
+        {
+            "mavlink": {"connection": f"udpout:127.0.0.1:{mavlink_port}"},
+            "vehicle": {"arm_on_connect": True, "set_mode_on_connect": True},
+            "zenoh": zenoh,
+        },
+    )
+    files.root.mkdir(parents=True, exist_ok=True)
+    files.controller_toml.write_text(to_toml(controller))
+    files.bridge_toml.write_text(to_toml(bridge))
+
+
+class Daemons:
+    """Child processes started as a user would start them; stopped with SIGTERM."""
+
+    def __init__(self, files: StackFiles) -> None:
+        self.files = files
+        self.processes: dict[str, subprocess.Popen[str]] = {}
+        self._logs: list[IO[str]] = []
+
+    def start(self, name: str, *args: str, stdout: int | None = None) -> subprocess.Popen[str]:
+        """`qnav ARGS...`, stderr to `<name>.log`."""
+        log = self.files.log(name).open("w")
+        self._logs.append(log)
+        env = os.environ | {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+        process = subprocess.Popen(
+            [sys.executable, "-m", "qnav", *args],
+            stdout=stdout if stdout is not None else log,
+            stderr=log,
+            text=True,
+            env=env,
+        )
+        self.processes[name] = process
+        return process
+
+    def check_alive(self) -> None:
+        """Raise if a daemon died."""
+        for name, process in self.processes.items():
+            if process.poll() is not None and name != "sim-car":
+                tail = self.files.log(name).read_text().strip().splitlines()[-5:]
+                raise RuntimeError(
+                    f"{name} exited with code {process.returncode}:\n  " + "\n  ".join(tail)
+                )
+
+    def stop(self, timeout_s: float = 10.0) -> dict[str, int | None]:
+        """SIGTERM every daemon still running, then wait (SIGKILL after `timeout_s`)."""
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+        codes: dict[str, int | None] = {}
+        for name, process in self.processes.items():
+            try:
+                codes[name] = process.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                codes[name] = process.wait()
+        for log in self._logs:
+            log.close()
+        return codes
+
+
+def run_stack(
+    policy: Path,
+    out: Path,
+    *,
+    scenario: str | None = None,
+    episodes: int = 20,
+    first_episode: int = 0,
+    record: bool = True,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the full stack for `episodes` episodes; returns its outcome fractions and paths."""
+    from tqdm import tqdm
+
+    from contracts.policy_file import PolicyContract
+    from controller.onnx_file import read_onnx
+    from sim.config import scenario as load_scenario
+
+    contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
+    world = load_scenario(scenario or contract.scenario)
+    files = StackFiles(out)
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    mavlink_port = free_port(socket.SOCK_DGRAM)
+    write_configs(files, policy, hub, mavlink_port, world.robot_radius_m)
+    daemons = Daemons(files)
+    outcomes: list[str] = []
+    started = time.monotonic()
+    try:
+        sim_car = daemons.start(
+            "sim-car",
+            "sim-car",
+            "--scenario", world.name,
+            "--episodes", str(episodes),
+            "--first-episode", str(first_episode),
+            "--listen", hub,
+            "--vehicle", f"udpin:127.0.0.1:{mavlink_port}",
+            "--log", str(files.episodes),
+            stdout=subprocess.PIPE,
+        )  # fmt: skip
+        daemons.start("controller", "controller", "--config", str(files.controller_toml))
+        daemons.start("bridge", "bridge", "--config", str(files.bridge_toml))
+        if record:
+            daemons.start("recorder", "record", "--folder", str(files.recording), "--connect", hub)
+        assert sim_car.stdout is not None
+        with tqdm(total=episodes, desc="stack episodes", unit="ep", disable=not progress) as bar:
+            for line in sim_car.stdout:
+                if line.startswith("episode "):
+                    outcomes.append(line.split()[2].rstrip(","))
+                    bar.update(1)
+                    bar.set_postfix(success=f"{outcomes.count('success') / len(outcomes):.2f}")
+                daemons.check_alive()
+        if sim_car.wait() != 0:
+            tail = files.log("sim-car").read_text().strip().splitlines()[-5:]
+            raise RuntimeError("sim-car failed:\n  " + "\n  ".join(tail))
+    finally:
+        codes = daemons.stop()
+    count = max(len(outcomes), 1)
+    return {
+        "policy": str(policy),
+        "scenario": world.name,
+        "episodes": len(outcomes),
+        "success": outcomes.count("success") / count,
+        "collision": outcomes.count("collision") / count,
+        "unfinished": outcomes.count("unfinished") / count,
+        "wall_s": round(time.monotonic() - started, 1),
+        "exit_codes": codes,
+        "folder": str(out),
+        "recording": sorted(str(p) for p in files.recording.glob("*.mcap")),
+    }
+
+
+def stack_verb(args: argparse.Namespace) -> int:
+    """`qnav stack`: the full stack, then the same episodes in process, side by side."""
+    if not args.policy.is_file():
+        raise ConfigError(f"--policy {args.policy} does not exist")
+    result = run_stack(
+        args.policy,
+        args.out,
+        scenario=args.scenario,
+        episodes=args.episodes,
+        record=not args.no_record,
+        progress=not args.json,
+    )
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    print(
+        f"full stack, {result['scenario']}, {result['episodes']} episodes "
+        f"({result['wall_s']:.0f} s): success {result['success']:.3f}, "
+        f"collision {result['collision']:.3f}, unfinished {result['unfinished']:.3f}"
+    )
+    print(f"configuration, logs and episode log in {result['folder']}")
+    if result["recording"]:
+        print(f"recording: {', '.join(result['recording'])}")
+    return 0
+
+
+def sim_car_verb(args: argparse.Namespace) -> int:
+    """`qnav sim-car`: the simulator as the car, until its episodes are done or SIGTERM."""
+    import logging
+    import threading
+
+    from contracts.transport import ZenohSettings
+    from sim.car import SimCar, SimCarSettings, summary, write_log
+    from sim.config import load_world
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    settings = SimCarSettings(
+        episodes=args.episodes,
+        first_episode=args.first_episode,
+        seed=args.seed,
+        vehicle_connection=args.vehicle,
+    )
+    zenoh = ZenohSettings(
+        listen=tuple(args.listen or ()),
+        connect=tuple(args.connect or ()),
+        namespace=args.namespace or "",
+    )
+    stop = threading.Event()
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, lambda *_: stop.set())
+    car = SimCar(world, settings, zenoh)
+
+    def report(entry: Any) -> None:
+        print(f"episode {entry.episode}: {entry.outcome}, {entry.steps} steps", flush=True)
+
+    episodes = car.run(stop, progress=report)
+    if args.log:
+        write_log(episodes, args.log)
+    print(json.dumps(summary(episodes)), flush=True)
+    return 0

@@ -1,0 +1,328 @@
+"""The simulator plays the car: sensors out on zenoh, motion in over MAVLink.
+
+`qnav sim-car` runs one simulated world in real time. Every control period it publishes what
+the car's drivers would: the lidar as a `sensor_msgs/LaserScan` (the world's beams, over
+[0, 2 pi) counter-clockwise from the heading) and the motion-capture pose as a
+`geometry_msgs/PoseStamped`; at the start of each episode it publishes the target as a
+`PoseStamped` on `goal_pose`. The robot moves only as the MAVLink test vehicle
+(`sim.mavlink_vehicle`) moves, driven by whatever reaches it over MAVLink (the firmware
+bridge); the obstacles move as in the simulator. The episode's outcome is judged by the
+simulator's own rules (`sim.task.outcome`), and the next episode starts at once.
+
+Episode g has the layout of the test protocol's episode g (seed and episode index as in
+`sim.evaluate`), so a run of the full stack can be compared with `qnav eval` of the same policy
+file, episode by episode.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts import wire
+from contracts.settings import check_range
+from contracts.transport import ZenohSettings, open_session
+from sim.config import IncrementDynamics, InertiaDynamics, WorldConfig
+from sim.dynamics import action_velocities, move_obstacles
+from sim.evaluate import EvalSettings
+from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from sim.render import EpisodeRecord
+from sim.task import Outcome, outcome, reward
+from sim.world import WorldState, observe, reset
+
+log = logging.getLogger("sim.car")
+
+
+@dataclass(frozen=True)
+class SimCarSettings:
+    """The simulated car: which world, how many episodes, and its two links."""
+
+    SECTION = "sim_car"
+
+    episodes: int = 50
+    """Episodes to run before exiting."""
+    seed: int = EvalSettings().seed
+    """Layout seed (default: the test protocol's, so `qnav eval` runs the same episodes)."""
+    first_episode: int = 0
+    """Index of the first episode."""
+    max_episode_steps: int = EvalSettings().max_episode_steps
+    """Control periods before an episode counts as unfinished (paper: 500)."""
+    vehicle_connection: str = "udpin:127.0.0.1:14550"
+    """MAVLink connection the simulated autopilot serves (the bridge connects to it)."""
+    full_throttle_speed_mps: float = 1.0
+    """Speed at full throttle (and turn rate in rad/s at full steering); set the bridge's
+    speed_at_full_throttle_mps and turn_rate_at_full_steering_radps to the same."""
+    increment_time_constant_s: float = 0.01
+    """Velocity lag of the car in increment worlds: short, so that a command held for one
+    control period moves the car by about one increment."""
+    map_frame_id: str = "map"
+    """frame_id of poses and targets."""
+    lidar_frame_id: str = "laser"
+    """frame_id of scans."""
+    start_timeout_s: float = 30.0
+    """Longest wait for the car to be armed before the first episode."""
+    settle_s: float = 1.0
+    """Pause after publishing a new target before the episode's clock starts."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "episodes", self.episodes, 1, 10_000_000)
+        check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10_000_000)
+        check_range(
+            self, "full_throttle_speed_mps", self.full_throttle_speed_mps, 0, 20, exclusive_low=True
+        )
+        check_range(self, "settle_s", self.settle_s, 0, 60)
+
+
+@dataclass
+class EpisodeLog:
+    """One episode as the simulated car saw it."""
+
+    episode: int
+    """Episode index (the test protocol's layout)."""
+    outcome: str
+    """success, collision or unfinished."""
+    steps: int
+    """Control periods it lasted."""
+    poses: list[list[float]] = field(default_factory=list)
+    """Robot pose at each period."""
+    obstacles: list[list[list[float]]] = field(default_factory=list)
+    """Obstacle centres at each period."""
+    target: list[float] = field(default_factory=list)
+    """Target position."""
+    actions: list[int] = field(default_factory=list)
+    """The action each period's command corresponds to (-1: stop)."""
+
+
+def vehicle_dynamics(world: WorldConfig, settings: SimCarSettings) -> InertiaDynamics:
+    """The car's motion model: the world's lags, with full travel at `full_throttle_speed_mps`.
+
+    In increment worlds the lag is short, so a command held for one control period moves the car
+    about one increment, as the simulator's increment dynamics do.
+    """
+    full = settings.full_throttle_speed_mps
+    if isinstance(world.dynamics, IncrementDynamics):
+        tau = settings.increment_time_constant_s
+        return InertiaDynamics(
+            max_speed_mps=full,
+            max_turn_rate_radps=full,
+            linear_time_constant_s=tau,
+            angular_time_constant_s=tau,
+            physics_dt_s=min(world.control_period_s, tau),
+        )
+    return replace(world.dynamics, max_speed_mps=full, max_turn_rate_radps=full)
+
+
+def scan_message(
+    ranges_m: NDArray[np.float32], stamp_s: float, frame_id: str, max_range_m: float
+) -> bytes:
+    """The world's scan as a LaserScan: beam i at i * 2 pi / B, counter-clockwise; no return is
+    +inf, as ROS drivers report it (REP 117)."""
+    beams = ranges_m.shape[0]
+    return wire.encode_scan_msg(
+        wire.Scan(
+            stamp_s=stamp_s,
+            frame_id=frame_id,
+            angle_min_rad=0.0,
+            angle_increment_rad=2 * math.pi / beams,
+            range_min_m=0.0,
+            range_max_m=max_range_m,
+            ranges_m=ranges_m.astype(np.float32),
+        )
+    )
+
+
+class SimCar:
+    """One world in real time, its robot moved by the MAVLink test vehicle."""
+
+    def __init__(self, world: WorldConfig, settings: SimCarSettings, zenoh: ZenohSettings) -> None:
+        self.world = replace(world, max_episode_steps=settings.max_episode_steps)
+        self.settings = settings
+        self.zenoh = zenoh
+        self.vehicle = MavlinkVehicle(
+            MavlinkVehicleSettings(
+                connection=settings.vehicle_connection,
+                dynamics=vehicle_dynamics(world, settings),
+                require_position_for_guided=False,
+            )
+        )
+        self.episodes: list[EpisodeLog] = []
+        self._velocities = np.array(action_velocities(world.dynamics, world.control_period_s))
+        self._last_command: wire.Twist2D | None = None
+
+    def action_of(self, command: wire.Twist2D | None) -> int:
+        """The action whose velocity the command is (-1 for a stop or none)."""
+        if command is None or (command.linear_mps == 0 and command.angular_radps == 0):
+            return -1
+        gap = np.abs(self._velocities - [command.linear_mps, command.angular_radps]).sum(axis=1)
+        return int(np.argmin(gap))
+
+    def run(self, stop: threading.Event, progress: Any = None) -> list[EpisodeLog]:
+        """Run the episodes (or until `stop`); returns their logs."""
+        settings = self.settings
+        namespace = self.zenoh.namespace
+        with self.vehicle, open_session(self.zenoh) as session:
+            publish = {
+                topic.name: session.declare_publisher(wire.key(topic, namespace))
+                for topic in (wire.SCAN, wire.POSE, wire.TARGET_POSE)
+            }
+
+            def on_command(sample: Any) -> None:
+                with contextlib.suppress(wire.WireError):
+                    self._last_command = wire.decode_twist_msg(bytes(sample.payload.to_bytes()))
+
+            commands = session.declare_subscriber(wire.key(wire.COMMAND, namespace), on_command)
+            self._wait_until_armed(stop)
+            for index in range(settings.first_episode, settings.first_episode + settings.episodes):
+                if stop.is_set():
+                    break
+                log_entry = self._episode(index, publish, stop)
+                if log_entry is None:  # interrupted: an episode cut short is not an outcome
+                    break
+                self.episodes.append(log_entry)
+                log.info("episode %d: %s after %d steps", index, log_entry.outcome, log_entry.steps)
+                if progress is not None:
+                    progress(log_entry)
+            commands.undeclare()
+        return self.episodes
+
+    def _wait_until_armed(self, stop: threading.Event) -> None:
+        deadline = time.monotonic() + self.settings.start_timeout_s
+        while not self.vehicle.armed and not stop.is_set():
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"the car was not armed within {self.settings.start_timeout_s} s: is the "
+                    f"bridge connected to {self.settings.vehicle_connection} with "
+                    "vehicle.arm_on_connect = true?"
+                )
+            time.sleep(0.05)
+
+    def _episode(
+        self, index: int, publish: dict[str, Any], stop: threading.Event
+    ) -> EpisodeLog | None:
+        world, settings = self.world, self.settings
+        state = reset(world, np.array([settings.seed]), np.array([index]))
+        self.vehicle.set_pose(*state.pose[0])
+        entry = EpisodeLog(index, "unfinished", 0, target=state.target_xy[0].tolist())
+        self._publish(state, publish, target=True)
+        stop.wait(settings.settle_s)
+        self.vehicle.set_pose(*state.pose[0])  # in case a late command moved it while settling
+        period = world.control_period_s
+        deadline = time.monotonic()
+        self._record(state, entry)
+        self._publish(state, publish)
+        while not stop.is_set():
+            deadline += period
+            stop.wait(max(0.0, deadline - time.monotonic()))
+            entry.actions.append(self.action_of(self._last_command))
+            state = self._advance(state)
+            self._record(state, entry)
+            observation = observe(world, state)
+            distance = np.linalg.norm(state.target_xy - state.pose[:, :2], axis=1)
+            result = int(outcome(distance, observation.clearance_m, world.robot_radius_m)[0])
+            entry.steps = int(state.steps[0])
+            if result != Outcome.RUNNING:
+                entry.outcome = "success" if result == Outcome.SUCCESS else "collision"
+                break
+            if entry.steps >= world.max_episode_steps:
+                break
+            self._publish(state, publish, observation_scan=observation.scan_m)
+        return None if stop.is_set() else entry
+
+    def _advance(self, state: WorldState) -> WorldState:
+        world = self.world
+        obstacle_xy, obstacle_velocity = move_obstacles(
+            state.obstacle_xy,
+            state.obstacle_velocity,
+            world.obstacles.radius_m,
+            world.arena.size_m,
+            world.control_period_s,
+        )
+        return state._replace(
+            pose=np.array([self.vehicle.pose()]),
+            obstacle_xy=obstacle_xy,
+            obstacle_velocity=obstacle_velocity,
+            steps=state.steps + 1,
+        )
+
+    def _record(self, state: WorldState, entry: EpisodeLog) -> None:
+        entry.poses.append(state.pose[0].tolist())
+        entry.obstacles.append(state.obstacle_xy[0].tolist())
+
+    def _publish(
+        self,
+        state: WorldState,
+        publish: dict[str, Any],
+        *,
+        target: bool = False,
+        observation_scan: NDArray[np.float32] | None = None,
+    ) -> None:
+        settings = self.settings
+        stamp = time.time()
+        x, y, yaw = state.pose[0]
+        if target:
+            tx, ty = state.target_xy[0]
+            publish[wire.TARGET_POSE.name].put(
+                wire.encode_pose_msg(wire.Pose2D(stamp, settings.map_frame_id, tx, ty))
+            )
+        publish[wire.POSE.name].put(
+            wire.encode_pose_msg(wire.Pose2D(stamp, settings.map_frame_id, x, y, yaw))
+        )
+        if self.world.lidar is not None:
+            scan = observation_scan
+            if scan is None:
+                scan = observe(self.world, state).scan_m
+            assert scan is not None
+            publish[wire.SCAN.name].put(
+                scan_message(scan[0], stamp, settings.lidar_frame_id, self.world.lidar.max_range_m)
+            )
+
+
+def episode_record(world: WorldConfig, entry: EpisodeLog) -> EpisodeRecord:
+    """A logged episode in the form `sim.render` draws."""
+    poses = np.array(entry.poses)
+    obstacles = np.array(entry.obstacles).reshape(len(entry.poses), world.obstacles.count, 2)
+    outcome_value = {"success": Outcome.SUCCESS, "collision": Outcome.COLLISION}.get(
+        entry.outcome, Outcome.RUNNING
+    )
+    distance = np.linalg.norm(poses[1:, :2] - np.array(entry.target), axis=1)
+    return EpisodeRecord(
+        config=world,
+        poses=poses,
+        obstacle_xy=obstacles,
+        target_xy=np.array(entry.target),
+        scans=None,
+        actions=np.maximum(np.array(entry.actions, dtype=np.int64), 0),
+        outcome=outcome_value,
+        rewards=reward(
+            distance, np.full(distance.shape, np.inf), world.robot_radius_m, world.reward
+        ),
+    )
+
+
+def summary(episodes: list[EpisodeLog]) -> dict[str, float]:
+    """Fractions by outcome, as `qnav eval --json` prints them."""
+    count = max(len(episodes), 1)
+    return {
+        "success": sum(e.outcome == "success" for e in episodes) / count,
+        "collision": sum(e.outcome == "collision" for e in episodes) / count,
+        "unfinished": sum(e.outcome == "unfinished" for e in episodes) / count,
+        "episodes": len(episodes),
+    }
+
+
+def write_log(episodes: list[EpisodeLog], path: Path) -> None:
+    """The episodes as JSON lines (one object per episode)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w") as out:
+        for entry in episodes:
+            out.write(json.dumps(entry.__dict__) + "\n")

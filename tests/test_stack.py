@@ -1,0 +1,48 @@
+"""The whole system as separate processes scores what the policy file scores in process.
+
+Marked `stack` (about 5 minutes): `make test-stack`. It runs `qnav stack` (sim-car, controller,
+bridge and recorder as their own processes on loopback, the car driven over MAVLink) for 50
+test-protocol episodes and compares its success rate with `evaluate` of the same file on the
+same episodes in process.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from controller.policy import PolicyRuntime
+from sim.config import scenario
+from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+
+POLICY = Path(__file__).parent / "data" / "playback" / "policy.onnx"
+EPISODES = 50
+
+
+@pytest.mark.stack
+def test_the_full_stack_scores_within_five_hundredths_of_the_in_process_evaluation(
+    tmp_path: Path,
+) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "qnav", "stack", "--policy", str(POLICY), "--episodes",
+         str(EPISODES), "--out", str(tmp_path / "stack"), "--json"],
+        capture_output=True, text=True, timeout=1200, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    stack = json.loads(done.stdout.strip().splitlines()[-1])
+    runtime = PolicyRuntime(POLICY, num_streams=EPISODES)
+    world = scenario(runtime.contract.scenario)
+    in_process = evaluate(
+        world,
+        StreamPolicyAgent(runtime, EPISODES),
+        EvalSettings(episodes=EPISODES, num_worlds=EPISODES),
+    )
+    print(f"stack {stack['success']:.3f}, in process {in_process.success:.3f}")
+    assert stack["episodes"] == EPISODES
+    assert abs(stack["success"] - in_process.success) <= 0.05
+    assert stack["exit_codes"]["controller"] == 0 and stack["exit_codes"]["bridge"] == 0
+    assert stack["recording"], "the recorder wrote no MCAP file"
