@@ -9,9 +9,10 @@ import signal
 import threading
 from typing import Any
 
+from contracts.errors import ConfigError
 from contracts.settings import from_dict, load_toml, with_overrides
 from contracts.transport import ZenohSettings
-from controller.recording import RecorderSettings, play, read_recordings, record
+from controller.recording import RecordedMessage, RecorderSettings, play, read_recordings, record
 
 
 def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -51,10 +52,68 @@ def record_verb(args: argparse.Namespace) -> int:
 
 
 def playback_verb(args: argparse.Namespace) -> int:
-    """Publish recordings back onto zenoh at their recorded timing."""
+    """Publish recordings back onto zenoh at their recorded timing, or (--into-controller) feed
+    them into the controller's decision step on a simulated clock."""
     files = sorted(p for f in args.files for p in (sorted(f.glob("*.mcap")) if f.is_dir() else [f]))
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing or not files:
+        raise ConfigError(
+            f"no such recording: {', '.join(missing) or ' '.join(map(str, args.files))}"
+        )
     messages = list(read_recordings(files))
+    if args.into_controller:
+        return _into_controller(args, messages, len(files))
     settings = with_overrides(ZenohSettings(), _zenoh_overrides(args))
     count = play(messages, settings, speed=args.speed, stop=_stop_on_signals())
     print(f"published {count} of {len(messages)} messages from {len(files)} file(s)")
+    return 0
+
+
+def _into_controller(args: argparse.Namespace, messages: list[RecordedMessage], files: int) -> int:
+    """`qnav playback --into-controller`: the controller's rows, as a summary or JSON lines."""
+    import json
+
+    from controller.config import load_config
+    from controller.playback import (
+        agreement_with_recorded,
+        play_into_controller,
+        recorded_statuses,
+        summary,
+    )
+    from controller.policy import PolicyRuntime
+
+    config = load_config(args.config, args.assignments)
+    policy = args.policy or (config.policy_path() if config.controller.policy else None)
+    if policy is None:
+        raise ConfigError("--into-controller needs --policy FILE.onnx (or controller.policy)")
+    runtime = PolicyRuntime(policy, backend=config.controller.backend)
+    rows = play_into_controller(
+        messages,
+        runtime,
+        safety=config.safety,
+        lidar=config.lidar,
+        topics=config.topics,
+        trigger=args.trigger or ("scan" if runtime.contract.num_beams else "period"),
+    )
+    if args.json:
+        for row in rows:
+            print(json.dumps(row, allow_nan=False))
+        return 0
+    span_s = (messages[-1].log_time_ns - messages[0].log_time_ns) * 1e-9 if messages else 0.0
+    print(
+        f"{len(messages)} messages from {files} file(s) over {span_s:.1f} s into the controller "
+        f"({policy}): {len(rows)} outputs"
+    )
+    counts = summary(rows)
+    actions = ", ".join(f"{k.split(':')[1]} {v}" for k, v in counts.items() if ":" in k)
+    for reason, count in counts.items():
+        if ":" not in reason:
+            print(f"  {reason:<16} {count:5d}" + (f"  ({actions})" if reason == "policy" else ""))
+    statuses = recorded_statuses(messages)
+    if statuses:
+        same, matched = agreement_with_recorded(rows, statuses)
+        print(
+            f"recorded run: {len(statuses)} statuses; on the {matched} scans both decided by "
+            f"the policy, the same action {same} times"
+        )
     return 0
