@@ -24,6 +24,7 @@ EPISODES = 50
 
 
 @pytest.mark.stack
+@pytest.mark.timeout(1500)
 def test_the_full_stack_scores_within_five_hundredths_of_the_in_process_evaluation(
     tmp_path: Path,
 ) -> None:
