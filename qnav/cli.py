@@ -91,9 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--agent",
         default="random",
-        choices=["random", "goto"],
-        help="without --policy: random (the paper's Random rows) or goto (turn to the target "
-        "and drive, blind to obstacles)",
+        choices=["random", "goto", "oracle"],
+        help="without --policy: random (the paper's Random rows), goto (turn to the target "
+        "and drive, blind to obstacles) or oracle (a planner that knows the obstacles' future: "
+        "an upper bound on success; slow)",
     )
     evaluate.add_argument(
         "--policy",

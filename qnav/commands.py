@@ -45,6 +45,8 @@ def evaluate(args: argparse.Namespace) -> int:
             (RandomAgent(worlds, seed=args.seed), "random agent")
             if args.agent == "random"
             else (GoToTargetAgent(), "go-to-target baseline")
+            if args.agent == "goto"
+            else (RandomAgent(worlds, seed=args.seed), "oracle planner (knows the future)")
         )
     else:
         from training.policy import load_network
@@ -68,7 +70,12 @@ def evaluate(args: argparse.Namespace) -> int:
         label = f"{run.train.model} policy {args.policy}"
     if args.random_action_prob:
         label += f" with {args.random_action_prob:.0%} random actions"
-    result = run_evaluation(world, agent, eval_settings, progress=not args.json)
+    if args.policy is None and args.agent == "oracle":
+        from sim.oracle import run_oracle
+
+        result = run_oracle(world, eval_settings, progress=not args.json)
+    else:
+        result = run_evaluation(world, agent, eval_settings, progress=not args.json)
     if args.json:
         print(json.dumps({k: v for k, v in asdict(result).items() if k != "mean_steps"}))
         return 0

@@ -1,0 +1,115 @@
+"""An oracle planner: it knows where the obstacles will be, so it bounds what a policy can reach.
+
+Obstacles move in straight lines and bounce off the walls, so a planner given the world's true
+state can simulate the future exactly. At every step this one simulates a set of action
+sequences (each action held for a while, plus random held sequences) over a horizon, scores
+them (reaching the target early is best, colliding late is better than early, otherwise being
+close to the target and clear of surfaces), and takes the best sequence's first action
+(model-predictive control by random shooting). A learned policy sees only its lidar window, so
+it cannot be expected to beat this planner by much: where the planner fails, the world is hard.
+
+`qnav eval --agent oracle --scenario obstacles-inertia` runs it under the test protocol.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from contracts.actions import NUM_ACTIONS
+from sim.config import IncrementDynamics, WorldConfig
+from sim.dynamics import move_obstacles, step_increment, step_inertia
+from sim.evaluate import EvalResult, EvalSettings
+from sim.geometry import clearance
+from sim.task import Outcome
+from sim.world import WorldState, reset, step
+
+_HOLDS = (1, 3, 6, 10)
+
+
+def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) -> NDArray[np.int64]:
+    """(S, horizon) candidate sequences: a held then b held, for every a, b and hold, plus
+    `random_count` random sequences of actions held three steps each."""
+    structured = [
+        [a] * hold + [b] * (horizon - hold)
+        for a in range(NUM_ACTIONS)
+        for hold in (*_HOLDS, horizon)
+        for b in range(NUM_ACTIONS)
+        if hold <= horizon
+    ]
+    blocks = -(-horizon // 3)
+    random = rng.integers(0, NUM_ACTIONS, size=(random_count, blocks)).repeat(3, axis=1)
+    return np.concatenate([np.array(structured)[:, :horizon], random[:, :horizon]])
+
+
+def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> int:
+    """The first action of the best sequence for the single world in `state`."""
+    count, horizon = sequences.shape
+    pose = np.repeat(state.pose, count, axis=0)
+    velocity = np.repeat(state.velocity, count, axis=0)
+    obstacles = np.repeat(state.obstacle_xy, count, axis=0)
+    obstacle_velocity = np.repeat(state.obstacle_velocity, count, axis=0)
+    target = np.repeat(state.target_xy, count, axis=0)
+    radius = config.robot_radius_m
+    score = np.zeros(count)
+    alive = np.ones(count, dtype=bool)
+    distance = gap = np.zeros(count)
+    for h in range(horizon):
+        if isinstance(config.dynamics, IncrementDynamics):
+            pose, velocity = step_increment(pose, velocity, sequences[:, h], config.dynamics)
+        else:
+            pose, velocity = step_inertia(
+                pose, velocity, sequences[:, h], config.dynamics, config.control_period_s
+            )
+        obstacles, obstacle_velocity = move_obstacles(
+            obstacles,
+            obstacle_velocity,
+            config.obstacles.radius_m,
+            config.arena.size_m,
+            config.control_period_s,
+        )
+        distance = np.linalg.norm(target - pose[:, :2], axis=1)
+        gap = clearance(pose[:, :2], config.arena, obstacles, config.obstacles.radius_m)
+        reached = alive & (distance < radius)
+        hit = alive & ~reached & (gap < radius)
+        score[reached] = 1000.0 - h
+        score[hit] = -1000.0 + h
+        alive &= ~(reached | hit)
+    score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], 1.0)
+    return int(sequences[int(np.argmax(score)), 0])
+
+
+def run_oracle(
+    config: WorldConfig,
+    settings: EvalSettings,
+    *,
+    horizon: int = 20,
+    random_sequences: int = 128,
+    progress: bool = False,
+) -> EvalResult:
+    """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner."""
+    config = replace(config, max_episode_steps=settings.max_episode_steps)
+    rng = np.random.default_rng(settings.seed)
+    outcomes, lengths = [], []
+    for episode in tqdm(range(settings.episodes), desc="oracle", unit="ep", disable=not progress):
+        state = reset(config, np.array([settings.seed]), np.array([episode]))
+        result = Outcome.RUNNING
+        while True:
+            action = plan(config, state, held_sequences(horizon, random_sequences, rng))
+            state, _, transition = step(config, state, np.array([action]))
+            if transition.terminated[0] or transition.truncated[0]:
+                result = Outcome(int(transition.outcome[0]))
+                break
+        outcomes.append(result)
+        lengths.append(int(state.steps[0]))
+    found = np.array(outcomes)
+    return EvalResult(
+        success=float(np.mean(found == Outcome.SUCCESS)),
+        collision=float(np.mean(found == Outcome.COLLISION)),
+        unfinished=float(np.mean(found == Outcome.RUNNING)),
+        episodes=settings.episodes,
+        mean_steps=float(np.mean(lengths)),
+    )
