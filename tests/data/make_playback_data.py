@@ -1,6 +1,6 @@
 """Makes the data of the playback tests (tests/controller/test_playback.py) in tests/data/playback.
 
-    .venv/bin/python tests/data/make_playback_data.py          # everything (10-15 min, 2 cores)
+    .venv/bin/python tests/data/make_playback_data.py          # everything (10-20 min, 2 cores)
     .venv/bin/python tests/data/make_playback_data.py --refs   # references only (playback-refs)
 
 Everything, in order:
