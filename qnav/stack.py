@@ -131,17 +131,23 @@ class Daemons:
                 )
 
     def stop(self, timeout_s: float = 10.0) -> dict[str, int | None]:
-        """SIGTERM every daemon still running, then wait (SIGKILL after `timeout_s`)."""
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
+        """SIGTERM every daemon still running, then wait (SIGKILL after `timeout_s`).
+
+        The recorder goes last, so the stop commands the others send on exit are recorded.
+        """
         codes: dict[str, int | None] = {}
-        for name, process in self.processes.items():
-            try:
-                codes[name] = process.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                codes[name] = process.wait()
+        last = ["recorder"]
+        for group in ([n for n in self.processes if n not in last], last):
+            running = [(n, self.processes[n]) for n in group if n in self.processes]
+            for _, process in running:
+                if process.poll() is None:
+                    process.send_signal(signal.SIGTERM)
+            for name, process in running:
+                try:
+                    codes[name] = process.wait(timeout_s)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    codes[name] = process.wait()
         for log in self._logs:
             log.close()
         return codes
@@ -174,6 +180,12 @@ def run_stack(
     outcomes: list[str] = []
     started = time.monotonic()
     try:
+        # The recorder and the daemons first: they wait for the sim-car, which is the zenoh hub,
+        # so nothing the sim-car publishes is missed.
+        if record:
+            daemons.start("recorder", "record", "--folder", str(files.recording), "--connect", hub)
+        daemons.start("controller", "controller", "--config", str(files.controller_toml))
+        daemons.start("bridge", "bridge", "--config", str(files.bridge_toml))
         sim_car = daemons.start(
             "sim-car",
             "sim-car",
@@ -185,10 +197,6 @@ def run_stack(
             "--log", str(files.episodes),
             stdout=subprocess.PIPE,
         )  # fmt: skip
-        daemons.start("controller", "controller", "--config", str(files.controller_toml))
-        daemons.start("bridge", "bridge", "--config", str(files.bridge_toml))
-        if record:
-            daemons.start("recorder", "record", "--folder", str(files.recording), "--connect", hub)
         assert sim_car.stdout is not None
         with tqdm(total=episodes, desc="stack episodes", unit="ep", disable=not progress) as bar:
             for line in sim_car.stdout:
