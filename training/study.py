@@ -208,8 +208,10 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         "protocol: greedy policy, 200 episodes of up to 500 steps. Paper values beside ours.",
         "",
         f"Status: {sum(r.get('relabel', 'paper') == 'paper' for r in results.values())} of "
-        f"{len(plan())} study runs finished. Known gap: with moving obstacles the fast preset "
-        "does not learn yet (see docs/learner.md, 'Known gap').",
+        f"{len(plan())} study runs finished. Known gap: moving obstacles. The fast preset "
+        "learns obstacles-increment only in part and obstacles-inertia not at all; there even an "
+        "oracle planner that knows the obstacles' future falls short of the goal "
+        "(docs/learner.md, 'Known gap').",
         "",
     ]
     for scenario in SCENARIOS:
