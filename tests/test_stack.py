@@ -1,6 +1,6 @@
 """The whole system as separate processes scores what the policy file scores in process.
 
-Marked `stack` (about 5 minutes): `make test-stack`. It runs `qnav stack` (sim-car, controller,
+Marked `stack` (about 6 minutes): `make test-stack`. It runs `qnav stack` (sim-car, controller,
 bridge and recorder as their own processes on loopback, the car driven over MAVLink) for 50
 test-protocol episodes and compares its success rate with `evaluate` of the same file on the
 same episodes in process.
@@ -19,19 +19,23 @@ from controller.policy import PolicyRuntime
 from sim.config import scenario
 from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 
-POLICY = Path(__file__).parent / "data" / "playback" / "policy.onnx"
+# A small recurrent policy (LSTM 64) that reaches every target of walls-increment in about 20
+# steps: `qnav train --scenario walls-increment --episodes 128 --seed 1 --train-set
+# train.hidden_size=64`, then `qnav export RUN -o tests/data/stack/policy.onnx`. A policy that
+# often runs out of steps would cost 100 s of real time per unfinished episode.
+POLICY = Path(__file__).parent / "data" / "stack" / "policy.onnx"
 EPISODES = 50
 
 
 @pytest.mark.stack
-@pytest.mark.timeout(1500)
+@pytest.mark.timeout(1200)
 def test_the_full_stack_scores_within_five_hundredths_of_the_in_process_evaluation(
     tmp_path: Path,
 ) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "qnav", "stack", "--policy", str(POLICY), "--episodes",
          str(EPISODES), "--out", str(tmp_path / "stack"), "--json"],
-        capture_output=True, text=True, timeout=1200, check=False,
+        capture_output=True, text=True, timeout=1080, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     stack = json.loads(done.stdout.strip().splitlines()[-1])
