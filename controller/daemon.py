@@ -33,6 +33,7 @@ from types import FrameType
 from typing import Any
 
 from contracts import wire
+from contracts.health import Heartbeat
 from contracts.settings import to_toml
 from contracts.transport import open_session
 from controller.config import DaemonConfig, load_config
@@ -109,6 +110,7 @@ class Daemon:
         self.bounded = BoundedLog(log, config.controller.log_interval_s)
         self._last_reason: Reason | None = None
         self._late_s = 0.0
+        self.heartbeat = Heartbeat.from_env("controller")
         namespace = config.zenoh.namespace
         topics = config.topics
         self.keys: dict[Input, str] = {
@@ -184,6 +186,7 @@ class Daemon:
                 status.undeclare()
         finally:
             session.close()
+            self.heartbeat.close()
 
     def _enqueue(self, source: Input) -> Callable[[Any], None]:
         inbox = self.inbox
@@ -220,6 +223,7 @@ class Daemon:
                     publish(output, started)
             else:
                 publish(self.controller.decide(started), started)
+            self.heartbeat.beat(reason=self._last_reason.value if self._last_reason else None)
             now = time.monotonic()
             missed = rate.advance(now)
             if missed:

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import IO, Any, NamedTuple
 
 from contracts.errors import ConfigError
+from contracts.health import Heartbeat
 from contracts.transport import ZenohSettings, open_session
 from contracts.wire import TOPICS, Topic, key
 
@@ -251,7 +252,12 @@ def record(
             for t in topics
         ]
         log.info("recording %s into %s", ", ".join(t.name for t in topics), writer.folder)
-        stop.wait()
+        heartbeat = Heartbeat.from_env("recorder")
+        while True:
+            heartbeat.beat(messages=writer.messages, write_errors=errors)
+            if stop.wait(heartbeat.every_s):
+                break
+        heartbeat.close()
         for handle in subscribers:
             handle.undeclare()
     writer.close()

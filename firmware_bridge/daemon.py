@@ -24,6 +24,7 @@ from types import FrameType, TracebackType
 from typing import Any
 
 from contracts.errors import ConfigError
+from contracts.health import Heartbeat
 from contracts.mavlink import (
     MAV_AUTOPILOT_INVALID,
     MAV_CMD_COMPONENT_ARM_DISARM,
@@ -153,6 +154,7 @@ class Bridge:
         self._subscribers: list[Any] = []
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
+        self._heartbeat = Heartbeat.from_env("bridge")
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -213,6 +215,7 @@ class Bridge:
         self._publish_state(self._clock(), bridge="stopped")
         self._session.close()
         self.link.close()
+        self._heartbeat.close()
         log.info("bridge closed")
 
     def __enter__(self) -> Bridge:
@@ -381,6 +384,7 @@ class Bridge:
                 self._duties(self._clock())
             except Exception:
                 log.exception("bridge loop error (continuing)")
+            self._heartbeat.beat(link_up=self._link_up, armed=self._armed)
 
     def _next_deadline(self, now: float) -> float:
         """When the bridge thread must next act, whatever arrives before."""

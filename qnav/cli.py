@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
+from contracts.health import DEFAULT_MAX_AGE_S
 from qnav import __version__
 
 Handler = Callable[[argparse.Namespace], int]
@@ -341,6 +342,22 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument("--no-record", action="store_true", help="do not record to MCAP")
     stack.add_argument("--json", action="store_true", help="print one JSON object")
     stack.set_defaults(handler=_lazy("qnav.stack:stack_verb"))
+
+    health = verbs.add_parser(
+        "health",
+        help="exit 0 while a daemon's loop beats (its QNAV_HEALTH_FILE is fresh): the image's "
+        "HEALTHCHECK",
+    )
+    health.add_argument(
+        "--file", type=Path, metavar="PATH", help="health file (default: $QNAV_HEALTH_FILE)"
+    )
+    health.add_argument(
+        "--max-age-s",
+        type=float,
+        default=DEFAULT_MAX_AGE_S,
+        help=f"oldest acceptable beat in seconds ({DEFAULT_MAX_AGE_S:g})",
+    )
+    health.set_defaults(handler=_lazy("qnav.commands:health"))
 
     bench = verbs.add_parser("bench", help="benchmarks")
     benches = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)

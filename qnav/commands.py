@@ -243,3 +243,18 @@ def bench_controller(args: argparse.Namespace) -> int:
             report["policy"] = PAPER_SIZED
     print(json.dumps(report) if args.json else format_report(report))
     return 0
+
+
+def health(args: argparse.Namespace) -> int:
+    """`qnav health`: 0 while the daemon's loop beats (a container HEALTHCHECK), 1 otherwise."""
+    import sys
+
+    from contracts.health import HEALTH_FILE_ENV, check_health, health_path
+
+    path = args.file or health_path()
+    if path is None:
+        print(f"qnav health: give --file or set {HEALTH_FILE_ENV}", file=sys.stderr)
+        return 2
+    healthy, explanation = check_health(path, args.max_age_s)
+    print(f"{'healthy' if healthy else 'unhealthy'}: {explanation}")
+    return 0 if healthy else 1

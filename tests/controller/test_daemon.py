@@ -4,6 +4,7 @@ scouting off."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -16,6 +17,7 @@ from typing import Any
 import pytest
 
 from contracts import wire
+from contracts.health import HEALTH_FILE_ENV
 from contracts.policy_file import PolicyContract
 from contracts.settings import to_toml
 from contracts.transport import ZenohSettings, open_session
@@ -93,6 +95,7 @@ def endpoint() -> str:
 
 
 def start_daemon(tmp_path: Path, config: DaemonConfig) -> subprocess.Popen[str]:
+    """`qnav controller` as a user starts it, beating into tmp_path/health.json."""
     path = tmp_path / "controller.toml"
     path.write_text(to_toml(config))
     return subprocess.Popen(
@@ -100,6 +103,14 @@ def start_daemon(tmp_path: Path, config: DaemonConfig) -> subprocess.Popen[str]:
         cwd=ROOT,
         stderr=subprocess.PIPE,
         text=True,
+        env={**os.environ, HEALTH_FILE_ENV: str(tmp_path / "health.json")},
+    )
+
+
+def qnav_health(path: Path) -> subprocess.CompletedProcess[str]:
+    """`qnav health --file path`, as a container's HEALTHCHECK runs it."""
+    return subprocess.run(
+        [QNAV, "health", "--file", str(path)], capture_output=True, text=True, check=False
     )
 
 
@@ -161,6 +172,8 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         with listener.lock:
             command = listener.commands[-1]
         assert (command.linear_mps, command.angular_radps) in action_commands(policy)
+        health = qnav_health(tmp_path / "health.json")
+        assert health.returncode == 0 and "controller" in health.stdout, health.stdout
 
         # Malformed payloads are counted and change nothing.
         listener.put(wire.SCAN, b"\x00\x01\x00\x00garbage")
@@ -205,6 +218,8 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         with listener.lock:
             assert listener.commands[-1] == wire.STOP
         assert "scan refused" in stderr and "pose refused" in stderr
+        stopped = qnav_health(tmp_path / "health.json")
+        assert stopped.returncode == 1, "a stopped daemon is unhealthy"
     finally:
         listener.session.close()
 

@@ -17,6 +17,7 @@ import pytest
 from mcap.reader import make_reader
 
 from contracts import wire
+from contracts.health import HEALTH_FILE_ENV, check_health
 from contracts.transport import ZenohSettings, open_session
 from controller.recording import McapWriter, Rotation, play, read_recording, read_recordings
 
@@ -96,10 +97,12 @@ def test_rotation_by_size_splits_into_files_that_are_each_complete(tmp_path: Pat
 def test_a_recorder_killed_with_sigkill_keeps_every_message_it_received(tmp_path: Path) -> None:
     port = _free_port()
     folder = tmp_path / "rec"
+    health = tmp_path / "health.json"
     recorder = subprocess.Popen(
         [sys.executable, "-m", "qnav", "record", "--folder", str(folder),
          "--listen", f"tcp/127.0.0.1:{port}", "--connect", f"tcp/127.0.0.1:{port}"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, HEALTH_FILE_ENV: str(health)},
     )  # fmt: skip
     sent = 0
     try:
@@ -121,8 +124,12 @@ def test_a_recorder_killed_with_sigkill_keeps_every_message_it_received(tmp_path
                 session.put(wire.key(wire.SCAN), _scan(sent))
                 sent += 1
             time.sleep(0.5)
+            assert check_health(health, max_age_s=3.0)[0], "the recording loop beats"
             os.kill(recorder.pid, signal.SIGKILL)
             recorder.wait(10)
+            # A killed recorder cannot remove its file: its beat goes stale.
+            healthy, explanation = check_health(health, max_age_s=3.0, now_s=time.monotonic() + 4)
+            assert not healthy and "recorder" in explanation
     finally:
         if recorder.poll() is None:
             recorder.kill()

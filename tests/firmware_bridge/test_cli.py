@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from contracts.health import HEALTH_FILE_ENV
 from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
 from contracts.settings import to_toml
 from tests.firmware_bridge.rig import bridge_settings, start_rig, wait_until
@@ -35,16 +37,19 @@ def test_bridge_process_sends_stop_then_disarms_on_a_signal(
         rig = start_rig(stack, start_bridge=False)
         config = tmp_path / "bridge.toml"
         config.write_text(to_toml(bridge_settings(rig.zenoh_port, rig.mavlink_port)))
+        health = tmp_path / "health.json"
         process = subprocess.Popen(
             [sys.executable, "-m", "qnav", "bridge", "--config", str(config)],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
+            env={**os.environ, HEALTH_FILE_ENV: str(health)},
         )
         try:
             wait_until(lambda: rig.state().get("armed"), timeout_s=20, what="bridge up, armed")
             rig.drive(0.8, 0.0, 0.3)
             assert rig.vehicle.pose()[0] > 0.01
+            wait_until(lambda: "link_up=True" in qnav_health(health), 5, "a healthy beat")
             process.send_signal(stop_signal)
             rig.drive(0.8, 0.0, 0.1)  # commands racing the shutdown must not get through
             output, _ = process.communicate(timeout=20)
@@ -70,6 +75,14 @@ def test_bridge_process_sends_stop_then_disarms_on_a_signal(
         assert len(overrides) - last_moving - 1 >= 3, "stop sent (three times) before disarm"
         assert all(r.type == "COMMAND_LONG" for r in received[disarm:])
         assert not rig.vehicle.armed
+        assert qnav_health(health).startswith("unhealthy: no health file")
+
+
+def qnav_health(path: Path) -> str:
+    """What `qnav health --file path` prints, as a container's HEALTHCHECK runs it."""
+    done = _qnav("health", "--file", str(path))
+    assert done.returncode == (0 if done.stdout.startswith("healthy") else 1), done
+    return done.stdout
 
 
 def test_bridge_refuses_a_bad_setting_with_its_name(tmp_path: Path) -> None:
