@@ -117,6 +117,24 @@ class FrameWindow:
 
     def __init__(self, num_streams: int, frame_size: int, length: int = WINDOW_LENGTH) -> None:
         self.frames = np.zeros((num_streams, length, frame_size), dtype=np.float32)
+        self.fresh = np.ones(num_streams, dtype=bool)
+        """Streams whose next frame begins an episode."""
+
+    def restart(self, streams: NDArray[np.intp] | None = None) -> None:
+        """The next frame of `streams` (all by default) begins a new episode."""
+        self.fresh[slice(None) if streams is None else streams] = True
+
+    def advance(self, frames: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Take one frame per stream (N, frame_size), starting or extending each window as its
+        stream requires; returns the windows (N, k, frame_size)."""
+        fresh = np.flatnonzero(self.fresh)
+        if fresh.size:
+            self.start(fresh, frames[fresh])
+        ongoing = np.flatnonzero(~self.fresh)
+        if ongoing.size:
+            self.push(frames[ongoing], ongoing)
+        self.fresh[:] = False
+        return self.frames
 
     def start(self, streams: NDArray[np.intp], first_frames: NDArray[np.float32]) -> None:
         """Begin new episodes in `streams` with their first frames (S, frame_size)."""

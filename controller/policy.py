@@ -198,7 +198,6 @@ class PolicyRuntime:
         self.window = FrameWindow(
             num_streams, self.contract.frame_size, self.contract.window_length
         )
-        self.fresh = np.ones(num_streams, dtype=bool)
 
     @property
     def num_streams(self) -> int:
@@ -207,21 +206,13 @@ class PolicyRuntime:
 
     def reset(self, streams: NDArray[np.intp] | None = None) -> None:
         """Start new episodes in `streams` (all by default): their windows restart."""
-        self.fresh[slice(None) if streams is None else streams] = True
+        self.window.restart(streams)
 
     def step_batch(
         self, scan_m: NDArray[np.floating] | None, target_features: NDArray[np.floating]
     ) -> tuple[NDArray[np.int64], F32]:
         """Push one observation per stream and decide: actions (N,) and Q values (N, 3)."""
-        frames = self.encode(scan_m, target_features)
-        fresh = np.flatnonzero(self.fresh)
-        if fresh.size:
-            self.window.start(fresh, frames[fresh])
-        ongoing = np.flatnonzero(~self.fresh)
-        if ongoing.size:
-            self.window.push(frames[ongoing], ongoing)
-        self.fresh[:] = False
-        q = self.q_function(self.window.frames)
+        q = self.q_function(self.window.advance(self.encode(scan_m, target_features)))
         return q.argmax(axis=1), q
 
     def step(

@@ -39,26 +39,18 @@ class TorchAgent:
         self.network = network
         self.max_range_m = max_range_m
         self.window = FrameWindow(num_worlds, network.frame_size, window)
-        self.fresh = np.ones(num_worlds, dtype=bool)
         self.exploration = ExplorationHold(num_worlds, epsilon, hold_steps, seed)
         self.last_q = np.zeros((num_worlds, NUM_ACTIONS), dtype=np.float32)
 
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
-        self.fresh[worlds] = True
+        self.window.restart(worlds)
         self.exploration.start(worlds)
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
-        frames = observation_frames(observation, self.max_range_m)
-        fresh = np.flatnonzero(self.fresh)
-        if fresh.size:
-            self.window.start(fresh, frames[fresh])
-        ongoing = np.flatnonzero(~self.fresh)
-        if ongoing.size:
-            self.window.push(frames[ongoing], ongoing)
-        self.fresh[:] = False
+        windows = self.window.advance(observation_frames(observation, self.max_range_m))
         with torch.no_grad():
             device = next(self.network.parameters()).device
-            q = self.network(torch.from_numpy(self.window.frames).to(device)).cpu().numpy()
+            q = self.network(torch.from_numpy(windows).to(device)).cpu().numpy()
         self.last_q = q
         action = q.argmax(axis=1)
         return self.exploration(action)
