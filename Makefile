@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-stack playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs clean
+.PHONY: install demo test test-slow test-stack playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -60,6 +60,17 @@ bench-bridge: $(STAMP)
 
 calibrate: $(STAMP)
 	$(BIN)/qnav calibrate
+
+# The paper's figures 3 (action maps early and late) and 10 (trajectories, the lidar-less toy car
+# too) into docs/img: two short trainings with snapshots, about 15 minutes on 2 cores.
+FIGURE_RUNS := runs/figures
+figures: $(STAMP)
+	$(BIN)/qnav train --scenario walls-increment --seed 0 --episodes 120 \
+		--train-set train.snapshot_every_episodes=8 --run-dir $(FIGURE_RUNS)/walls-increment
+	$(BIN)/qnav figures $(FIGURE_RUNS)/walls-increment --out docs/img
+	$(BIN)/qnav train --scenario toycar-inertia --seed 0 --episodes 200 \
+		--train-set train.snapshot_every_episodes=8 --run-dir $(FIGURE_RUNS)/toycar-inertia
+	$(BIN)/qnav figures $(FIGURE_RUNS)/toycar-inertia --out docs/img
 
 # Regenerate the settings reference from the settings classes.
 docs: $(STAMP)
