@@ -228,7 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument(
         "--ablation",
         action="store_true",
-        help="also run the target re-drawing ablation (none / paper / hindsight)",
+        help="also run the target re-drawing ablation (none / paper / hindsight) in the chosen "
+        "scenarios among walls-increment and obstacles-inertia",
     )
     reproduce.add_argument(
         "--tables-only", action="store_true", help="rewrite the tables from results/, train nothing"

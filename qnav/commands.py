@@ -139,9 +139,10 @@ def reproduce(args: argparse.Namespace) -> int:
     from training.study import ablation_plan, plan, results_markdown, run_study
 
     seeds = tuple(int(s) for s in args.seeds.split(","))
-    specs = plan(tuple(args.scenarios.split(",")), tuple(args.models.split(",")), seeds)
-    if args.ablation:
-        specs += [s for s in ablation_plan() if s.relabel != "paper"]
+    scenarios = tuple(args.scenarios.split(","))
+    specs = plan(scenarios, tuple(args.models.split(",")), seeds)
+    if args.ablation:  # the "paper" arm is the study's own seed-0 run
+        specs += [s for s in ablation_plan() if s.relabel != "paper" and s.scenario in scenarios]
     if not args.tables_only:
         budget = None if args.time_budget_min is None else args.time_budget_min * 60
         run_study(
