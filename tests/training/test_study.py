@@ -41,3 +41,26 @@ def test_extra_tests_are_tabulated_from_their_runs(tmp_path: Path) -> None:
     )
     text = results_markdown(tmp_path, {})
     assert "trained on obstacles-increment, tested on obstacles-inertia | 1 | 0.700" in text
+
+
+def test_goals_name_each_verdict_with_the_number_reached(tmp_path: Path) -> None:
+    fast = {"0.99": {"episodes": 56, "iterations": 408, "wall_s": 100.0}}
+    for seed, success in enumerate((1.0, 0.99)):
+        spec = RunSpec("walls-increment", "recurrent", seed)
+        (tmp_path / f"{spec.name}.json").write_text(
+            json.dumps(_result(spec, success, first_reached=fast))
+        )
+    slow = RunSpec("walls-increment", "feedforward", 0)
+    (tmp_path / f"{slow.name}.json").write_text(
+        json.dumps(_result(slow, 0.98, train_s=700.0, first_reached={"0.99": None}))
+    )
+    text = results_markdown(tmp_path, {})
+    assert "| Table III (walls-increment) recurrent success >= 0.995 | 0.995 | 2 | met |" in text
+    assert "| Table III: recurrent beats feedforward | 0.995 vs 0.980 | 2 + 1 | met |" in text
+    assert "| Table I (obstacles-inertia) recurrent success >= 0.9 | not run yet | 0 |" in text
+    assert "0.99 validation success within 200 episodes | 2 of 2 runs | 2 | met |" in text
+    assert (
+        "| walls runs take at most 10 minutes | 2 of 3 runs (longest 12.7) | 3 | **not met** |"
+        in text
+    )
+    assert "| walls-increment | feedforward | 1 | 12.7, 12.7 | 10 | - | 100 |" in text
