@@ -141,8 +141,8 @@ def reproduce(args: argparse.Namespace) -> int:
     seeds = tuple(int(s) for s in args.seeds.split(","))
     scenarios = tuple(args.scenarios.split(","))
     specs = plan(scenarios, tuple(args.models.split(",")), seeds)
-    if args.ablation:  # the "paper" arm is the study's own seed-0 run
-        specs += [s for s in ablation_plan() if s.relabel != "paper" and s.scenario in scenarios]
+    if args.ablation:
+        specs += [s for s in ablation_plan() if s.scenario in scenarios]
     if not args.tables_only:
         budget = None if args.time_budget_min is None else args.time_budget_min * 60
         run_study(

@@ -64,3 +64,20 @@ def test_goals_name_each_verdict_with_the_number_reached(tmp_path: Path) -> None
         in text
     )
     assert "| walls-increment | feedforward | 1 | 12.7, 12.7 | 10 | - | 100 |" in text
+
+
+def test_ablation_runs_stay_out_of_the_tables_and_fill_only_the_ablation_rows(
+    tmp_path: Path,
+) -> None:
+    reached = {"0.9": {"episodes": 24, "iterations": 150, "wall_s": 90.0}}
+    for relabel, success in (("paper", 0.5), ("none", 0.25)):
+        spec = RunSpec("walls-increment", "recurrent", 0, relabel, ablation=True)
+        assert spec.name.endswith(f"-ablation-{relabel}")
+        (tmp_path / f"{spec.name}.json").write_text(
+            json.dumps(_result(spec, success, ablation=True, first_reached=reached))
+        )
+    text = results_markdown(tmp_path, {})
+    assert "| Recurrent | 0 | not run yet |" in text.split("## Table III")[1].split("##")[0]
+    assert "| walls-increment | paper | 1 | 24 | 1.5 | 0.500 |" in text
+    assert "| walls-increment | none | 1 | 24 | 1.5 | 0.250 |" in text
+    assert "Status: 0 of 40" in text
