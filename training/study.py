@@ -321,8 +321,8 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         "",
         f"Status: {len(_study_runs(results))} of "
         f"{len(plan())} study runs finished. Known gap: moving obstacles. The fast preset "
-        "learns obstacles-increment only in part and obstacles-inertia not at all; there even an "
-        "oracle planner that knows the obstacles' future falls short of the goal "
+        "learns obstacles-increment only in part and obstacles-inertia not at all; there even "
+        "planners that know the obstacles' future reach only 0.80-0.85, under the goal "
         "(docs/learner.md, 'Known gap').",
         "",
         *_goal_lines(results),
