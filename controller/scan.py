@@ -21,7 +21,8 @@ clockwise scan) and mounting. The rule, the same for finer and coarser scans:
    readings) reads `lidar.uncovered_range_m` (+inf by default: no return).
 
 The mapping from readings to beams depends only on the scan's layout, so it is computed once
-per layout and cached; resampling a scan is then one gather and one minimum.
+per layout and cached; resampling a scan is then a few passes over its readings to clean
+them, one gather and (for a scan finer than the policy's beams) one minimum per beam.
 """
 
 from __future__ import annotations
@@ -66,44 +67,56 @@ class Resampled:
     """Fraction of the scan's readings that were invalid (NaN, or below range_min if so ruled)."""
 
 
-def clean_readings(
-    scan: Scan, below_range_min: BelowRangeMin
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Readings with no return as +inf and too-close as 0, and which readings are valid."""
-    r = np.asarray(scan.ranges_m, dtype=np.float64)
-    finite = np.isfinite(r)
-    out = r.copy()
-    out[np.isposinf(r) | (finite & (r > scan.range_max_m))] = np.inf
-    out[np.isneginf(r)] = 0.0
-    valid = ~np.isnan(r)
-    below = finite & (r < scan.range_min_m)
-    if below_range_min == "invalid":
-        valid &= ~below
-    elif below_range_min == "no_return":
-        out[below] = np.inf
-    else:
-        out[below] = 0.0
-    return out, valid
+_BELOW_RANGE_MIN: dict[BelowRangeMin, float] = {
+    "invalid": math.nan,
+    "no_return": math.inf,
+    "obstacle": 0.0,
+}
+"""What a finite reading below range_min becomes under each rule (NaN: invalid)."""
+
+
+def clean_readings(scan: Scan, below_range_min: BelowRangeMin) -> tuple[NDArray[np.float64], float]:
+    """The readings as the rule reads them, NaN where a reading is invalid, followed by two NaN
+    slots (the padding of `beam_index`'s table); and the fraction of invalid readings.
+
+    NaN for "invalid" lets one NaN-ignoring minimum do what a mask of valid readings would,
+    and every mask is taken from the raw readings before any is changed.
+    """
+    count = len(scan.ranges_m)
+    values = np.empty(count + 2)
+    values[count:] = math.nan
+    readings = values[:count]
+    readings[:] = scan.ranges_m  # float32 -> float64, exact: thresholds compare in float64
+    beyond = readings > scan.range_max_m  # no return (+inf already reads as one)
+    closer = readings == -math.inf  # closer than the sensor measures: an obstacle at 0 m
+    below = (readings < scan.range_min_m) & ~closer  # finite and below (NaN compares false)
+    readings[beyond] = math.inf
+    readings[closer] = 0.0
+    readings[below] = _BELOW_RANGE_MIN[below_range_min]
+    # 1 - valid / count, as the mean of a validity mask gives it (empty scan: NaN).
+    valid = count - int(np.count_nonzero(np.isnan(readings)))
+    invalid_fraction = 1.0 - valid / count if count else math.nan
+    return values, invalid_fraction
 
 
 def resample_scan(scan: Scan, rules: ScanRules) -> Resampled:
     """The scan as the policy's beams (module docstring: the rule)."""
-    values, valid = clean_readings(scan, rules.below_range_min)
+    values, invalid_fraction = clean_readings(scan, rules.below_range_min)
     index = beam_index(
-        len(values),
+        len(scan.ranges_m),
         scan.angle_min_rad,
         scan.angle_increment_rad,
         rules.num_beams,
         rules.mount_yaw_rad,
     )
-    # Slot len(values) is neutral padding (+inf, not valid); the next one marks a beam that no
-    # reading covers.
-    padded = np.concatenate([np.where(valid, values, np.inf), [np.inf, rules.uncovered_range_m]])
-    covered = np.concatenate([valid, [False, True]])
-    beams = padded[index].min(axis=1)
-    beams = np.where(covered[index].any(axis=1), beams, rules.uncovered_range_m)
-    invalid = 1.0 - float(valid.mean())
-    return Resampled(beams.astype(np.float32), invalid)
+    # The minimum over each beam's row, one column at a time (numpy reduces a short trailing
+    # axis slowly); fmin ignores the NaN of invalid readings and of the padding. A scan in the
+    # policy's own layout has one column: a gather is the whole job.
+    beams = values[index[:, 0]]
+    for column in range(1, index.shape[1]):
+        np.fmin(beams, values[index[:, column]], out=beams)
+    beams[np.isnan(beams)] = rules.uncovered_range_m  # no valid reading overlaps the beam
+    return Resampled(beams.astype(np.float32), invalid_fraction)
 
 
 @lru_cache(maxsize=16)

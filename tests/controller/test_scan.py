@@ -9,7 +9,7 @@ import pytest
 from numpy.typing import NDArray
 
 from contracts.wire import Scan
-from controller.scan import ScanRules, resample_scan
+from controller.scan import ScanRules, beam_index, resample_scan
 
 TWO_PI = 2 * math.pi
 POLICY_BEAMS = 720
@@ -154,3 +154,67 @@ def test_beams_outside_a_partial_field_of_view_read_the_uncovered_value() -> Non
         beams = resample_scan(scan, ScanRules(POLICY_BEAMS, uncovered_range_m=uncovered)).ranges_m
         assert np.all(beams[behind] == uncovered)
         assert np.all(beams[ahead] == 4.0)
+
+
+def masked_resample(scan: Scan, rules: ScanRules) -> tuple[NDArray[np.float32], float]:
+    """The resampling as first written, with explicit validity masks: the reference of the
+    NaN-marking one in `controller.scan`, which must give the same values. (Only the sign of a
+    zero may differ, where a +0 and a -0 reading tie for a beam's minimum: the two minima
+    break the tie differently, and nothing downstream tells the zeros apart.)"""
+    r = np.asarray(scan.ranges_m, dtype=np.float64)
+    finite = np.isfinite(r)
+    out = r.copy()
+    out[np.isposinf(r) | (finite & (r > scan.range_max_m))] = np.inf
+    out[np.isneginf(r)] = 0.0
+    valid = ~np.isnan(r)
+    below = finite & (r < scan.range_min_m)
+    if rules.below_range_min == "invalid":
+        valid &= ~below
+    elif rules.below_range_min == "no_return":
+        out[below] = np.inf
+    else:
+        out[below] = 0.0
+    count = len(r)
+    index = beam_index(
+        count, scan.angle_min_rad, scan.angle_increment_rad, rules.num_beams, rules.mount_yaw_rad
+    )
+    padded = np.concatenate([np.where(valid, out, np.inf), [np.inf, rules.uncovered_range_m]])
+    covered = np.concatenate([valid, [False, True]])
+    beams = padded[index].min(axis=1)
+    beams = np.where(covered[index].any(axis=1), beams, rules.uncovered_range_m)
+    return beams.astype(np.float32), 1.0 - float(valid.mean())
+
+
+@pytest.mark.parametrize(("count", "angle_min"), [*LAYOUTS, (7, 0.1), (811, -2.0)])
+def test_resampling_gives_the_values_of_the_masked_reference_for_any_readings(
+    count: int, angle_min: float
+) -> None:
+    rng = np.random.default_rng(count)
+    limits = [(0.1, 30.0), (0.0, math.inf), (0.5, 0.2), (math.nan, math.nan)]
+    for trial in range(12):
+        specials = rng.choice([np.nan, np.inf, -np.inf, 0.0, -0.0], count)
+        ranges = np.where(rng.random(count) < 0.3, specials, rng.uniform(-1.0, 40.0, count))
+        range_min, range_max = limits[trial % len(limits)]
+        fov = TWO_PI if trial % 3 else math.radians(200)
+        scan = make_scan(
+            count,
+            angle_min,
+            ranges,
+            clockwise=trial % 2 == 1,
+            range_min=range_min,
+            range_max=range_max,
+            field_of_view=fov,
+        )
+        for below in ("invalid", "no_return", "obstacle"):
+            for uncovered in (math.inf, 0.0, 7.3):
+                rules = ScanRules(
+                    POLICY_BEAMS,
+                    mount_yaw_rad=0.3 * trial,
+                    below_range_min=below,
+                    uncovered_range_m=uncovered,
+                )
+                got = resample_scan(scan, rules)
+                beams, invalid_fraction = masked_resample(scan, rules)
+                assert got.ranges_m.dtype == np.float32
+                np.testing.assert_array_equal(got.ranges_m, beams)
+                assert got.invalid_fraction == invalid_fraction
