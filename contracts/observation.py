@@ -59,8 +59,14 @@ def encode_scan(scan_m: NDArray[np.floating], max_range_m: float) -> NDArray[np.
 
     No return (+inf or NaN) reads as the maximum range; negative readings read as 0.
     """
-    scan = np.nan_to_num(np.asarray(scan_m, dtype=np.float32), nan=max_range_m, posinf=max_range_m)
-    return np.clip(scan, 0.0, max_range_m) / np.float32(max_range_m)
+    # clip(nan_to_num(scan), 0, max) in two ufuncs: maximum keeps NaN (and, with 0 first, a -0
+    # reading, as clip does) and fmin then turns NaN and +inf into the maximum range.
+    scan = np.asarray(scan_m, dtype=np.float32)
+    encoded = np.empty_like(scan)
+    np.maximum(0.0, scan, out=encoded)
+    np.fmin(encoded, max_range_m, out=encoded)
+    encoded /= np.float32(max_range_m)
+    return encoded
 
 
 def target_features(
@@ -86,6 +92,23 @@ def target_features(
         ],
         axis=-1,
     )
+
+
+def target_features_of(
+    x_m: float, y_m: float, heading_rad: float, target_x_m: float, target_y_m: float
+) -> tuple[float, float, float]:
+    """`target_features` of one pose and one target, in plain floats: the same values (the
+    same operations, in the same order, numpy's own sin, cos and hypot), without the per-call
+    cost of a dozen numpy operations on three numbers (the controller calls this per decision).
+    """
+    dx, dy = target_x_m - x_m, target_y_m - y_m
+    cos_h, sin_h = float(np.cos(heading_rad)), float(np.sin(heading_rad))
+    ahead = cos_h * dx + sin_h * dy
+    left = -sin_h * dx + cos_h * dy
+    distance = float(np.hypot(ahead, left))
+    if distance > 0.0:
+        return distance, left / distance, ahead / distance
+    return distance, 0.0, 1.0
 
 
 def encode_target(features: NDArray[np.floating], max_range_m: float) -> NDArray[np.float32]:
@@ -127,11 +150,14 @@ class FrameWindow:
     def advance(self, frames: NDArray[np.float32]) -> NDArray[np.float32]:
         """Take one frame per stream (N, frame_size), starting or extending each window as its
         stream requires; returns the windows (N, k, frame_size)."""
-        fresh = np.flatnonzero(self.fresh)
-        if fresh.size:
+        if not self.fresh.any():  # the usual step: slices, not gathers of every stream
+            self.push(frames)
+        elif self.fresh.all():
+            self.frames[:] = frames[:, None, :]
+        else:
+            fresh = np.flatnonzero(self.fresh)
             self.start(fresh, frames[fresh])
-        ongoing = np.flatnonzero(~self.fresh)
-        if ongoing.size:
+            ongoing = np.flatnonzero(~self.fresh)
             self.push(frames[ongoing], ongoing)
         self.fresh[:] = False
         return self.frames

@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from contracts.observation import (
     FrameWindow,
@@ -9,6 +10,7 @@ from contracts.observation import (
     encode_scan,
     encode_target,
     target_features,
+    target_features_of,
 )
 
 
@@ -60,3 +62,60 @@ def test_restarting_one_stream_never_mixes_its_old_episode_into_the_new_window()
     window.restart(np.array([1]))
     after = window.advance(np.array([[4.0], [7.0]], dtype=np.float32))
     np.testing.assert_array_equal(after[:, :, 0], [[2, 3, 4], [7, 7, 7]])
+
+
+def test_scan_encoding_gives_the_bits_of_nan_to_num_then_clip() -> None:
+    rng = np.random.default_rng(0)
+    specials = np.array(
+        [np.nan, -np.nan, np.inf, -np.inf, 0.0, -0.0, 20.0, 19.999998, 20.000002, 1e-45, -1e-45],
+        dtype=np.float32,
+    )
+    any_bits = rng.integers(0, 2**32, 200_000, dtype=np.uint64).astype(np.uint32)
+    scans: list[NDArray[np.floating]] = [
+        specials,
+        np.tile(specials, (3, 70)),  # long enough for the vectorised loops
+        any_bits.view(np.float32),
+        rng.uniform(-5.0, 30.0, (4, 720)),  # float64 in
+    ]
+    for max_range in (20.0, 7.3, 0.1):
+        for scan in scans:
+            as_f32 = np.asarray(scan, dtype=np.float32)
+            clipped = np.nan_to_num(as_f32, nan=max_range, posinf=max_range)
+            reference = np.clip(clipped, 0.0, max_range) / np.float32(max_range)
+            encoded = encode_scan(scan, max_range)
+            assert encoded.dtype == np.float32
+            np.testing.assert_array_equal(encoded.view(np.uint32), reference.view(np.uint32))
+
+
+def test_one_targets_features_in_floats_are_exactly_the_array_versions() -> None:
+    rng = np.random.default_rng(1)
+    poses = np.concatenate(
+        [rng.uniform(-50.0, 50.0, (2000, 2)), rng.uniform(-10.0, 10.0, (2000, 1))], axis=1
+    )
+    targets = np.where(rng.random((2000, 1)) < 0.1, poses[:, :2], rng.uniform(-50, 50, (2000, 2)))
+    expected = target_features(poses, targets)
+    for pose, target, row in zip(poses, targets, expected, strict=True):
+        got = target_features_of(*pose.tolist(), *target.tolist())
+        assert got == tuple(row.tolist())
+
+
+def test_a_window_advances_as_per_stream_starts_and_pushes_would() -> None:
+    rng = np.random.default_rng(2)
+    streams, length = 4, 3
+    window = FrameWindow(num_streams=streams, frame_size=2, length=length)
+    expected = np.zeros((streams, length, 2), dtype=np.float32)
+    fresh = np.ones(streams, dtype=bool)
+    for step in range(60):
+        restart = [np.array([], dtype=np.intp), np.arange(streams), rng.choice(streams, 2)]
+        chosen = restart[step % 3] if step % 5 else restart[0]
+        window.restart(chosen)
+        fresh[chosen] = True
+        frames = rng.random((streams, 2)).astype(np.float32)
+        for stream in range(streams):  # one stream at a time, as the rule reads
+            if fresh[stream]:
+                expected[stream] = frames[stream]
+            else:
+                expected[stream] = np.roll(expected[stream], -1, axis=0)
+                expected[stream, -1] = frames[stream]
+        fresh[:] = False
+        np.testing.assert_array_equal(window.advance(frames), expected)
