@@ -19,6 +19,7 @@ the session is closed.
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import queue
 import signal
@@ -36,6 +37,7 @@ from contracts import wire
 from contracts.health import Heartbeat
 from contracts.settings import to_toml
 from contracts.transport import open_session
+from contracts.wire import Twist2D
 from controller.config import DaemonConfig, load_config
 from controller.decision import Controller, Input, Output, Reason
 from controller.policy import PolicyRuntime
@@ -110,6 +112,12 @@ class Daemon:
         self.bounded = BoundedLog(log, config.controller.log_interval_s)
         self._last_reason: Reason | None = None
         self._late_s = 0.0
+        self._command: Any = None
+        """The command publisher (while `run` has a session)."""
+        self._status: Any = None
+        """The status publisher (while `run` has a session)."""
+        self._sent_s = 0.0
+        """When the last command was published."""
         self.heartbeat = Heartbeat.from_env("controller")
         namespace = config.zenoh.namespace
         topics = config.topics
@@ -140,13 +148,13 @@ class Daemon:
         wire.decode_json_msg(wire.encode_json_msg({}))
         session = open_session(self.config.zenoh)
         try:
-            command = session.declare_publisher(
+            self._command = session.declare_publisher(
                 self.command_key,
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 priority=zenoh.Priority.REAL_TIME,
                 express=True,
             )
-            status = session.declare_publisher(
+            self._status = session.declare_publisher(
                 self.status_key, congestion_control=zenoh.CongestionControl.DROP, express=True
             )
             subscribers = [
@@ -162,31 +170,41 @@ class Daemon:
                 self.status_key,
             )
 
-            def publish(output: Output, started: float) -> None:
-                command.put(wire.encode_twist_msg(output.command))
-                report = output.status.to_dict()
-                report["loop"] = {
-                    "trigger": self.config.controller.trigger,
-                    "period_s": self.period_s,
-                    "decide_ms": round((time.monotonic() - started) * 1e3, 3),
-                    "late_ms": round(self._late_s * 1e3, 3),
-                }
-                status.put(wire.encode_json_msg(report))
-                self._note_reason(output)
-
+            # What the imports, the policy and zenoh left is several ms of objects for a full
+            # collection to walk: freeze it, so that collections in the loop walk only what
+            # the loop allocates.
+            gc.collect()
+            gc.freeze()
             try:
-                self._loop(publish)
+                self._loop()
             finally:
                 now = time.monotonic()
-                publish(self.controller.shutdown(now), now)
+                self._publish_status(self.controller.shutdown(now, self._send), now)
                 log.info("stop command published; closing the zenoh session")
                 for subscriber in subscribers:
                     subscriber.undeclare()
-                command.undeclare()
-                status.undeclare()
+                self._command.undeclare()
+                self._status.undeclare()
         finally:
             session.close()
             self.heartbeat.close()
+
+    def _send(self, command: Twist2D) -> None:
+        """Publish a command the moment the controller decides it (its status comes after)."""
+        self._command.put(wire.encode_twist_msg(command))
+        self._sent_s = time.monotonic()
+
+    def _publish_status(self, output: Output, started: float) -> None:
+        """Publish the status of the output whose command `_send` published."""
+        report = output.status.to_dict()
+        report["loop"] = {
+            "trigger": self.config.controller.trigger,
+            "period_s": self.period_s,
+            "decide_ms": round((self._sent_s - started) * 1e3, 3),
+            "late_ms": round(self._late_s * 1e3, 3),
+        }
+        self._status.put(wire.encode_json_msg(report))
+        self._note_reason(output)
 
     def _enqueue(self, source: Input) -> Callable[[Any], None]:
         inbox = self.inbox
@@ -196,7 +214,7 @@ class Daemon:
 
         return on_sample
 
-    def _loop(self, publish: Callable[[Output, float], None]) -> None:
+    def _loop(self) -> None:
         on_scan = self.config.controller.trigger == "scan"
         rate = Ratekeeper(self.period_s, time.monotonic())
         while not self.stopping.is_set():
@@ -209,7 +227,7 @@ class Daemon:
                 scans = self._take(item)
                 if on_scan and scans and not self.stopping.is_set():
                     started = time.monotonic()
-                    publish(self.controller.decide(started), started)
+                    self._publish_status(self.controller.decide(started, self._send), started)
                 continue
             # A deadline: take what has arrived, then decide (or check) on the newest inputs.
             started = time.monotonic()
@@ -218,11 +236,11 @@ class Daemon:
             if self.stopping.is_set():
                 break
             if on_scan:
-                output = self.controller.check(started)
+                output = self.controller.check(started, self._send)
                 if output is not None:
-                    publish(output, started)
+                    self._publish_status(output, started)
             else:
-                publish(self.controller.decide(started), started)
+                self._publish_status(self.controller.decide(started, self._send), started)
             self.heartbeat.beat(reason=self._last_reason.value if self._last_reason else None)
             now = time.monotonic()
             missed = rate.advance(now)

@@ -10,6 +10,7 @@ and writes no log: callers pass the time and do the I/O.
     controller.on_pose(Pose2D(...), now)                  # or values already decoded
     output = controller.decide(now)                       # once per control period
     publish(output.command, output.status.to_dict())
+    output = controller.decide(now, send)                 # or: send(command) before the status
 
 Safety rules, checked in this order by `decide` (the first that applies names the stop in
 `status.reason`; every stop also restarts the policy's window, so a resumed run starts a fresh
@@ -49,7 +50,7 @@ from numpy.typing import NDArray
 from contracts import wire
 from contracts.actions import Action
 from contracts.errors import PolicyInputError
-from contracts.observation import target_features
+from contracts.observation import target_features_of
 from contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
 from controller.config import LidarSettings, SafetySettings
 from controller.policy import PolicyRuntime
@@ -179,6 +180,11 @@ class Output(NamedTuple):
     """The motor command."""
     status: Status
     """Why."""
+
+
+CommandSink = Callable[[Twist2D], None]
+"""Takes a command the moment it is decided, before its status is written (the daemon publishes
+it there, so that writing the status adds nothing to the command's latency)."""
 
 
 @dataclass
@@ -357,26 +363,28 @@ class Controller:
 
     # ---- decisions ----------------------------------------------------------------------
 
-    def decide(self, now: float) -> Output:
+    def decide(self, now: float, send: CommandSink | None = None) -> Output:
         """One decision at monotonic time `now`: a stop by the first rule that applies, or the
-        policy's action on the newest inputs (which pushes one frame into its window)."""
+        policy's action on the newest inputs (which pushes one frame into its window).
+
+        `send`, when given, gets the command as soon as it is known, before the status is
+        written; the status is the same either way.
+        """
         reason = self._stop_reason(now)
         if reason is not None:
-            return self._stop(now, reason)
+            return self._stop(now, reason, send)
         pose: Pose2D = self._latest[Input.POSE].value
         target: Pose2D = self._latest[Input.TARGET].value
-        features = target_features(
-            np.array([pose.x_m, pose.y_m, pose.yaw_rad]), np.array([target.x_m, target.y_m])
-        )
+        features = target_features_of(pose.x_m, pose.y_m, pose.yaw_rad, target.x_m, target.y_m)
         try:
-            decision = self.runtime.step(self._scan if self.uses_scan else None, features)
+            decision = self.runtime.step(self._scan if self.uses_scan else None, np.array(features))
         except PolicyInputError:
-            return self._stop(now, Reason.POLICY_INPUT_ERROR)
+            return self._stop(now, Reason.POLICY_INPUT_ERROR, send)
         self._window_fresh = False
         self.counters.policy_steps += 1
         command = self.commands[decision.action]
-        q_values = tuple(float(q) for q in decision.q_values)
-        return self._output(now, Reason.POLICY, command, decision.action, q_values)
+        q_values = tuple(decision.q_values.tolist())
+        return self._output(now, Reason.POLICY, command, decision.action, q_values, send=send)
 
     def warm_up(self) -> None:
         """Run the policy once on a neutral observation (first runs are slow) and restart its
@@ -386,18 +394,18 @@ class Controller:
         self.runtime.reset()
         self._window_fresh = True
 
-    def check(self, now: float) -> Output | None:
+    def check(self, now: float, send: CommandSink | None = None) -> Output | None:
         """The safety rules alone (no policy step): a stop if one applies, else None.
 
         With `trigger = "scan"` the daemon decides on scan arrival and calls this every period,
-        so the car still stops when the scans stop coming.
+        so the car still stops when the scans stop coming. `send` as for `decide`.
         """
         reason = self._stop_reason(now)
-        return None if reason is None else self._stop(now, reason)
+        return None if reason is None else self._stop(now, reason, send)
 
-    def shutdown(self, now: float) -> Output:
-        """The last output before the process exits: a stop."""
-        return self._stop(now, Reason.SHUTDOWN)
+    def shutdown(self, now: float, send: CommandSink | None = None) -> Output:
+        """The last output before the process exits: a stop (`send` as for `decide`)."""
+        return self._stop(now, Reason.SHUTDOWN, send)
 
     def note_overruns(self, missed: int) -> None:
         """Count control periods the loop missed (reported in status)."""
@@ -441,10 +449,10 @@ class Controller:
             self.runtime.reset()
             self._window_fresh = True
 
-    def _stop(self, now: float, reason: Reason) -> Output:
+    def _stop(self, now: float, reason: Reason, send: CommandSink | None) -> Output:
         self._restart_window()
         self.counters.stops += 1
-        return self._output(now, reason, STOP, None, None)
+        return self._output(now, reason, STOP, None, None, send=send)
 
     def _output(
         self,
@@ -453,9 +461,13 @@ class Controller:
         command: Twist2D,
         action: Action | None,
         q_values: tuple[float, ...] | None,
+        *,
+        send: CommandSink | None,
     ) -> Output:
         self._sequence += 1
         self.counters.decisions += 1
+        if send is not None:
+            send(command)  # nothing the status reads changes in between
         status = Status(
             time_s=now,
             sequence=self._sequence,

@@ -282,6 +282,25 @@ def test_check_stops_on_the_same_rules_but_never_steps_the_policy(policy: Path) 
     assert_stop(c.check(1.0) or c.decide(1.0), Reason.SCAN_STALE)
 
 
+def test_a_command_sink_gets_each_command_before_its_status_and_changes_nothing(
+    policy: Path,
+) -> None:
+    c, reference = ready(policy), ready(policy)
+    sent: list[Twist2D] = []
+
+    def send(command: Twist2D) -> None:
+        assert c.counters.decisions == len(sent) + 1  # decided, and its status not yet written
+        sent.append(command)
+
+    outputs: list[Output | None] = [c.decide(0.05, send), c.decide(0.1, send)]
+    outputs += [c.check(1.0, send), c.shutdown(1.1, send)]
+    expected: list[Output | None] = [reference.decide(0.05), reference.decide(0.1)]
+    expected += [reference.check(1.0), reference.shutdown(1.1)]
+    assert [o.command for o in outputs if o] == sent
+    assert [o.status for o in outputs if o] == [o.status for o in expected if o]
+    assert sent[0] != STOP and sent[2:] == [STOP, STOP]
+
+
 def test_the_status_is_one_json_object_with_the_decision_and_its_reasons(policy: Path) -> None:
     c = ready(policy)
     c.note_overruns(2)
