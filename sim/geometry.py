@@ -112,10 +112,33 @@ def cast_lidar(
     if arena.openings:
         owner, beam = _beams_through_openings(pose, lidar, arena)
         flat[owner * num_beams + beam] = np.inf
+    ranges[ranges > lidar.max_range_m] = np.inf
+    return add_circles_to_scan(ranges, pose, lidar, obstacle_xy, obstacle_radius_m)
+
+
+def add_circles_to_scan(
+    ranges: NDArray[np.float32],
+    pose: F64,
+    lidar: LidarSpec,
+    obstacle_xy: F64,
+    obstacle_radius_m: float,
+    *,
+    scale_m: float = 1.0,
+) -> NDArray[np.float32]:
+    """Scans (N, B) taken from poses (N, 3) as they read with circles (N, M, 2) added, in place.
+
+    `ranges` holds what the beams see without the circles, in metres divided by `scale_m` (1 for
+    raw ranges; the maximum range for encoded scans, whose values a circle can only lower). The
+    learner uses this to put freshly drawn obstacles into stored obstacle-free scans.
+    """
     if obstacle_xy.shape[1]:
         owner, beam, distance = _beams_on_circles(pose, lidar, obstacle_xy, obstacle_radius_m)
-        np.minimum.at(flat, owner * num_beams + beam, distance.astype(np.float32))
-    ranges[ranges > lidar.max_range_m] = np.inf
+        visible = distance <= lidar.max_range_m
+        np.minimum.at(
+            ranges.reshape(-1),
+            owner[visible] * lidar.num_beams + beam[visible],
+            (distance[visible] / scale_m).astype(np.float32),
+        )
     return ranges
 
 

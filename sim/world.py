@@ -109,7 +109,7 @@ def reset(
         (gap >= config.spawn.obstacle_clearance_m).reshape(n * m, _CANDIDATES),
     ).reshape(n, m, 2)
     direction = 2 * math.pi * rng.uniform(keys, _OBSTACLE_HEADING, (m,))
-    speed = _truncated_normal(keys, config, m)
+    speed = obstacle_speeds(config, rng.uniform(keys, _OBSTACLE_SPEED, (m, _CANDIDATES, 2)))
     obstacle_velocity = np.stack([np.cos(direction), np.sin(direction)], axis=-1) * speed[..., None]
     return WorldState(
         pose=np.concatenate([robot_xy, heading[:, None]], axis=1),
@@ -146,10 +146,10 @@ def _first_valid(candidates: F64, valid: NDArray[np.bool_]) -> F64:
     return np.take_along_axis(candidates, choice[:, None, None], axis=1)[:, 0, :]
 
 
-def _truncated_normal(keys: NDArray[np.uint64], config: WorldConfig, m: int) -> F64:
-    """Obstacle speeds ~ Normal(mean, std) truncated to [min, max], by rejection."""
+def obstacle_speeds(config: WorldConfig, u: F64) -> F64:
+    """Obstacle speeds (...) ~ Normal(mean, std) truncated to [min, max], by rejection, from
+    uniform draws (..., K, 2) in [0, 1): K Box-Muller candidates, the first inside the range."""
     params = config.obstacles
-    u = rng.uniform(keys, _OBSTACLE_SPEED, (m, _CANDIDATES, 2))
     normal = np.sqrt(-2.0 * np.log1p(-u[..., 0])) * np.cos(2 * math.pi * u[..., 1])
     speed = params.speed_mean_mps + params.speed_std_mps * normal
     valid = (speed >= params.speed_min_mps) & (speed <= params.speed_max_mps)

@@ -56,6 +56,13 @@ class TrainSettings:
     """Steps a random choice is held (paper: 5)."""
     relabel: Relabel = "paper"
     """Target of a sampled transition: fresh random (paper), a later pose (hindsight), own."""
+    mirror_probability: float = 0.0
+    """Chance that a sampled transition is seen in a mirror through the robot's heading (scan
+    reversed, target bearing and turns swapped side; `training.replay.mirror_batch`): twice
+    the experience from the same episodes (paper: none)."""
+    obstacle_redraw_probability: float = 0.0
+    """Chance that a sampled transition sees freshly drawn obstacles along its stored path
+    instead of the episode's own (`training.replay.redraw_obstacles`; paper: none)."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
@@ -97,6 +104,8 @@ class TrainSettings:
         check_range(self, "epsilon_decay", self.epsilon_decay, 0.0, 1.0)
         check_range(self, "epsilon_min", self.epsilon_min, 0.0, 1.0)
         check_range(self, "hold_steps", self.hold_steps, 1, 10_000)
+        check_range(self, "mirror_probability", self.mirror_probability, 0.0, 1.0)
+        check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)

@@ -16,13 +16,21 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.actions import Action
 from contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
 from sim.config import WorldConfig
+from sim.dynamics import move_obstacles
+from sim.geometry import add_circles_to_scan, cast_lidar, clearance
 from sim.task import Outcome, outcome, reward
-from sim.world import targets_around
+from sim.world import obstacle_speeds, targets_around
 
 _LOCAL_CANDIDATES = 64
 """Candidates per local target (as in the simulator's spawn)."""
+_OBSTACLE_CANDIDATES = 16
+"""Candidate paths per re-drawn obstacle; the first that never touches the robot before the
+sampled step is used (each is accepted with probability about 0.9)."""
+_SPEED_CANDIDATES = 16
+"""Box-Muller candidates per re-drawn obstacle speed (as in the simulator's spawn)."""
 
 Relabel = Literal["paper", "local", "hindsight", "none"]
 """How a sampled transition gets its target: a fresh uniform one in the arena (the paper), a
@@ -77,6 +85,13 @@ class EpisodeReplay:
         self.clearance = np.zeros(capacity_frames)
         self.action = np.zeros(capacity_frames, dtype=np.int64)
         self.own_target = np.zeros((capacity_frames, 2))
+        # What each stored step would have seen without the episode's obstacles, so that
+        # fresh ones can be put in when a transition is sampled (`redraw_obstacles`).
+        self.has_obstacles = config.obstacles.count > 0
+        self.walls_scan = np.zeros(
+            (capacity_frames if self.has_obstacles else 0, self.num_beams), dtype=np.float32
+        )
+        self.walls_clearance = np.zeros(capacity_frames if self.has_obstacles else 0)
         self.first = np.zeros(capacity_frames, dtype=np.int64)
         self.last = np.zeros(capacity_frames, dtype=np.int64)
         self.size = 0
@@ -97,6 +112,16 @@ class EpisodeReplay:
         if episode.scan_m is not None:
             self.scan[span] = encode_scan(episode.scan_m, self.max_range_m)
         self.clearance[span] = episode.clearance_m
+        if self.has_obstacles:
+            no_obstacles = np.zeros((frames, 0, 2))
+            if self.config.lidar is not None:
+                self.walls_scan[span] = encode_scan(
+                    cast_lidar(episode.pose, self.config.lidar, self.config.arena, no_obstacles, 0),
+                    self.max_range_m,
+                )
+            self.walls_clearance[span] = clearance(
+                episode.pose[:, :2], self.config.arena, no_obstacles, 0.0
+            )
         self.action[self.size : self.size + frames - 1] = episode.action
         self.own_target[span] = episode.target_xy
         self.first[span] = self.size
@@ -113,12 +138,25 @@ class EpisodeReplay:
         relabel: Relabel,
         n_step: int = 1,
         gamma: float = 0.97,
+        *,
+        mirror_probability: float = 0.0,
+        obstacle_redraw_probability: float = 0.0,
     ) -> Batch:
-        """Uniformly random transitions, each with its own target drawn by `relabel`."""
+        """Uniformly random transitions, each with its own target drawn by `relabel`, each with
+        fresh obstacles with probability `obstacle_redraw_probability` (`redraw_obstacles`), and
+        each seen in a mirror (`mirror_batch`) with probability `mirror_probability`."""
         if not self._transition_index.size:
             self._transition_index = np.concatenate(self._transitions)
         now = self._transition_index[rng.integers(0, self._transition_index.size, batch_size)]
-        return self.transitions_at(now, self._targets(now, rng, relabel), n_step, gamma)
+        redraw = (
+            rng.random(batch_size) < obstacle_redraw_probability if self.has_obstacles else None
+        )
+        batch = self.transitions_at(
+            now, self._targets(now, rng, relabel), n_step, gamma, redraw=redraw, rng=rng
+        )
+        if mirror_probability > 0.0:
+            batch = mirror_batch(batch, rng.random(batch_size) < mirror_probability, self.num_beams)
+        return batch
 
     def transitions_at(
         self,
@@ -126,30 +164,46 @@ class EpisodeReplay:
         target: NDArray[np.float64],
         n_step: int = 1,
         gamma: float = 0.97,
+        *,
+        redraw: NDArray[np.bool_] | None = None,
+        rng: np.random.Generator | None = None,
     ) -> Batch:
         """The transitions leaving frames `now`, with the given targets (N, 2).
 
         With n_step > 1 the reward is the discounted sum of up to n rewards for the sampled
         target, stopping early where the target is reached, a collision happens or the stored
-        episode ends; the bootstrap window ends where it stopped.
+        episode ends; the bootstrap window ends where it stopped. Transitions marked in `redraw`
+        see fresh obstacles drawn with `rng` instead of the episode's own.
         """
         k = self.window
         offsets = np.arange(-k + 1, n_step + 1)
         frame_index = np.maximum(now[:, None] + offsets, self.first[now][:, None])
         # Frames past the episode's end are never bootstrapped from; repeat its last frame.
         frame_index = np.minimum(frame_index, self.last[now][:, None])
+        scans, clearances = self.scan[frame_index], self.clearance[frame_index]
+        if redraw is not None and redraw.any():
+            if rng is None:
+                raise ValueError("re-drawing obstacles needs a random generator")
+            rows = np.flatnonzero(redraw)
+            scans[rows], clearances[rows] = redraw_obstacles(
+                self.config,
+                self.pose[frame_index[rows]],
+                np.diff(frame_index[rows], axis=1) > 0,
+                self.walls_scan[frame_index[rows]],
+                self.walls_clearance[frame_index[rows]],
+                history=k,
+                rng=rng,
+            )
         features = target_features(self.pose[frame_index], target[:, None, :])
         encoded_target = encode_target(features, self.max_range_m)
         frames = (
-            np.concatenate([self.scan[frame_index], encoded_target], axis=-1)
-            if self.num_beams
-            else encoded_target
+            np.concatenate([scans, encoded_target], axis=-1) if self.num_beams else encoded_target
         )
         radius = self.config.robot_radius_m
-        ahead = frame_index[:, k:]  # frames t+1 .. t+n
+        ahead = clearances[:, k:]  # frames t+1 .. t+n
         distance = features[:, k:, 0]
-        step_outcome = outcome(distance, self.clearance[ahead], radius)
-        step_reward = reward(distance, self.clearance[ahead], radius, self.config.reward)
+        step_outcome = outcome(distance, ahead, radius)
+        step_reward = reward(distance, ahead, radius, self.config.reward)
         # Steps taken: up to n, the first terminal step, or the episode's last frame.
         available = np.minimum(self.last[now] - now, n_step)
         ends = (step_outcome != Outcome.RUNNING) | (np.arange(1, n_step + 1) >= available[:, None])
@@ -182,3 +236,114 @@ class EpisodeReplay:
             draws = rng.random((now.size, _LOCAL_CANDIDATES, 2))
             return targets_around(self.config, self.pose[now, :2], draws)
         return rng.uniform(low, high, size=(now.size, 2))
+
+
+def redraw_obstacles(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    moving: NDArray[np.bool_],
+    walls_scan: NDArray[np.float32],
+    walls_clearance: NDArray[np.float64],
+    *,
+    history: int,
+    rng: np.random.Generator,
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Encoded scans (N, T, B) and clearances (N, T) along stored robot paths (N, T, 3), with
+    fresh obstacles (`draw_obstacle_paths`) in place of the episode's own.
+
+    The obstacles never react to the robot, so its stored path is as possible among any other
+    obstacles as among those it met: like the paper's re-drawn targets, a fresh set per sample
+    lets one stored step teach about many layouts. `walls_scan` and `walls_clearance` are what
+    the stored poses see without obstacles.
+    """
+    centres = draw_obstacle_paths(config, pose, moving, history=history, rng=rng)
+    return view_with_obstacles(config, pose, centres, walls_scan, walls_clearance)
+
+
+def draw_obstacle_paths(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    moving: NDArray[np.bool_],
+    *,
+    history: int,
+    rng: np.random.Generator,
+) -> NDArray[np.float64]:
+    """Fresh obstacle centres (N, T, M, 2) along robot paths (N, T, 3).
+
+    Each obstacle starts at a uniform position with a uniform heading and the simulator's speed
+    law, and moves by the simulator's own `move_obstacles`, one control period per step where
+    `moving` (N, T - 1) is true (frames repeated at an episode's start or end stand still). It
+    stays clear of the robot over the first `history` frames (up to the sampled step, which the
+    episode survived): of `_OBSTACLE_CANDIDATES` paths, the first that does is used.
+    """
+    n, frames = pose.shape[:2]
+    obstacles = config.obstacles
+    m, radius, size = obstacles.count, obstacles.radius_m, config.arena.size_m
+    shape = (n, m, _OBSTACLE_CANDIDATES)
+    xy = radius + (size - 2 * radius) * rng.random((*shape, 2))
+    heading = 2 * np.pi * rng.random(shape)
+    speed = obstacle_speeds(config, rng.random((*shape, _SPEED_CANDIDATES, 2)))
+    velocity = np.stack([np.cos(heading), np.sin(heading)], axis=-1) * speed[..., None]
+    path = [xy]
+    for step in range(frames - 1):
+        moved, turned = move_obstacles(xy, velocity, radius, size, config.control_period_s)
+        advance = moving[:, step, None, None, None]
+        xy, velocity = np.where(advance, moved, xy), np.where(advance, turned, velocity)
+        path.append(xy)
+    paths = np.stack(path, axis=1)  # (N, T, M, C, 2)
+    gap = np.linalg.norm(paths - pose[:, :, None, None, :2], axis=-1) - radius
+    clear_before = (gap[:, :history] >= config.robot_radius_m).all(axis=1)  # (N, M, C)
+    choice = np.argmax(clear_before, axis=2)  # the first clear candidate (else the first)
+    chosen = np.take_along_axis(paths, choice[:, None, :, None, None], axis=3)
+    return chosen[:, :, :, 0]
+
+
+def view_with_obstacles(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    walls_scan: NDArray[np.float32],
+    walls_clearance: NDArray[np.float64],
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Encoded scans (N, T, B) and clearances (N, T) from poses (N, T, 3) among obstacles
+    (N, T, M, 2), given what the poses see without them."""
+    n, frames, m = centres.shape[:3]
+    radius = config.obstacles.radius_m
+    flat_pose, flat_centres = pose.reshape(n * frames, 3), centres.reshape(n * frames, m, 2)
+    scans = walls_scan.copy()
+    if config.lidar is not None:
+        add_circles_to_scan(
+            scans.reshape(n * frames, -1),
+            flat_pose,
+            config.lidar,
+            flat_centres,
+            radius,
+            scale_m=config.lidar.max_range_m,
+        )
+    gap = np.linalg.norm(centres - pose[:, :, None, :2], axis=-1).min(axis=-1) - radius
+    return scans, np.minimum(walls_clearance, gap)
+
+
+_MIRRORED_ACTION = np.array([Action.FORWARD, Action.RIGHT, Action.LEFT], dtype=np.int64)
+"""Each action's mirror image: forward stays forward, left and right swap."""
+
+
+def mirror_batch(batch: Batch, mirrored: NDArray[np.bool_], num_beams: int) -> Batch:
+    """The chosen transitions as seen in a mirror through the robot's heading axis.
+
+    The world's physics is symmetric under that reflection: a beam at angle theta reads what
+    the beam at -theta read (beam i takes beam (B - i) mod B), the target's bearing changes
+    sign (sin phi -> -sin phi, distance and cos phi unchanged), left and right turns swap, and
+    distances, hence reward and termination, are unchanged. Every mirrored transition is one
+    the robot could have experienced, so the replay holds twice the experience.
+    """
+    if not mirrored.any():
+        return batch
+    frames = batch.frames.copy()
+    chosen = frames[mirrored]
+    if num_beams:
+        chosen[..., :num_beams] = chosen[..., (-np.arange(num_beams)) % num_beams]
+    chosen[..., num_beams + 1] *= -1.0  # sin of the target's bearing
+    frames[mirrored] = chosen
+    action = np.where(mirrored, _MIRRORED_ACTION[batch.action], batch.action)
+    return batch._replace(frames=frames, action=action)

@@ -171,7 +171,13 @@ def train(
         online.train()
         while state.iterations < owed:
             batch = replay.sample(
-                settings.batch_size, sampler, settings.relabel, settings.n_step, settings.gamma
+                settings.batch_size,
+                sampler,
+                settings.relabel,
+                settings.n_step,
+                settings.gamma,
+                mirror_probability=settings.mirror_probability,
+                obstacle_redraw_probability=settings.obstacle_redraw_probability,
             )
             losses.append(
                 td_update(

@@ -1,10 +1,22 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from sim.config import scenario
+from contracts.observation import encode_frame, encode_scan, target_features
+from sim.config import IncrementDynamics, Opening, WorldConfig, scenario
+from sim.dynamics import step_increment
 from sim.evaluate import RandomAgent
+from sim.geometry import cast_lidar, clearance
 from sim.world import observe, reset, step
-from training.replay import Episode, EpisodeReplay
+from training.replay import (
+    Batch,
+    Episode,
+    EpisodeReplay,
+    draw_obstacle_paths,
+    mirror_batch,
+    view_with_obstacles,
+)
 
 CONFIG = scenario("walls-increment")
 
@@ -133,3 +145,166 @@ def test_n_step_returns_sum_the_simulators_discounted_rewards_to_the_episode_end
         assert batch.reward[t] == pytest.approx(expected, rel=1e-5)
         assert batch.terminal[t] == ends[t + steps - 1]
         assert batch.discount[t] == pytest.approx(gamma**steps)
+
+
+OBSTACLES = scenario("obstacles-inertia")
+
+
+def _mirror_config(config: WorldConfig) -> WorldConfig:
+    """The same arena reflected through the vertical line x = size / 2."""
+    size = config.arena.size_m
+    other_side = {"east": "west", "west": "east", "south": "south", "north": "north"}
+    openings = tuple(
+        Opening(
+            other_side[o.wall],  # type: ignore[arg-type]
+            size - o.centre_m if o.wall in ("south", "north") else o.centre_m,
+            o.width_m,
+        )
+        for o in config.arena.openings
+    )
+    return replace(config, arena=replace(config.arena, openings=openings))
+
+
+def _mirror_pose(pose: np.ndarray, size: float) -> np.ndarray:
+    return np.stack([size - pose[..., 0], pose[..., 1], np.pi - pose[..., 2]], axis=-1)
+
+
+def test_a_mirrored_transition_is_what_the_robot_sees_in_the_mirrored_world() -> None:
+    config, size = OBSTACLES, OBSTACLES.arena.size_m
+    mirrored_config = _mirror_config(config)
+    rng = np.random.default_rng(4)
+    pose = np.column_stack([rng.uniform(1, 9, (64, 2)), rng.uniform(-np.pi, np.pi, 64)])
+    obstacles = rng.uniform(1, 9, (64, 5, 2))
+    target = rng.uniform(1, 9, (64, 2))
+    lidar = config.lidar
+    assert lidar is not None
+    scan = cast_lidar(pose, lidar, config.arena, obstacles, 0.4)
+    mirrored_obstacles = np.stack([size - obstacles[..., 0], obstacles[..., 1]], axis=-1)
+    seen_in_mirror = cast_lidar(
+        _mirror_pose(pose, size), lidar, mirrored_config.arena, mirrored_obstacles, 0.4
+    )
+    frames = encode_frame(scan, target_features(pose, target), lidar.max_range_m)
+    mirrored_target = np.stack([size - target[:, 0], target[:, 1]], axis=-1)
+    frames_in_mirror = encode_frame(
+        seen_in_mirror,
+        target_features(_mirror_pose(pose, size), mirrored_target),
+        lidar.max_range_m,
+    )
+    action = rng.integers(0, 3, 64)
+    batch = Batch(
+        frames=frames[:, None, :],
+        action=action,
+        reward=np.zeros(64, np.float32),
+        terminal=np.zeros(64, bool),
+        steps=np.ones(64, np.int64),
+        discount=np.ones(64, np.float32),
+    )
+    mirrored = mirror_batch(batch, np.ones(64, bool), lidar.num_beams)
+    np.testing.assert_allclose(mirrored.frames[:, 0], frames_in_mirror, atol=2e-6)
+    # The mirrored action moves the mirrored robot as the action moved the robot.
+    moved, _ = step_increment(pose, np.zeros((64, 2)), action, IncrementDynamics())
+    moved_in_mirror, _ = step_increment(
+        _mirror_pose(pose, size), np.zeros((64, 2)), mirrored.action, IncrementDynamics()
+    )
+    np.testing.assert_allclose(
+        np.cos(moved_in_mirror[:, 2]), np.cos(_mirror_pose(moved, size)[:, 2]), atol=1e-9
+    )
+    np.testing.assert_allclose(moved_in_mirror[:, :2], _mirror_pose(moved, size)[:, :2], atol=1e-9)
+
+
+def test_mirroring_twice_gives_the_batch_back_and_unchosen_rows_are_untouched() -> None:
+    episode, _, _ = _episode(5)
+    batch = _replay(episode).sample(64, np.random.default_rng(0), "paper", n_step=3)
+    chosen = np.random.default_rng(1).random(64) < 0.5
+    once = mirror_batch(batch, chosen, 720)
+    np.testing.assert_array_equal(once.frames[~chosen], batch.frames[~chosen])
+    assert (once.action[chosen] != batch.action[chosen])[batch.action[chosen] != 0].all()
+    twice = mirror_batch(once, chosen, 720)
+    np.testing.assert_array_equal(twice.frames, batch.frames)
+    np.testing.assert_array_equal(twice.action, batch.action)
+
+
+def _obstacle_episode(seed: int) -> Episode:
+    config = replace(OBSTACLES, max_episode_steps=60)
+    state = reset(config, np.array([seed]), np.array([0]))
+    observation = observe(config, state)
+    agent = RandomAgent(1, seed=seed)
+    poses, scans, gaps, actions = [observation.pose[0]], [observation.scan_m], [], []
+    gaps.append(observation.clearance_m[0])
+    while True:
+        action = agent.act(observation)
+        state, observation, transition = step(config, state, action)
+        poses.append(observation.pose[0])
+        scans.append(observation.scan_m)
+        gaps.append(observation.clearance_m[0])
+        actions.append(int(action[0]))
+        if transition.terminated[0] or transition.truncated[0]:
+            break
+    return Episode(
+        np.array(poses),
+        np.concatenate(scans),  # type: ignore[arg-type]
+        np.array(gaps),
+        np.array(actions),
+        state.target_xy[0],
+        int(transition.outcome[0]),
+    )
+
+
+def test_redrawn_obstacles_move_as_the_simulators_and_never_touch_the_robot_before_now() -> None:
+    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
+    for seed in range(6):
+        replay.add(_obstacle_episode(seed))
+    now = np.arange(replay.size)[replay.last[: replay.size] > np.arange(replay.size)]
+    first, last = replay.first[now, None], replay.last[now, None]
+    index = np.clip(now[:, None] + np.arange(-4, 4), first, last)
+    moving = np.diff(index, axis=1) > 0
+    rng = np.random.default_rng(2)
+    centres = draw_obstacle_paths(OBSTACLES, replay.pose[index], moving, history=5, rng=rng)
+    radius = OBSTACLES.obstacles.radius_m
+    gap = np.linalg.norm(centres - replay.pose[index][:, :, None, :2], axis=-1) - radius
+    assert (gap[:, :5] >= OBSTACLES.robot_radius_m).all()
+    # Each frame follows from the one before by the simulator's obstacle motion, or stands still.
+    for t in range(7):
+        step_xy = centres[:, t + 1] - centres[:, t]
+        still = ~moving[:, t]
+        assert (np.abs(step_xy[still]) == 0).all()
+        speed = np.linalg.norm(step_xy[~still], axis=-1) / OBSTACLES.control_period_s
+        bounced = (centres[~still, t + 1] <= radius + 0.31) | (centres[~still, t + 1] >= 9.29)
+        clean = ~bounced.any(-1)
+        assert (speed[clean] >= OBSTACLES.obstacles.speed_min_mps - 1e-9).all()
+        assert (speed[clean] <= OBSTACLES.obstacles.speed_max_mps + 1e-9).all()
+
+
+def test_redrawn_obstacles_give_the_scans_and_clearances_the_simulator_computes() -> None:
+    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
+    replay.add(_obstacle_episode(1))
+    index = np.arange(replay.size)[:, None]
+    pose = replay.pose[index]
+    centres = draw_obstacle_paths(
+        OBSTACLES, pose, np.zeros((replay.size, 0), bool), history=1, rng=np.random.default_rng(3)
+    )
+    scans, gaps = view_with_obstacles(
+        OBSTACLES, pose, centres, replay.walls_scan[index], replay.walls_clearance[index]
+    )
+    lidar = OBSTACLES.lidar
+    assert lidar is not None
+    radius = OBSTACLES.obstacles.radius_m
+    expected = cast_lidar(pose[:, 0], lidar, OBSTACLES.arena, centres[:, 0], radius)
+    np.testing.assert_allclose(scans[:, 0], encode_scan(expected, lidar.max_range_m), atol=1e-6)
+    np.testing.assert_allclose(
+        gaps[:, 0], clearance(pose[:, 0, :2], OBSTACLES.arena, centres[:, 0], radius), atol=1e-12
+    )
+
+
+def test_sampling_with_redrawn_obstacles_recomputes_collisions_from_the_fresh_obstacles() -> None:
+    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
+    for seed in range(6):
+        replay.add(_obstacle_episode(seed))
+    plain = replay.sample(512, np.random.default_rng(0), "none", n_step=1)
+    redrawn = replay.sample(
+        512, np.random.default_rng(0), "none", n_step=1, obstacle_redraw_probability=1.0
+    )
+    assert plain.frames.shape == redrawn.frames.shape
+    assert not np.array_equal(plain.frames[..., :720], redrawn.frames[..., :720])
+    # Targets and actions are those of the same transitions; only the obstacles changed.
+    np.testing.assert_array_equal(plain.frames[..., 720:], redrawn.frames[..., 720:])
