@@ -26,11 +26,13 @@ from sim.world import obstacle_speeds, targets_around
 
 _LOCAL_CANDIDATES = 64
 """Candidates per local target (as in the simulator's spawn)."""
-_OBSTACLE_CANDIDATES = 16
+_OBSTACLE_CANDIDATES = 8
 """Candidate paths per re-drawn obstacle; the first that never touches the robot before the
-sampled step is used (each is accepted with probability about 0.9)."""
-_SPEED_CANDIDATES = 16
-"""Box-Muller candidates per re-drawn obstacle speed (as in the simulator's spawn)."""
+sampled step is used (each is accepted with probability about 0.9, so all 8 fail with
+probability about 1e-8)."""
+_SPEED_CANDIDATES = 8
+"""Box-Muller candidates per re-drawn obstacle speed; each lies in the speed range with
+probability about 0.9."""
 
 Relabel = Literal["paper", "local", "hindsight", "none"]
 """How a sampled transition gets its target: a fresh uniform one in the arena (the paper), a
@@ -282,20 +284,42 @@ def draw_obstacle_paths(
     shape = (n, m, _OBSTACLE_CANDIDATES)
     xy = radius + (size - 2 * radius) * rng.random((*shape, 2))
     heading = 2 * np.pi * rng.random(shape)
-    speed = obstacle_speeds(config, rng.random((*shape, _SPEED_CANDIDATES, 2)))
+    # One speed per obstacle, shared by its candidate paths (each candidate still moves at a
+    # speed from the simulator's law; only one of them is kept).
+    speed = obstacle_speeds(config, rng.random((n, m, 1, _SPEED_CANDIDATES, 2)))
     velocity = np.stack([np.cos(heading), np.sin(heading)], axis=-1) * speed[..., None]
     path = [xy]
     for step in range(frames - 1):
+        if step + 1 == history:
+            xy, velocity, path = _first_clear_candidate(config, pose, xy, velocity, path)
         moved, turned = move_obstacles(xy, velocity, radius, size, config.control_period_s)
         advance = moving[:, step, None, None, None]
         xy, velocity = np.where(advance, moved, xy), np.where(advance, turned, velocity)
         path.append(xy)
-    paths = np.stack(path, axis=1)  # (N, T, M, C, 2)
-    gap = np.linalg.norm(paths - pose[:, :, None, None, :2], axis=-1) - radius
-    clear_before = (gap[:, :history] >= config.robot_radius_m).all(axis=1)  # (N, M, C)
-    choice = np.argmax(clear_before, axis=2)  # the first clear candidate (else the first)
-    chosen = np.take_along_axis(paths, choice[:, None, :, None, None], axis=3)
-    return chosen[:, :, :, 0]
+    if len(path) <= history:
+        _, _, path = _first_clear_candidate(config, pose, xy, velocity, path)
+    return np.stack(path, axis=1)[:, :, :, 0]
+
+
+def _first_clear_candidate(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    velocity: NDArray[np.float64],
+    path: list[NDArray[np.float64]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], list[NDArray[np.float64]]]:
+    """Keep, of each obstacle's candidates (N, M, C, 2), the first whose path so far stays clear
+    of the robot (else the first): its position, velocity and path, with C = 1."""
+    history = len(path)
+    centres = np.stack(path, axis=1)  # (N, history, M, C, 2)
+    gap = np.linalg.norm(centres - pose[:, :history, None, None, :2], axis=-1)
+    clear = (gap - config.obstacles.radius_m >= config.robot_radius_m).all(axis=1)  # (N, M, C)
+    index = np.argmax(clear, axis=2)[:, :, None, None]
+
+    def keep(array: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.take_along_axis(array, index, axis=2)
+
+    return keep(xy), keep(velocity), [keep(frame) for frame in path]
 
 
 def view_with_obstacles(
