@@ -196,6 +196,16 @@ def build_parser() -> argparse.ArgumentParser:
     figures.add_argument("--out", type=Path, default=Path("docs/img"), help="output folder")
     figures.set_defaults(handler=_lazy("qnav.commands:figures"))
 
+    diagnose = verbs.add_parser(
+        "diagnose",
+        help="why a run learns or not: generalisation gap, target sensitivity, action mix",
+    )
+    diagnose.add_argument("run", type=Path, help="training run folder (finished or not)")
+    diagnose.add_argument(
+        "--fresh-episodes", type=int, default=64, help="fresh episodes to measure on (64)"
+    )
+    diagnose.set_defaults(handler=_lazy("qnav.commands:diagnose"))
+
     reproduce = verbs.add_parser(
         "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
     )

@@ -177,6 +177,14 @@ def figures(args: argparse.Namespace) -> int:
     return 0
 
 
+def diagnose(args: argparse.Namespace) -> int:
+    """Generalisation gap, target sensitivity and action mix of a training run."""
+    from training.diagnose import diagnose as measure
+
+    print(measure(args.run, fresh_episodes=args.fresh_episodes).render())
+    return 0
+
+
 def export(args: argparse.Namespace) -> int:
     """A run's network as one ONNX policy file, tested and stamped with its results."""
     from training.export import export_run

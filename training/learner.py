@@ -27,7 +27,7 @@ def double_dqn_target(
     return reward + discount * (~terminal).to(reward.dtype) * bootstrap
 
 
-def _bootstrap_windows(features: Tensor, steps: Tensor, window: int) -> Tensor:
+def bootstrap_windows(features: Tensor, steps: Tensor, window: int) -> Tensor:
     """features (N, k + n, D) -> the windows (N, k, D) ending m steps after s_t."""
     index = steps[:, None] + torch.arange(window, device=features.device)[None, :]
     return features.gather(1, index[..., None].expand(-1, -1, features.shape[-1]))
@@ -59,9 +59,9 @@ def td_update(
             .squeeze(1)
         )
         with torch.no_grad():
-            later = _bootstrap_windows(features.detach(), steps, window)
+            later = bootstrap_windows(features.detach(), steps, window)
             q_next_online = online.q_from_features(later).float()
-            later_target = _bootstrap_windows(target.frame_features(frames), steps, window)
+            later_target = bootstrap_windows(target.frame_features(frames), steps, window)
             q_next_target = target.q_from_features(later_target).float()
     y = double_dqn_target(
         torch.from_numpy(batch.reward).to(device),

@@ -1,0 +1,184 @@
+"""Why a run learns or does not: its generalisation gap, and what its greedy policy attends to.
+
+`qnav diagnose RUN` prints three measurements that separate the usual failures of a DQN run:
+
+- **Generalisation gap.** The TD error (squared, double-DQN targets from the network itself) on
+  transitions from the run's own replay, against the same on fresh episodes collected by the
+  same network with the run's own exploration schedule. A fresh error well above the replay's
+  means the network memorises its episodes rather than learning the task.
+- **Target sensitivity.** How much of the LSTM's gate input comes from the target features
+  against the lidar features, and whether the greedy action follows the target's bearing on
+  fixed scans (the share of probe scans on which it turns towards the target).
+- **Action mix** of the greedy policy in test episodes, with its outcome.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import cast
+
+import numpy as np
+import torch
+from torch.nn import functional
+
+from contracts.actions import NUM_ACTIONS, Action
+from contracts.observation import distance_scale_m, encode_frame
+from sim.evaluate import EvalSettings, evaluate
+from sim.world import Observation, observe, reset
+from training.agent import TorchAgent
+from training.collect import collect_round
+from training.episode_log import read_rounds
+from training.learner import bootstrap_windows, double_dqn_target
+from training.networks import QNetwork
+from training.policy import load_network
+from training.replay import Batch, EpisodeReplay
+from training.run import RunSettings, policy_agent
+
+_FRESH_LAYOUT_SEED = 777_777
+"""Layouts of the fresh episodes (neither training, validation nor test use it)."""
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """What `diagnose` measured on one run."""
+
+    replay_td_mse: float
+    """Mean squared TD error on transitions sampled from the run's replay."""
+    fresh_td_mse: float
+    """The same on episodes the network has never trained on."""
+    target_gate_std: float
+    """Standard deviation of the LSTM gate inputs contributed by the target features."""
+    lidar_gate_std: float
+    """The same for the lidar features (0 without a lidar or an LSTM)."""
+    turns_towards_target: float
+    """Share of probes (target to one side) where the greedy action turns towards it."""
+    action_mix: tuple[float, float, float]
+    """Forward, left and right shares of greedy test actions."""
+    test_success: float
+    """Success of those test episodes."""
+
+    def render(self) -> str:
+        """A few lines for the terminal."""
+        gap = self.fresh_td_mse / max(self.replay_td_mse, 1e-12)
+        forward, left, right = self.action_mix
+        return "\n".join(
+            [
+                f"TD error (mse): replay {self.replay_td_mse:.4f}, fresh episodes "
+                f"{self.fresh_td_mse:.4f} ({gap:.1f}x: above ~1.5x the network memorises)",
+                f"LSTM gate input std: target features {self.target_gate_std:.3f}, lidar "
+                f"{self.lidar_gate_std:.3f}",
+                "greedy action turns towards a target to one side: "
+                f"{self.turns_towards_target:.0%}",
+                f"greedy test actions: forward {forward:.0%}, left {left:.0%}, right {right:.0%}; "
+                f"success {self.test_success:.3f}",
+            ]
+        )
+
+
+def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Diagnosis:
+    """Measure a run (finished or not) on its own replay, fresh episodes and probes."""
+    torch.set_num_threads(2)
+    network, settings = load_network(run_dir)
+    world = replace(settings.world, max_episode_steps=settings.train.max_episode_steps)
+    train = settings.train
+    capacity = (train.episodes + fresh_episodes) * (train.max_episode_steps + 1)
+    replay = EpisodeReplay(world, capacity, train.window)
+    for episodes in read_rounds(run_dir / "episodes"):
+        for episode in episodes:
+            replay.add(episode)
+    fresh = EpisodeReplay(world, capacity, train.window)
+    agent = policy_agent(network, world, fresh_episodes, train.window, seed=1)
+    schedule = np.linspace(0, max(replay.episodes - 1, 0), fresh_episodes).astype(np.int64)
+    agent.exploration.epsilon[:] = [train.epsilon(int(i)) for i in schedule]
+    for episode in collect_round(world, agent, _FRESH_LAYOUT_SEED, schedule):
+        fresh.add(episode)
+    sample = np.random.default_rng(0)
+    replay_batch = replay.sample(samples, sample, train.relabel, train.n_step, train.gamma)
+    fresh_batch = fresh.sample(samples, sample, train.relabel, train.n_step, train.gamma)
+    target_std, lidar_std = _gate_inputs(network, replay_batch)
+    actions, success = _test_actions(network, settings)
+    return Diagnosis(
+        replay_td_mse=_td_mse(network, replay_batch, train.window),
+        fresh_td_mse=_td_mse(network, fresh_batch, train.window),
+        target_gate_std=target_std,
+        lidar_gate_std=lidar_std,
+        turns_towards_target=_turns_towards_target(network, settings),
+        action_mix=actions,
+        test_success=success,
+    )
+
+
+def _td_mse(network: QNetwork, batch: Batch, window: int) -> float:
+    with torch.no_grad():
+        features = network.frame_features(torch.from_numpy(batch.frames))
+        taken = torch.from_numpy(batch.action).unsqueeze(1)
+        q = network.q_from_features(features[:, :window]).gather(1, taken).squeeze(1)
+        later = network.q_from_features(
+            bootstrap_windows(features, torch.from_numpy(batch.steps), window)
+        )
+        y = double_dqn_target(
+            torch.from_numpy(batch.reward),
+            torch.from_numpy(batch.terminal),
+            later,
+            later,
+            torch.from_numpy(batch.discount),
+        )
+        return float(functional.mse_loss(q, y))
+
+
+def _gate_inputs(network: QNetwork, batch: Batch) -> tuple[float, float]:
+    """Spread of the LSTM's input projection due to the target and to the lidar features."""
+    if network.lstm is None:
+        return 0.0, 0.0
+    with torch.no_grad():
+        features = network.frame_features(torch.from_numpy(batch.frames[:, -1:]))[:, 0]
+        weight = cast(torch.Tensor, network.lstm.weight_ih_l0)
+        split = features.shape[1] - 3
+        target = features[:, split:] @ weight[:, split:].T
+        lidar = features[:, :split] @ weight[:, :split].T
+        return float(target.std()), float(lidar.std()) if split else 0.0
+
+
+def _turns_towards_target(network: QNetwork, settings: RunSettings, worlds: int = 32) -> float:
+    """Over the first scans of `worlds` episodes, with a target 2 m away at 12 bearings to one
+    side (30 to 150 degrees left or right), the share of greedy actions that turn that way."""
+    world = settings.world
+    state = reset(world, np.full(worlds, 3, dtype=np.int64), np.arange(worlds, dtype=np.int64))
+    observation: Observation = observe(world, state)
+    bearings = np.deg2rad(np.array([30, 60, 90, 120, 150]))
+    towards = []
+    for side, wanted in ((1.0, Action.LEFT), (-1.0, Action.RIGHT)):
+        for bearing in bearings:
+            features = np.tile([2.0, side * np.sin(bearing), np.cos(bearing)], (worlds, 1))
+            frame = encode_frame(observation.scan_m, features, distance_scale_m(world.lidar))
+            window = np.repeat(frame[:, None], settings.train.window, axis=1)
+            with torch.no_grad():
+                q = network(torch.from_numpy(window)).numpy()
+            towards.append(q.argmax(axis=1) == wanted)
+    return float(np.mean(towards))
+
+
+class _CountingAgent:
+    """A greedy agent that counts the actions it takes."""
+
+    def __init__(self, agent: TorchAgent) -> None:
+        self.agent = agent
+        self.counts = np.zeros(NUM_ACTIONS, dtype=np.int64)
+
+    def start(self, worlds: np.ndarray, episodes: np.ndarray) -> None:
+        self.agent.start(worlds, episodes)
+
+    def act(self, observation: Observation) -> np.ndarray:
+        action = self.agent.act(observation)
+        self.counts += np.bincount(action, minlength=NUM_ACTIONS)
+        return action
+
+
+def _test_actions(
+    network: QNetwork, settings: RunSettings, episodes: int = 100
+) -> tuple[tuple[float, float, float], float]:
+    counting = _CountingAgent(policy_agent(network, settings.world, 50, settings.train.window))
+    result = evaluate(settings.world, counting, EvalSettings(episodes=episodes, num_worlds=50))
+    forward, left, right = (counting.counts / max(counting.counts.sum(), 1)).tolist()
+    return (forward, left, right), result.success
