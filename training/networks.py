@@ -3,6 +3,10 @@
 Input: a window of encoded frames (N, k, F) from `contracts.observation.encode_frame`, each
 frame the scaled scan (B values, absent for the toy car) followed by the scaled target features
 (3 values). Output: Q values (N, 3).
+
+`StreamingQNetwork` is the same network as the onboard runtime steps it (and as it is exported):
+the newest frame and the k-1 partial windows in progress in, the Q values of the window that
+the frame completes and the next partial windows out. The arithmetic is the window's.
 """
 
 from __future__ import annotations
@@ -76,12 +80,7 @@ class QNetwork(nn.Module):
 
     def frame_features(self, frames: Tensor) -> Tensor:
         """(N, T, F) frames -> (N, T, D) features; the encoder runs once per frame."""
-        if self.encoder is None:
-            return frames
-        n, t, _ = frames.shape
-        scans = frames[..., : self.num_beams].reshape(n * t, self.num_beams)
-        encoded = self.encoder(scans).reshape(n, t, -1)
-        return torch.cat([encoded, frames[..., self.num_beams :]], dim=-1)
+        return frame_features(self.encoder, self.num_beams, frames)
 
     def q_from_features(self, features: Tensor) -> Tensor:
         """(N, k, D) features of one window -> (N, 3) Q values."""
@@ -93,6 +92,98 @@ class QNetwork(nn.Module):
         return self.q_from_features(self.frame_features(frames))
 
 
+class StreamingQNetwork(nn.Module):
+    """A QNetwork stepped one frame at a time, carrying the windows still in progress.
+
+    forward(frame (N, F), state_h, state_c (N, k-1, H)) -> (q (N, 3), next_h, next_c), where
+    slot j (from 0) of the state holds the LSTM's (h, c) of the window that has consumed j + 1
+    frames. A step advances every slot by the frame, so the last slot completes a window of k
+    frames (its Q values are returned), and the window that starts at the frame (one step from
+    the zero state) becomes slot 0. Feeding k frames from any state gives exactly the window
+    network's Q values on them. Without a state (feedforward, or k = 1) it is forward(frame) ->
+    (q,).
+
+    It holds the QNetwork's own modules under the same names, so that its parameters (and the
+    exported file's initializers) are named as the QNetwork's: the numpy backend reads them.
+    """
+
+    def __init__(self, network: QNetwork, window_length: int) -> None:
+        super().__init__()
+        self.num_beams = network.num_beams
+        self.encoder = network.encoder
+        self.lstm = network.lstm
+        self.head = network.head
+        self.state_slots = window_length - 1 if network.lstm is not None else 0
+        self.state_size = network.hidden_size if self.state_slots else 0
+
+    def forward(
+        self, frame: Tensor, state_h: Tensor | None = None, state_c: Tensor | None = None
+    ) -> tuple[Tensor, ...]:
+        features = frame_features(self.encoder, self.num_beams, frame.unsqueeze(1)).squeeze(1)
+        if self.lstm is None:
+            return (self.head(features),)
+        if not self.state_slots:
+            hidden, _ = lstm_cell(lstm_input_projection(self.lstm, features), None)
+            return (self.head(hidden),)
+        if state_h is None or state_c is None:
+            raise ValueError(f"this network steps {self.state_slots} partial windows: pass them")
+        complete, next_h, next_c = lstm_stream_step(self.lstm, features, state_h, state_c)
+        return self.head(complete), next_h, next_c
+
+
+def frame_features(encoder: LidarEncoder | None, num_beams: int, frames: Tensor) -> Tensor:
+    """(N, T, F) frames -> (N, T, D) features: each frame's scan through the encoder, followed
+    by its target features."""
+    if encoder is None:
+        return frames
+    n, t, _ = frames.shape
+    scans = frames[..., :num_beams].reshape(n * t, num_beams)
+    encoded = encoder(scans).reshape(n, t, -1)
+    return torch.cat([encoded, frames[..., num_beams:]], dim=-1)
+
+
+def _lstm_weights(lstm: nn.LSTM) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    weight_ih, weight_hh, bias_ih, bias_hh = (
+        cast(Tensor, getattr(lstm, name))
+        for name in ("weight_ih_l0", "weight_hh_l0", "bias_ih_l0", "bias_hh_l0")
+    )
+    return weight_ih, weight_hh, bias_ih, bias_hh
+
+
+def lstm_input_projection(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
+    """The gates' input part, both biases included: (..., D) -> (..., 4H)."""
+    weight_ih, _, bias_ih, bias_hh = _lstm_weights(lstm)
+    return inputs @ weight_ih.T + (bias_ih + bias_hh)
+
+
+def lstm_cell(gates: Tensor, cell: Tensor | None) -> tuple[Tensor, Tensor]:
+    """One LSTM step from its gate pre-activations (..., 4H) in torch's order (i, f, g, o) and
+    the previous cell state (None: the zero state, whose products are skipped) -> (h, c)."""
+    i, f, g, o = gates.chunk(4, dim=-1)
+    update = torch.sigmoid(i) * torch.tanh(g)
+    cell = update if cell is None else torch.sigmoid(f) * cell + update
+    return torch.sigmoid(o) * torch.tanh(cell), cell
+
+
+def lstm_stream_step(
+    lstm: nn.LSTM, inputs: Tensor, state_h: Tensor, state_c: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One frame's features (N, D) into the partial windows (N, S, H) of `StreamingQNetwork`:
+    the output of the window this frame completes (N, H) and the next partial windows.
+
+    The input projection is computed once for all slots, and all slots share one recurrent
+    product (N * S rows against the recurrent matrix, read once); the new window's first step
+    starts from the zero state and needs none.
+    """
+    _, weight_hh, _, _ = _lstm_weights(lstm)
+    projected = lstm_input_projection(lstm, inputs)
+    started_h, started_c = lstm_cell(projected, None)
+    advanced_h, advanced_c = lstm_cell(projected.unsqueeze(1) + state_h @ weight_hh.T, state_c)
+    next_h = torch.cat([started_h.unsqueeze(1), advanced_h[:, :-1]], dim=1)
+    next_c = torch.cat([started_c.unsqueeze(1), advanced_c[:, :-1]], dim=1)
+    return advanced_h[:, -1], next_h, next_c
+
+
 def lstm_last_output(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
     """The last output of a one-layer LSTM run from a zero state over (N, k, D) inputs.
 
@@ -100,19 +191,13 @@ def lstm_last_output(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
     that the input projections of all k steps are one product, the first step's recurrent product
     (with a zero state) is skipped, and bfloat16 autocast applies to every product.
     """
-    weight_ih, weight_hh, bias_ih, bias_hh = (
-        cast(Tensor, getattr(lstm, name))
-        for name in ("weight_ih_l0", "weight_hh_l0", "bias_ih_l0", "bias_hh_l0")
-    )
-    projected = inputs @ weight_ih.T + (bias_ih + bias_hh)
+    _, weight_hh, _, _ = _lstm_weights(lstm)
+    projected = lstm_input_projection(lstm, inputs)
     hidden = cell = None
     for step in range(inputs.shape[1]):
         gates = projected[:, step]
         if hidden is not None:
             gates = gates + hidden @ weight_hh.T
-        i, f, g, o = gates.chunk(4, dim=1)
-        update = torch.sigmoid(i) * torch.tanh(g)
-        cell = update if cell is None else torch.sigmoid(f) * cell + update
-        hidden = torch.sigmoid(o) * torch.tanh(cell)
+        hidden, cell = lstm_cell(gates, cell)
     assert hidden is not None
     return hidden

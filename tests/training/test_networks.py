@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from training.networks import QNetwork, conv_output_length
+from training.networks import QNetwork, StreamingQNetwork, conv_output_length
 
 
 def test_paper_encoder_turns_720_beams_into_25_positions_of_8_channels() -> None:
@@ -49,3 +49,47 @@ def test_recurrent_q_depends_on_earlier_frames() -> None:
     changed = frames.clone()
     changed[:, 0] = torch.rand_like(changed[:, 0])
     assert not torch.allclose(network(frames), network(changed))
+
+
+@pytest.mark.parametrize(("kind", "beams"), [("recurrent", 720), ("recurrent", None)])
+def test_the_streaming_network_fed_a_window_from_any_state_gives_the_windows_q(
+    kind: str, beams: int | None
+) -> None:
+    torch.manual_seed(0)
+    network = QNetwork(kind, beams, hidden_size=32)  # type: ignore[arg-type]
+    streaming = StreamingQNetwork(network, 5)
+    frames = torch.rand(16, 5, network.frame_size)
+    state = (torch.randn(16, 4, 32), torch.randn(16, 4, 32))
+    for t in range(5):
+        q, *state = streaming(frames[:, t], *state)
+    torch.testing.assert_close(q, network(frames), rtol=1e-5, atol=1e-6)
+
+
+def test_the_streaming_network_carries_every_window_in_progress() -> None:
+    torch.manual_seed(0)
+    network = QNetwork("recurrent", 720, hidden_size=32)
+    streaming = StreamingQNetwork(network, 5)
+    frames = torch.rand(4, 12, network.frame_size)
+    state = (torch.zeros(4, 4, 32), torch.zeros(4, 4, 32))
+    for t in range(12):
+        q, *state = streaming(frames[:, t], *state)
+        if t >= 4:
+            torch.testing.assert_close(q, network(frames[:, t - 4 : t + 1]), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(("kind", "window"), [("feedforward", 5), ("recurrent", 1)])
+def test_a_streaming_network_without_windows_in_progress_takes_no_state(
+    kind: str, window: int
+) -> None:
+    network = QNetwork(kind, 720, hidden_size=32)  # type: ignore[arg-type]
+    streaming = StreamingQNetwork(network, window)
+    assert streaming.state_slots == 0
+    frames = torch.rand(3, window, network.frame_size)
+    (q,) = streaming(frames[:, -1])
+    torch.testing.assert_close(q, network(frames), rtol=1e-5, atol=1e-6)
+
+
+def test_the_streaming_network_has_the_networks_parameter_names() -> None:
+    network = QNetwork("recurrent", 720, hidden_size=32)
+    streaming = StreamingQNetwork(network, 5)
+    assert list(streaming.state_dict()) == list(network.state_dict())
