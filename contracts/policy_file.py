@@ -4,9 +4,13 @@ The exporter writes a `PolicyContract` into the ONNX file's metadata; the onboar
 it back and configures itself from it (window length, beams, range scaling, control period,
 what each action means in m/s and rad/s), refusing a file that lacks it or does not fit.
 
-The graph's input is the window of frames produced by `contracts.observation.encode_frame`
-(scans in metres and target features go in there, and nowhere else, to be scaled and cleaned of
-inf and NaN); its output is the Q value of each action of `contracts.actions.Action`.
+The graph takes the newest frame produced by `contracts.observation.encode_frame` (scans in
+metres and target features go in there, and nowhere else, to be scaled and cleaned of inf and
+NaN) and, for a recurrent policy, the state the previous step returned: the LSTM's (h, c) of
+the k-1 windows still in progress. It returns the Q value of each action of
+`contracts.actions.Action` for the window that ends with this frame, and the next state. Every
+window still starts from a zero LSTM state, as in the paper; carrying the partial windows only
+avoids recomputing them (docs/policy.md, "Why a streaming graph").
 """
 
 from __future__ import annotations
@@ -20,14 +24,26 @@ from contracts.actions import NUM_ACTIONS, Action
 from contracts.errors import PolicyFileError
 from contracts.observation import TARGET_FEATURES
 
-POLICY_FORMAT = "qnav-policy/1"
-"""Value of the `qnav.format` metadata key; a new major number means an incompatible layout."""
+POLICY_FORMAT = "qnav-policy/2"
+"""Value of the `qnav.format` metadata key; a new major number means an incompatible layout.
+/2: the streaming graph (newest frame and carried state in). /1 was the whole-window graph."""
 
-INPUT_NAME = "frames"
-"""The graph's input: (batch, window_length, frame_size) float32 encoded frames."""
+WINDOW_FORMAT = "qnav-policy/1"
+"""The earlier layout (input: the whole window of k frames); refused, with the fix named."""
+
+FRAME_INPUT = "frame"
+"""The graph's first input: (batch, frame_size) float32, the newest encoded frame."""
+
+STATE_INPUTS = ("state_h", "state_c")
+"""The recurrent state in, (batch, state_slots, state_size) float32 each: slot j (from 0) holds
+the LSTM's hidden and cell state of the window that has consumed j + 1 frames. Absent when the
+policy has no state (feedforward, or a window of one frame)."""
 
 OUTPUT_NAME = "q_values"
-"""The graph's output: (batch, 3) float32 Q values, indexed by `Action`."""
+"""The graph's first output: (batch, 3) float32 Q values, indexed by `Action`."""
+
+STATE_OUTPUTS = ("next_state_h", "next_state_c")
+"""The state to feed with the next frame, shaped as `STATE_INPUTS`."""
 
 BEAM_CONVENTION = "ccw-from-heading-0-to-2pi"
 """Beam i points at i * 2*pi / num_beams radians, counter-clockwise from the robot's heading."""
@@ -73,6 +89,10 @@ class PolicyContract:
     """Run folder the weights came from."""
     commit: str
     """Source revision the policy was trained (or, failing that, exported) with."""
+    state_slots: int
+    """Partial windows carried between steps (k - 1 for the recurrent policy, else 0)."""
+    state_size: int
+    """Values per slot of each of h and c (the LSTM's hidden size; 0 without a state)."""
     evaluation: Mapping[str, float] = field(default_factory=dict)
     """Test-protocol results of this file (success, collision, unfinished, episodes)."""
     beam_convention: str = BEAM_CONVENTION
@@ -81,11 +101,23 @@ class PolicyContract:
     """File layout version."""
 
     def __post_init__(self) -> None:
+        slots = self.window_length - 1 if self.model_kind == "recurrent" else 0
+        if self.state_slots != slots or (self.state_size > 0) != (slots > 0):
+            raise PolicyFileError(
+                f"state_slots = {self.state_slots} and state_size = {self.state_size} do not fit "
+                f"a {self.model_kind} policy with window_length = {self.window_length} (expected "
+                f"{slots} slots{', each of positive size' if slots else ' and size 0'})"
+            )
         if len(self.actions) != NUM_ACTIONS:
             raise PolicyFileError(
                 f"actions lists {len(self.actions)} velocities; the action table has "
                 f"{NUM_ACTIONS} ({', '.join(a.name.lower() for a in Action)})"
             )
+
+    @property
+    def has_state(self) -> bool:
+        """Whether the graph takes and returns a recurrent state."""
+        return self.state_slots > 0
 
     @property
     def frame_size(self) -> int:
@@ -105,10 +137,7 @@ class PolicyContract:
                 "entry (export policies with `qnav export`)"
             )
         found = metadata[METADATA_PREFIX + "format"]
-        if json.loads(found) != POLICY_FORMAT:
-            raise PolicyFileError(
-                f"{source} has policy format {found}; this runtime reads {POLICY_FORMAT!r}"
-            )
+        check_format(found, source)
         values: dict[str, Any] = {}
         for spec in fields(cls):
             key = METADATA_PREFIX + spec.name
@@ -123,3 +152,24 @@ class PolicyContract:
             return cls(**values)
         except TypeError as error:
             raise PolicyFileError(f"{source}: malformed metadata: {error}") from None
+
+
+def check_format(found: str, source: str) -> None:
+    """Refuse any `qnav.format` value (JSON, as stored) but this runtime's, naming the fix."""
+    try:
+        value = json.loads(found)
+    except json.JSONDecodeError:
+        value = found
+    if value == POLICY_FORMAT:
+        return
+    if value == WINDOW_FORMAT:
+        raise PolicyFileError(
+            f"{source} has policy format {WINDOW_FORMAT!r} (a graph over the whole window of "
+            f"frames); this runtime reads {POLICY_FORMAT!r} (the newest frame and the carried "
+            "state). Re-export it: `qnav export RUN -o FILE` from its training run, or "
+            "`qnav export OLD.onnx -o NEW.onnx` from the old file's own weights"
+        )
+    raise PolicyFileError(
+        f"{source} has policy format {found}; this runtime reads {POLICY_FORMAT!r} "
+        "(export the policy again with this version's `qnav export`)"
+    )

@@ -158,15 +158,21 @@ def build_parser() -> argparse.ArgumentParser:
     export = verbs.add_parser(
         "export", help="write a run's policy as one ONNX file with its contract, and test it"
     )
-    export.add_argument("run", type=Path, help="training run folder")
+    export.add_argument(
+        "run",
+        type=Path,
+        help="training run folder, or a policy file (.onnx, e.g. of the earlier "
+        "qnav-policy/1 layout) to export again in this layout from its own weights",
+    )
     export.add_argument(
         "-o", "--output", type=Path, default=None, help="policy file (default RUN/policy.onnx)"
     )
     export.add_argument(
         "--eval-episodes",
         type=int,
-        default=200,
-        help="test-protocol episodes run on the exported file and recorded in it (0: none)",
+        default=None,
+        help="test-protocol episodes run on the exported file and recorded in it (0: none; "
+        "default 200 for a run, 0 for a policy file, whose recorded results are kept)",
     )
     export.add_argument("--quiet", action="store_true", help="no progress bar")
     export.set_defaults(handler=_lazy("qnav.commands:export"))

@@ -7,6 +7,7 @@ import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
+from contracts.errors import ConfigError
 from contracts.settings import load_toml, parse_assignments, with_overrides
 from sim.config import WorldConfig, load_world
 from sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
@@ -187,12 +188,19 @@ def diagnose(args: argparse.Namespace) -> int:
 
 def export(args: argparse.Namespace) -> int:
     """A run's network as one ONNX policy file, tested and stamped with its results."""
-    from training.export import export_run
+    from training.export import export_run, reexport_file
 
-    output = args.output or args.run / "policy.onnx"
-    contract = export_run(
-        args.run, output, eval_episodes=args.eval_episodes, progress=not args.quiet
-    )
+    if args.run.suffix == ".onnx":
+        if args.output is None:
+            raise ConfigError("re-exporting a policy file needs -o FILE.onnx (it may be the same)")
+        output = args.output
+        contract = reexport_file(
+            args.run, output, eval_episodes=args.eval_episodes or 0, progress=not args.quiet
+        )
+    else:
+        output = args.output or args.run / "policy.onnx"
+        episodes = 200 if args.eval_episodes is None else args.eval_episodes
+        contract = export_run(args.run, output, eval_episodes=episodes, progress=not args.quiet)
     print(f"wrote {output} ({output.stat().st_size / 1e6:.1f} MB, weights inside)")
     print(
         f"  {contract.model_kind}, {contract.scenario}, window {contract.window_length}, "

@@ -21,8 +21,10 @@ from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 
 # A small recurrent policy (LSTM 64) that reaches every target of walls-increment in about 20
 # steps: `qnav train --scenario walls-increment --episodes 128 --seed 1 --train-set
-# train.hidden_size=64`, then `qnav export RUN -o tests/data/stack/policy.onnx`. A policy that
-# often runs out of steps would cost 100 s of real time per unfinished episode.
+# train.hidden_size=64`, then `qnav export RUN -o tests/data/stack/policy.onnx` (in the
+# qnav-policy/1 layout; re-exported in /2 from its own weights with `qnav export FILE -o FILE`,
+# metadata kept). A policy that often runs out of steps would cost 100 s of real time per
+# unfinished episode.
 POLICY = Path(__file__).parent / "data" / "stack" / "policy.onnx"
 EPISODES = 50
 

@@ -1,19 +1,28 @@
 """Export a trained Q-network as one self-contained ONNX policy file with its contract.
 
-The graph is the training network itself (`torch.onnx.export`, the dynamo exporter, with graph
-optimisation off so that the weights keep their parameter names: the numpy backend finds them
-by name). Weights are stored inside the file. The metadata holds a `PolicyContract`; the file is
-then evaluated under the test protocol through the onboard runtime and its results written in.
+The graph is the training network as the runtime steps it, `StreamingQNetwork`: the newest
+frame and the carried partial windows in, Q values and the next partial windows out (the
+window arithmetic of the training network, without recomputing the windows every step). It is
+written by `torch.onnx.export` (the dynamo exporter, with graph optimisation off so that the
+weights keep their parameter names: the numpy backend finds them by name). Weights are stored
+inside the file. The metadata holds a `PolicyContract`; the file is then evaluated under the
+test protocol through the onboard runtime and its results written in.
+
+`reexport_file` turns a file of the earlier layout (qnav-policy/1, a graph over the whole
+window) into the current one from the file's own weights, keeping its metadata.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import logging
 import warnings
+from collections.abc import Mapping
 from dataclasses import asdict, replace
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -21,17 +30,27 @@ import onnx
 import torch
 from numpy.typing import NDArray
 
+from contracts.errors import PolicyFileError
 from contracts.observation import distance_scale_m
 from contracts.policy_file import (
-    INPUT_NAME,
+    FRAME_INPUT,
+    METADATA_PREFIX,
     OUTPUT_NAME,
+    POLICY_FORMAT,
+    STATE_INPUTS,
+    STATE_OUTPUTS,
+    WINDOW_FORMAT,
     ActionVelocity,
     PolicyContract,
 )
 from sim.config import WorldConfig
 from sim.dynamics import action_velocities
 from sim.evaluate import EvalResult
-from training.networks import QNetwork
+from training.networks import QNetwork, StreamingQNetwork
+
+REEXPORT_KEY = METADATA_PREFIX + "reexported_from"
+"""Metadata entry (not part of the contract) that `reexport_file` leaves: what the weights were
+taken from."""
 
 
 def policy_contract(
@@ -43,6 +62,7 @@ def policy_contract(
 ) -> PolicyContract:
     """The contract of `network` trained in `world` (no evaluation yet)."""
     velocities = action_velocities(world.dynamics, world.control_period_s)
+    streaming = StreamingQNetwork(network, window_length)
     return PolicyContract(
         model_kind=network.kind,
         window_length=window_length,
@@ -54,14 +74,86 @@ def policy_contract(
         scenario=world.name,
         training_run=training_run,
         commit=commit,
+        state_slots=streaming.state_slots,
+        state_size=streaming.state_size,
     )
 
 
-def export_onnx(network: QNetwork, contract: PolicyContract, path: Path) -> None:
-    """Write `network` to `path` as one ONNX file (weights inside) carrying `contract`."""
-    example = torch.zeros(1, contract.window_length, contract.frame_size)
-    network = network.eval().float()
+def export_onnx(
+    network: QNetwork,
+    contract: PolicyContract,
+    path: Path,
+    extra_metadata: dict[str, str] | None = None,
+) -> None:
+    """Write `network` to `path` as one ONNX file (weights inside) carrying `contract`, its
+    streaming form as the graph (`StreamingQNetwork`); `extra_metadata` is written beside the
+    contract's entries."""
+    model = streaming_model(network, contract)
+    write_metadata(model, contract)
+    for key, value in (extra_metadata or {}).items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.checker.check_model(model, full_check=True)
     path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    onnx.save_model(model, tmp, save_as_external_data=False)
+    tmp.replace(path)
+
+
+def streaming_model(network: QNetwork, contract: PolicyContract) -> onnx.ModelProto:
+    """The ONNX model of `network` stepped as the runtime steps it (no metadata yet)."""
+    streaming = StreamingQNetwork(network.eval().float(), contract.window_length).eval()
+    if (streaming.state_slots, streaming.state_size) != (contract.state_slots, contract.state_size):
+        raise ValueError(
+            f"the contract's state ({contract.state_slots}, {contract.state_size}) is not the "
+            f"network's ({streaming.state_slots}, {streaming.state_size})"
+        )
+    # An example batch of 2: with 1, torch.export fixes the batch axis of the state inputs to 1.
+    batch = torch.export.Dim("batch", min=1, max=65536)
+    inputs = {"frame": torch.zeros(2, contract.frame_size)}
+    output_names = [OUTPUT_NAME]
+    if contract.has_state:
+        shape = (2, contract.state_slots, contract.state_size)
+        inputs |= {"state_h": torch.zeros(shape), "state_c": torch.zeros(shape)}
+        output_names += list(STATE_OUTPUTS)
+    program = _quiet_export(
+        streaming,
+        inputs,
+        input_names=[FRAME_INPUT, *STATE_INPUTS][: len(inputs)],
+        output_names=output_names,
+        dynamic_shapes={name: {0: batch} for name in inputs},
+    )
+    model = program.model_proto
+    model.doc_string = _graph_description(contract)
+    return model
+
+
+def _graph_description(contract: PolicyContract) -> str:
+    inputs = f"'{FRAME_INPUT}' (batch, {contract.frame_size}), the newest encoded frame"
+    outputs = (
+        f"'{OUTPUT_NAME}' (batch, 3), Q values of forward, left, right for the window of the "
+        f"last {contract.window_length} frames"
+    )
+    if contract.has_state:
+        inputs += (
+            f"; '{STATE_INPUTS[0]}', '{STATE_INPUTS[1]}' (batch, {contract.state_slots}, "
+            f"{contract.state_size}), the LSTM state of the windows in progress"
+        )
+        outputs += f"; '{STATE_OUTPUTS[0]}', '{STATE_OUTPUTS[1]}', the state for the next frame"
+    return (
+        f"qnav {contract.model_kind} Q-network for {contract.scenario}, one step per frame. "
+        f"Inputs: {inputs}. Outputs: {outputs}."
+    )
+
+
+def _quiet_export(
+    module: torch.nn.Module,
+    inputs: dict[str, torch.Tensor],
+    *,
+    input_names: list[str],
+    output_names: list[str],
+    dynamic_shapes: dict[str, dict[int, torch.export.Dim]],
+) -> torch.onnx.ONNXProgram:
+    """`torch.onnx.export` (dynamo, weights inside, names kept), without its narration."""
     # The exporter narrates every stage and warns about optional packages; keep the CLI quiet.
     quiet = logging.getLogger("torch.onnx")
     level = quiet.level
@@ -70,29 +162,20 @@ def export_onnx(network: QNetwork, contract: PolicyContract, path: Path) -> None
         with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
             warnings.simplefilter("ignore")
             program = torch.onnx.export(
-                network,
-                (example,),
+                module,
+                (),
+                kwargs=inputs,
                 dynamo=True,
                 external_data=False,
                 optimize=False,
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                dynamic_shapes={"frames": {0: torch.export.Dim("batch", min=1, max=65536)}},
+                input_names=input_names,
+                output_names=output_names,
+                dynamic_shapes=dynamic_shapes,
             )
     finally:
         quiet.setLevel(level)
     assert program is not None
-    model = program.model_proto
-    model.doc_string = (
-        f"qnav {contract.model_kind} Q-network for {contract.scenario}: input '{INPUT_NAME}' "
-        f"(batch, {contract.window_length}, {contract.frame_size}) encoded frames, output "
-        f"'{OUTPUT_NAME}' (batch, 3) Q values of forward, left, right"
-    )
-    write_metadata(model, contract)
-    onnx.checker.check_model(model, full_check=True)
-    tmp = path.with_name(path.name + ".partial")
-    onnx.save_model(model, tmp, save_as_external_data=False)
-    tmp.replace(path)
+    return program
 
 
 def write_metadata(model: onnx.ModelProto, contract: PolicyContract) -> None:
@@ -140,8 +223,6 @@ def export_run(
     progress: bool = True,
 ) -> PolicyContract:
     """Export a training run's network to `output`, then test the file itself and record it."""
-    from controller.policy import PolicyRuntime
-    from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
     from training.policy import load_network
     from training.run import source_commit
 
@@ -154,8 +235,90 @@ def export_run(
     export_onnx(network, contract, output)
     if eval_episodes <= 0:
         return contract
-    settings = EvalSettings(episodes=eval_episodes)
-    worlds = min(settings.num_worlds, eval_episodes)
-    runtime = PolicyRuntime(output, backend=backend, num_streams=worlds)  # type: ignore[arg-type]
-    result = evaluate(run.world, StreamPolicyAgent(runtime, worlds), settings, progress=progress)
-    return set_evaluation(output, evaluation_summary(result))
+    return evaluate_file(output, run.world, eval_episodes, backend, progress)
+
+
+def evaluate_file(
+    path: Path, world: WorldConfig, episodes: int, backend: str, progress: bool
+) -> PolicyContract:
+    """Run the test protocol on the policy file itself (through the onboard runtime) in
+    `world` and record the results in its metadata."""
+    from controller.policy import PolicyRuntime
+    from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+
+    settings = EvalSettings(episodes=episodes)
+    worlds = min(settings.num_worlds, episodes)
+    runtime = PolicyRuntime(path, backend=backend, num_streams=worlds)  # type: ignore[arg-type]
+    result = evaluate(world, StreamPolicyAgent(runtime, worlds), settings, progress=progress)
+    return set_evaluation(path, evaluation_summary(result))
+
+
+def reexport_file(
+    source: Path,
+    output: Path,
+    *,
+    eval_episodes: int = 0,
+    backend: str = "onnxruntime",
+    progress: bool = True,
+) -> PolicyContract:
+    """Export a policy file again, in this version's layout, from its own weights.
+
+    The file's initializers carry the training network's parameter names, so the QNetwork is
+    rebuilt from them (its sizes read off the weights) and exported as `export_onnx` exports a
+    run's. Every metadata entry is kept (training run, commit, evaluation...) apart from the
+    format and the state's shape, which the new graph defines; a `qnav.reexported_from` entry
+    says what the weights came from. With `eval_episodes` > 0 the new file is evaluated under
+    the test protocol in its scenario's default world and the results replace the old ones.
+    """
+    from controller.onnx_file import read_onnx
+    from sim.config import scenario
+
+    contents = read_onnx(source)
+    metadata = dict(contents.metadata)
+    found = json.loads(metadata.get(METADATA_PREFIX + "format", "null"))
+    if found not in (WINDOW_FORMAT, POLICY_FORMAT):
+        raise PolicyFileError(
+            f"{source} has policy format {found!r}; re-export reads {WINDOW_FORMAT!r} and "
+            f"{POLICY_FORMAT!r} files"
+        )
+    kind = json.loads(metadata[METADATA_PREFIX + "model_kind"])
+    beams = json.loads(metadata[METADATA_PREFIX + "num_beams"])
+    window = json.loads(metadata[METADATA_PREFIX + "window_length"])
+    network = network_from_weights(contents.initializers, kind, beams)
+    streaming = StreamingQNetwork(network, window)
+    metadata |= {
+        METADATA_PREFIX + "format": json.dumps(POLICY_FORMAT),
+        METADATA_PREFIX + "state_slots": json.dumps(streaming.state_slots),
+        METADATA_PREFIX + "state_size": json.dumps(streaming.state_size),
+    }
+    contract = PolicyContract.from_metadata(metadata, str(source))
+    note = {
+        "file": str(source),
+        "format": found,
+        "sha256": hashlib.sha256(source.read_bytes()).hexdigest(),
+        "date": datetime.now(UTC).date().isoformat(),
+        "by": "qnav export FILE.onnx (training.export.reexport_file)",
+        "weights": "the file's own initializers, unchanged",
+    }
+    extra = {k: v for k, v in metadata.items() if k not in contract.to_metadata()}
+    export_onnx(network, contract, output, extra | {REEXPORT_KEY: json.dumps(note)})
+    if eval_episodes <= 0:
+        return contract
+    return evaluate_file(output, scenario(contract.scenario), eval_episodes, backend, progress)
+
+
+def network_from_weights(
+    weights: Mapping[str, NDArray[np.generic]], kind: str, num_beams: int
+) -> QNetwork:
+    """The QNetwork whose parameters are `weights` (by parameter name; every one required)."""
+    if "head.0.weight" not in weights:
+        raise PolicyFileError("the policy file has no weight 'head.0.weight'")
+    hidden_size = int(weights["head.0.weight"].shape[0])
+    network = QNetwork(kind, num_beams or None, hidden_size)  # type: ignore[arg-type]
+    names = network.state_dict().keys()
+    missing = sorted(set(names) - weights.keys())
+    if missing:
+        raise PolicyFileError(f"the policy file lacks the weights {', '.join(missing)}")
+    state = {name: torch.from_numpy(np.array(weights[name], dtype=np.float32)) for name in names}
+    network.load_state_dict(state, strict=True)
+    return network.eval()

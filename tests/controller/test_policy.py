@@ -1,7 +1,9 @@
-"""The onboard policy runtime: refuses what is not ours or does not fit, and never returns NaN."""
+"""The onboard policy runtime: refuses what is not ours or does not fit, never returns NaN, and
+its streaming decisions are the window network's."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -9,8 +11,9 @@ import onnx
 import pytest
 
 from contracts.errors import PolicyFileError, PolicyInputError
-from controller.policy import Expectation, PolicyRuntime
-from tests.conftest import PolicyFactory
+from contracts.observation import FrameWindow
+from controller.policy import BACKENDS, Expectation, PolicyRuntime
+from tests.conftest import PolicyFactory, policy_network
 
 BEAMS = 720
 
@@ -53,6 +56,20 @@ def test_a_missing_metadata_entry_is_named(make_policy: PolicyFactory, tmp_path:
     onnx.save(model, str(path))
     with pytest.raises(PolicyFileError, match=r"qnav\.window_length"):
         PolicyRuntime(path)
+
+
+def test_a_file_of_the_earlier_window_layout_is_refused_with_the_fix_named(
+    make_policy: PolicyFactory, tmp_path: Path
+) -> None:
+    model = onnx.load(str(make_policy("walls-inertia")))
+    for entry in model.metadata_props:
+        if entry.key == "qnav.format":
+            entry.value = json.dumps("qnav-policy/1")
+    path = tmp_path / "window.onnx"
+    onnx.save(model, str(path))
+    for backend in BACKENDS:
+        with pytest.raises(PolicyFileError, match=r"qnav-policy/1.*Re-export it: `qnav export"):
+            PolicyRuntime(path, backend=backend)
 
 
 @pytest.mark.parametrize(
@@ -108,7 +125,62 @@ def test_the_window_restarts_padded_with_the_first_frame(runtime: PolicyRuntime)
     runtime.reset()
     again = runtime.step(near, _features())
     np.testing.assert_allclose(again.q_values, first.q_values, rtol=0, atol=1e-6)
-    assert (runtime.window.frames[0, :, :BEAMS] == np.float32(1.0 / 20.0)).all()
+    padded = np.repeat(runtime.encode(near[None], _features()[None])[:, None], 5, axis=1)
+    np.testing.assert_allclose(
+        again.q_values, runtime.window_q_values(padded)[0], rtol=0, atol=1e-6
+    )
+
+
+@pytest.mark.parametrize("backend", ["onnxruntime", "numpy"])
+@pytest.mark.parametrize(
+    ("scenario", "kind"),
+    [
+        ("walls-inertia", "recurrent"),
+        ("walls-inertia", "feedforward"),
+        ("toycar-inertia", "recurrent"),
+    ],
+)
+def test_streaming_decisions_with_resets_equal_the_window_networks(
+    make_policy: PolicyFactory, backend: str, scenario: str, kind: str
+) -> None:
+    """A long random sequence, streams restarting at random (one or several at once, all at
+    once, one stream on consecutive steps): every decision is the torch window network's on
+    the window `FrameWindow` keeps."""
+    import torch
+
+    world, network = policy_network(scenario, kind, 64, 0)
+    streams, steps = 6, 400
+    runtime = PolicyRuntime(
+        make_policy(scenario, kind, 64),
+        backend=backend,  # type: ignore[arg-type]
+        num_streams=streams,
+    )
+    window = FrameWindow(streams, network.frame_size, 5)
+    rng = np.random.default_rng(3)
+    beams = world.lidar.num_beams if world.lidar else 0
+    worst, restarts = 0.0, 0
+    for t in range(steps):
+        scans = rng.uniform(0.0, 25.0, size=(streams, beams)) if beams else None
+        bearing = rng.uniform(-np.pi, np.pi, streams)
+        features = np.stack([rng.uniform(0, 8, streams), np.sin(bearing), np.cos(bearing)], 1)
+        actions, q = runtime.step_batch(scans, features)
+        windows = window.advance(runtime.encode(scans, features))
+        with torch.no_grad():
+            expected = network(torch.from_numpy(windows)).numpy()
+        np.testing.assert_array_equal(actions, expected.argmax(axis=1), err_msg=f"step {t}")
+        worst = max(worst, float(np.abs(q - expected).max()))
+        restart = (
+            np.arange(streams)
+            if t % 97 == 50
+            else np.array([1])
+            if t in (10, 11, 12)
+            else np.flatnonzero(rng.random(streams) < 0.08)
+        )
+        runtime.reset(restart)
+        window.restart(restart)
+        restarts += restart.size
+    assert worst <= 1e-4
+    assert restarts > 150
 
 
 def test_the_lidarless_policy_takes_pose_and_target_only(make_policy: PolicyFactory) -> None:

@@ -8,7 +8,12 @@ Everything, in order:
 1. A small trained policy: `qnav train --scenario walls-increment --episodes 64
    --train-set train.hidden_size=64` (a recurrent network, a few minutes on 2 cores), exported
    with `qnav export RUN -o tests/data/playback/policy.onnx --eval-episodes 50`.
-   `--reuse-policy` keeps the policy file already there.
+   `--reuse-policy` keeps the policy file already there. (The file kept in the repo was
+   exported in the qnav-policy/1 layout, then re-exported in /2 from its own weights with
+   `qnav export tests/data/playback/policy.onnx -o tests/data/playback/policy.onnx`, which
+   keeps its metadata and notes it in `qnav.reexported_from`; the references did not change.
+   A file of an older layout must be re-exported that way before `--reuse-policy` or
+   `--refs`.)
 2. A clean sim-in-the-loop recording: `qnav stack --policy policy.onnx --episodes 2` (the sim-car,
    the controller with `trigger = "scan"`, the bridge and the recorder as separate processes).
    `--stack DIR` reuses the output folder of an earlier `qnav stack` run instead.

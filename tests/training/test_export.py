@@ -1,8 +1,10 @@
 """The exported policy file: self-contained, checked by onnx, carrying its contract, and
-computing what the torch network computes."""
+computing what the torch network computes (its streaming graph, fed a window's frames one by
+one, gives the window network's Q values)."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -11,14 +13,21 @@ import onnx
 import pytest
 
 from contracts.actions import Action
-from contracts.policy_file import INPUT_NAME, OUTPUT_NAME, PolicyContract
+from contracts.policy_file import (
+    FRAME_INPUT,
+    OUTPUT_NAME,
+    STATE_INPUTS,
+    STATE_OUTPUTS,
+    WINDOW_FORMAT,
+    PolicyContract,
+)
 from controller.onnx_file import read_onnx
-from controller.policy import PolicyRuntime
+from controller.policy import PolicyRuntime, State
 from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 from sim.world import observe, reset, step
 from tests.conftest import PolicyFactory, policy_network
 from training.agent import TorchAgent
-from training.export import torch_q_values
+from training.export import REEXPORT_KEY, reexport_file, torch_q_values
 
 
 def _random_windows(count: int, frame_size: int, seed: int = 0) -> np.ndarray:
@@ -36,11 +45,33 @@ def test_the_file_is_self_contained_and_passes_the_onnx_checker(
     assert sorted(p.name for p in path.parent.glob(path.stem + "*")) == [path.name]
     model = onnx.load(str(path))
     onnx.checker.check_model(model, full_check=True)
-    assert [i.name for i in model.graph.input] == [INPUT_NAME]
-    assert [o.name for o in model.graph.output] == [OUTPUT_NAME]
     assert all(
         not t.HasField("data_location") or t.data_location == 0 for t in model.graph.initializer
     )
+
+
+@pytest.mark.parametrize(
+    ("kind", "inputs", "outputs"),
+    [
+        ("recurrent", [FRAME_INPUT, *STATE_INPUTS], [OUTPUT_NAME, *STATE_OUTPUTS]),
+        ("feedforward", [FRAME_INPUT], [OUTPUT_NAME]),
+    ],
+)
+def test_the_graph_takes_the_newest_frame_and_the_state_and_keeps_the_parameter_names(
+    make_policy: PolicyFactory, kind: str, inputs: list[str], outputs: list[str]
+) -> None:
+    path = make_policy("walls-inertia", kind, 64)
+    model = onnx.load(str(path))
+    assert [i.name for i in model.graph.input] == inputs
+    assert [o.name for o in model.graph.output] == outputs
+    dims = [
+        [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim]
+        for i in model.graph.input
+    ]
+    assert dims[0] == ["batch", 723]
+    assert all(d == ["batch", 4, 64] for d in dims[1:])
+    _, network = policy_network("walls-inertia", kind, 64, 0)
+    assert {t.name for t in model.graph.initializer} == set(network.state_dict())
 
 
 def test_the_metadata_carries_the_contract_of_the_training_world(
@@ -52,6 +83,8 @@ def test_the_metadata_carries_the_contract_of_the_training_world(
     assert (contract.window_length, contract.num_beams, contract.max_range_m) == (5, 720, 20.0)
     assert contract.control_period_s == 0.2
     assert contract.dynamics == "inertia" and contract.scenario == "walls-inertia"
+    assert (contract.state_slots, contract.state_size) == (4, 64)
+    assert contract.format == "qnav-policy/2"
     forward, left, right = contract.actions
     assert (forward.linear_mps, forward.angular_radps) == (0.5, 0.0)
     assert (left.linear_mps, left.angular_radps) == (0.0, 0.5)
@@ -80,14 +113,32 @@ def test_increment_actions_are_their_steps_spread_over_one_control_period(
 def test_onnxruntime_and_numpy_compute_the_torch_q_values(
     make_policy: PolicyFactory, scenario: str, kind: str, hidden: int
 ) -> None:
+    """Each window's frames fed one by one from a fresh state give the torch network's Q."""
     path = make_policy(scenario, kind, hidden)
     _, network = policy_network(scenario, kind, hidden, 0)
     windows = _random_windows(1000, network.frame_size)
     expected = torch_q_values(network, windows)
-    onnx_q = PolicyRuntime(path).q_function(windows)
-    numpy_q = PolicyRuntime(path, backend="numpy").q_function(windows)
+    onnx_q = PolicyRuntime(path).window_q_values(windows)
+    numpy_q = PolicyRuntime(path, backend="numpy").window_q_values(windows)
     assert np.abs(onnx_q - expected).max() <= 1e-4
     assert np.abs(numpy_q - onnx_q).max() <= 1e-5
+
+
+@pytest.mark.parametrize("backend", ["onnxruntime", "numpy"])
+def test_k_frames_flush_whatever_state_the_stream_was_in(
+    make_policy: PolicyFactory, backend: str
+) -> None:
+    path = make_policy("walls-inertia", "recurrent", 64)
+    _, network = policy_network("walls-inertia", "recurrent", 64, 0)
+    runtime = PolicyRuntime(path, backend=backend)  # type: ignore[arg-type]
+    windows = _random_windows(200, network.frame_size, seed=1)
+    rng = np.random.default_rng(2)
+    state: State | None = State(
+        *(rng.uniform(-1, 1, size=(200, 4, 64)).astype(np.float32) for _ in range(2))
+    )
+    for t in range(5):
+        q, state = runtime.step_function(windows[:, t].copy(), state)
+    assert np.abs(q - torch_q_values(network, windows)).max() <= 1e-4
 
 
 def test_the_file_picks_the_torch_action_at_every_step_of_recorded_episodes(
@@ -143,3 +194,56 @@ def test_weights_in_a_separate_file_are_refused_by_the_numpy_reader(
     onnx.save_model(model, str(split), save_as_external_data=True, size_threshold=0)
     with pytest.raises(PolicyFileError, match="separate file"):
         read_onnx(split)
+
+
+OLD_EVALUATION = {"success": 0.5, "collision": 0.25, "unfinished": 0.25, "episodes": 4.0}
+
+
+def _as_window_format(path: Path, folder: Path) -> Path:
+    """The file with the metadata of the earlier layout (qnav-policy/1, no state entries)."""
+    model = onnx.load(str(path))
+    kept = [p for p in model.metadata_props if p.key not in ("qnav.state_slots", "qnav.state_size")]
+    del model.metadata_props[:]
+    model.metadata_props.extend(kept)
+    for entry in model.metadata_props:
+        if entry.key == "qnav.format":
+            entry.value = json.dumps(WINDOW_FORMAT)
+        elif entry.key == "qnav.evaluation":
+            entry.value = json.dumps(OLD_EVALUATION)
+    old = folder / "old.onnx"
+    onnx.save(model, str(old))
+    return old
+
+
+def test_a_reexported_file_keeps_its_weights_and_metadata_and_computes_the_same(
+    make_policy: PolicyFactory, tmp_path: Path
+) -> None:
+    old = _as_window_format(make_policy("walls-inertia", "recurrent", 64), tmp_path)
+    new = tmp_path / "new.onnx"
+    reexport_file(old, new)
+    before, after = read_onnx(old), read_onnx(new)
+    assert before.initializers.keys() == after.initializers.keys()
+    for name, array in before.initializers.items():
+        assert np.array_equal(after.initializers[name], array), name
+    changed = {k for k in before.metadata if before.metadata[k] != after.metadata.get(k)}
+    assert changed == {"qnav.format"}
+    note = json.loads(after.metadata[REEXPORT_KEY])
+    assert note["file"] == str(old) and note["format"] == WINDOW_FORMAT
+    contract = PolicyRuntime(new).contract
+    assert contract.evaluation == OLD_EVALUATION
+    _, network = policy_network("walls-inertia", "recurrent", 64, 0)
+    windows = _random_windows(100, network.frame_size)
+    q = PolicyRuntime(new).window_q_values(windows)
+    assert np.abs(q - torch_q_values(network, windows)).max() <= 1e-4
+
+
+def test_qnav_export_of_a_policy_file_reexports_it_in_place(
+    make_policy: PolicyFactory, tmp_path: Path
+) -> None:
+    from qnav.cli import main as qnav
+
+    old = _as_window_format(make_policy("walls-inertia", "recurrent", 64), tmp_path)
+    assert qnav(["export", str(old), "--quiet"]) != 0  # -o is required for a file
+    assert qnav(["export", str(old), "-o", str(old), "--quiet"]) == 0
+    contract = PolicyRuntime(old).contract
+    assert contract.format == "qnav-policy/2" and contract.training_run == "tests"
