@@ -10,7 +10,7 @@ from contracts.observation import WINDOW_LENGTH
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from training.networks import ModelKind
-from training.replay import Relabel
+from training.replay import ObstacleRedraw, Relabel
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,10 @@ class TrainSettings:
     obstacle_redraw_probability: float = 0.0
     """Chance that a sampled transition sees freshly drawn obstacles along its stored path
     instead of the episode's own (`training.replay.redraw_obstacles`; paper: none)."""
+    obstacle_near_probability: float = 0.0
+    """Chance that a re-drawn obstacle starts within 3 m of the robot rather than anywhere in the
+    arena (`training.replay.ObstacleRedraw`), so that more samples hold an obstacle that
+    matters."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
@@ -106,6 +110,7 @@ class TrainSettings:
         check_range(self, "hold_steps", self.hold_steps, 1, 10_000)
         check_range(self, "mirror_probability", self.mirror_probability, 0.0, 1.0)
         check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
+        check_range(self, "obstacle_near_probability", self.obstacle_near_probability, 0.0, 1.0)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)
@@ -117,6 +122,12 @@ class TrainSettings:
         check_range(self, "threads", self.threads, 1, 1024)
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise ConfigError(f"train.device = {self.device!r}: choose auto, cpu, cuda or cuda:N")
+
+    def obstacle_redraw(self) -> ObstacleRedraw | None:
+        """How sampled transitions get fresh obstacles, or None to keep the episodes' own."""
+        if self.obstacle_redraw_probability == 0.0:
+            return None
+        return ObstacleRedraw(self.obstacle_redraw_probability, self.obstacle_near_probability)
 
     def epsilon(self, episode: int) -> float:
         """Exploration probability of the given (0-based) training episode."""

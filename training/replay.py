@@ -11,6 +11,7 @@ same padding `contracts.observation.FrameWindow` applies when acting.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -38,6 +39,19 @@ Relabel = Literal["paper", "local", "hindsight", "none"]
 """How a sampled transition gets its target: a fresh uniform one in the arena (the paper), a
 fresh one drawn as the simulator spawns targets around the robot's pose at that step (local),
 a position the robot reached later in the same episode (hindsight), or the episode's own."""
+
+
+@dataclass(frozen=True)
+class ObstacleRedraw:
+    """How sampled transitions get fresh obstacles in place of their episode's own."""
+
+    probability: float = 1.0
+    """Chance that a sampled transition sees fresh obstacles."""
+    near_probability: float = 0.0
+    """Chance that a fresh obstacle starts within `near_radius_m` of the robot instead of
+    anywhere in the arena, so that more samples show an obstacle that matters."""
+    near_radius_m: float = 3.0
+    """Radius of the disc around the robot that near obstacles start in."""
 
 
 class Episode(NamedTuple):
@@ -142,19 +156,25 @@ class EpisodeReplay:
         gamma: float = 0.97,
         *,
         mirror_probability: float = 0.0,
-        obstacle_redraw_probability: float = 0.0,
+        obstacles: ObstacleRedraw | None = None,
     ) -> Batch:
-        """Uniformly random transitions, each with its own target drawn by `relabel`, each with
-        fresh obstacles with probability `obstacle_redraw_probability` (`redraw_obstacles`), and
-        each seen in a mirror (`mirror_batch`) with probability `mirror_probability`."""
+        """Uniformly random transitions, each with its own target drawn by `relabel`, fresh
+        obstacles as `obstacles` says (none by default), and each seen in a mirror
+        (`mirror_batch`) with probability `mirror_probability`."""
         if not self._transition_index.size:
             self._transition_index = np.concatenate(self._transitions)
         now = self._transition_index[rng.integers(0, self._transition_index.size, batch_size)]
-        redraw = (
-            rng.random(batch_size) < obstacle_redraw_probability if self.has_obstacles else None
-        )
+        redraw = None
+        if obstacles is not None and self.has_obstacles:
+            redraw = rng.random(batch_size) < obstacles.probability
         batch = self.transitions_at(
-            now, self._targets(now, rng, relabel), n_step, gamma, redraw=redraw, rng=rng
+            now,
+            self._targets(now, rng, relabel),
+            n_step,
+            gamma,
+            redraw=redraw,
+            rng=rng,
+            obstacles=obstacles,
         )
         if mirror_probability > 0.0:
             batch = mirror_batch(batch, rng.random(batch_size) < mirror_probability, self.num_beams)
@@ -169,13 +189,14 @@ class EpisodeReplay:
         *,
         redraw: NDArray[np.bool_] | None = None,
         rng: np.random.Generator | None = None,
+        obstacles: ObstacleRedraw | None = None,
     ) -> Batch:
         """The transitions leaving frames `now`, with the given targets (N, 2).
 
         With n_step > 1 the reward is the discounted sum of up to n rewards for the sampled
         target, stopping early where the target is reached, a collision happens or the stored
         episode ends; the bootstrap window ends where it stopped. Transitions marked in `redraw`
-        see fresh obstacles drawn with `rng` instead of the episode's own.
+        see fresh obstacles drawn with `rng` as `obstacles` says, instead of the episode's own.
         """
         k = self.window
         offsets = np.arange(-k + 1, n_step + 1)
@@ -195,6 +216,7 @@ class EpisodeReplay:
                 self.walls_clearance[frame_index[rows]],
                 history=k,
                 rng=rng,
+                law=obstacles or ObstacleRedraw(),
             )
         features = target_features(self.pose[frame_index], target[:, None, :])
         encoded_target = encode_target(features, self.max_range_m)
@@ -249,6 +271,7 @@ def redraw_obstacles(
     *,
     history: int,
     rng: np.random.Generator,
+    law: ObstacleRedraw,
 ) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
     """Encoded scans (N, T, B) and clearances (N, T) along stored robot paths (N, T, 3), with
     fresh obstacles (`draw_obstacle_paths`) in place of the episode's own.
@@ -258,7 +281,7 @@ def redraw_obstacles(
     lets one stored step teach about many layouts. `walls_scan` and `walls_clearance` are what
     the stored poses see without obstacles.
     """
-    centres = draw_obstacle_paths(config, pose, moving, history=history, rng=rng)
+    centres = draw_obstacle_paths(config, pose, moving, history=history, rng=rng, law=law)
     return view_with_obstacles(config, pose, centres, walls_scan, walls_clearance)
 
 
@@ -269,20 +292,34 @@ def draw_obstacle_paths(
     *,
     history: int,
     rng: np.random.Generator,
+    law: ObstacleRedraw | None = None,
 ) -> NDArray[np.float64]:
     """Fresh obstacle centres (N, T, M, 2) along robot paths (N, T, 3).
 
-    Each obstacle starts at a uniform position with a uniform heading and the simulator's speed
-    law, and moves by the simulator's own `move_obstacles`, one control period per step where
-    `moving` (N, T - 1) is true (frames repeated at an episode's start or end stand still). It
-    stays clear of the robot over the first `history` frames (up to the sampled step, which the
-    episode survived): of `_OBSTACLE_CANDIDATES` paths, the first that does is used.
+    Each obstacle starts at a uniform position in the arena (or, with `law.near_probability`,
+    in the disc of `law.near_radius_m` around the robot's first pose, clipped to the arena)
+    with a uniform heading and the simulator's speed law, and moves by the simulator's own
+    `move_obstacles`, one control period per step where `moving` (N, T - 1) is true (frames
+    repeated at an episode's start or end stand still). It stays clear of the robot over the
+    first `history` frames (up to the sampled step, which the episode survived): of
+    `_OBSTACLE_CANDIDATES` paths, the first that does is used.
     """
     n, frames = pose.shape[:2]
     obstacles = config.obstacles
     m, radius, size = obstacles.count, obstacles.radius_m, config.arena.size_m
     shape = (n, m, _OBSTACLE_CANDIDATES)
     xy = radius + (size - 2 * radius) * rng.random((*shape, 2))
+    law = law or ObstacleRedraw()
+    if law.near_probability > 0.0:
+        # Where an obstacle starts changes only how often a state is sampled, never its value:
+        # the state (five obstacles in view) fixes what happens next whatever placed them.
+        near = rng.random((n, m, 1, 1)) < law.near_probability
+        reach = law.near_radius_m * np.sqrt(rng.random(shape))
+        angle = 2 * np.pi * rng.random(shape)
+        around = pose[:, 0, None, None, :2] + reach[..., None] * np.stack(
+            [np.cos(angle), np.sin(angle)], axis=-1
+        )
+        xy = np.where(near, np.clip(around, radius, size - radius), xy)
     heading = 2 * np.pi * rng.random(shape)
     # One speed per obstacle, shared by its candidate paths (each candidate still moves at a
     # speed from the simulator's law; only one of them is kept).

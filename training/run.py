@@ -177,7 +177,7 @@ def train(
                 settings.n_step,
                 settings.gamma,
                 mirror_probability=settings.mirror_probability,
-                obstacle_redraw_probability=settings.obstacle_redraw_probability,
+                obstacles=settings.obstacle_redraw(),
             )
             losses.append(
                 td_update(

@@ -13,6 +13,7 @@ from training.replay import (
     Batch,
     Episode,
     EpisodeReplay,
+    ObstacleRedraw,
     draw_obstacle_paths,
     mirror_batch,
     view_with_obstacles,
@@ -302,9 +303,27 @@ def test_sampling_with_redrawn_obstacles_recomputes_collisions_from_the_fresh_ob
         replay.add(_obstacle_episode(seed))
     plain = replay.sample(512, np.random.default_rng(0), "none", n_step=1)
     redrawn = replay.sample(
-        512, np.random.default_rng(0), "none", n_step=1, obstacle_redraw_probability=1.0
+        512, np.random.default_rng(0), "none", n_step=1, obstacles=ObstacleRedraw()
     )
     assert plain.frames.shape == redrawn.frames.shape
     assert not np.array_equal(plain.frames[..., :720], redrawn.frames[..., :720])
     # Targets and actions are those of the same transitions; only the obstacles changed.
     np.testing.assert_array_equal(plain.frames[..., 720:], redrawn.frames[..., 720:])
+
+
+def test_near_obstacles_start_around_the_robot_and_still_never_touch_it_before_now() -> None:
+    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
+    for seed in range(6):
+        replay.add(_obstacle_episode(seed))
+    now = np.arange(replay.size)[replay.last[: replay.size] > np.arange(replay.size)]
+    first, last = replay.first[now, None], replay.last[now, None]
+    index = np.clip(now[:, None] + np.arange(-4, 4), first, last)
+    pose = replay.pose[index]
+    law = ObstacleRedraw(near_probability=1.0, near_radius_m=2.5)
+    moving = np.diff(index, axis=1) > 0
+    rng = np.random.default_rng(5)
+    centres = draw_obstacle_paths(OBSTACLES, pose, moving, history=5, rng=rng, law=law)
+    start = np.linalg.norm(centres[:, 0] - pose[:, 0, None, :2], axis=-1)
+    assert (start <= 2.5 + 1e-9).all()
+    gap = np.linalg.norm(centres - pose[:, :, None, :2], axis=-1) - OBSTACLES.obstacles.radius_m
+    assert (gap[:, :5] >= OBSTACLES.robot_radius_m).mean() > 0.999
