@@ -1,9 +1,10 @@
 """`qnav bench policy`: per-decision latency of the onboard runtime, one thread, each backend.
 
-A decision is what the daemon pays per control period: check and encode one scan, push it into
-the window and run the network over the k frames. Each backend is timed in its own process,
-pinned to one core with BLAS and onnxruntime on one thread, so neither inherits the other's
-thread pools or caches.
+A decision is what the daemon pays per control period: check and encode one scan and run one
+step of the policy's graph with the stream's carried state (the windows in progress). The first
+decision of an episode, which primes the state with k steps, falls in the untimed warm-up here.
+Each backend is timed in its own process, pinned to one core with BLAS and onnxruntime on one
+thread, so neither inherits the other's thread pools or caches.
 """
 
 from __future__ import annotations
