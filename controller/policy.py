@@ -155,9 +155,10 @@ class NumpyBackend:
         self.recurrent = contract.model_kind == "recurrent"
         if self.recurrent:
             self.input_weight = weight("lstm.weight_ih_l0").T.copy()
-            self.hidden_weight = weight("lstm.weight_hh_l0").T.copy()
             self.lstm_bias = weight("lstm.bias_ih_l0") + weight("lstm.bias_hh_l0")
-            if contract.has_state and self.hidden_weight.shape[0] != contract.state_size:
+        if contract.has_state:  # a window of one frame never uses (nor stores) this matrix
+            self.hidden_weight = weight("lstm.weight_hh_l0").T.copy()
+            if self.hidden_weight.shape[0] != contract.state_size:
                 raise PolicyFileError(
                     f"the policy file's LSTM has {self.hidden_weight.shape[0]} hidden units; "
                     f"its contract says state_size = {contract.state_size}"

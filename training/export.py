@@ -284,7 +284,10 @@ def reexport_file(
     kind = json.loads(metadata[METADATA_PREFIX + "model_kind"])
     beams = json.loads(metadata[METADATA_PREFIX + "num_beams"])
     window = json.loads(metadata[METADATA_PREFIX + "window_length"])
-    network = network_from_weights(contents.initializers, kind, beams)
+    # With a window of one frame the graph never reads the recurrent matrix, so the exporter
+    # left it out: any value rebuilds the same policy.
+    unused = {"lstm.weight_hh_l0"} if kind == "recurrent" and window == 1 else set()
+    network = network_from_weights(contents.initializers, kind, beams, unused)
     streaming = StreamingQNetwork(network, window)
     metadata |= {
         METADATA_PREFIX + "format": json.dumps(POLICY_FORMAT),
@@ -308,17 +311,26 @@ def reexport_file(
 
 
 def network_from_weights(
-    weights: Mapping[str, NDArray[np.generic]], kind: str, num_beams: int
+    weights: Mapping[str, NDArray[np.generic]],
+    kind: str,
+    num_beams: int,
+    unused: set[str] | None = None,
 ) -> QNetwork:
-    """The QNetwork whose parameters are `weights` (by parameter name; every one required)."""
+    """The QNetwork whose parameters are `weights` (by parameter name; every one required but
+    those in `unused`, which the policy never reads and which are set to zero)."""
     if "head.0.weight" not in weights:
         raise PolicyFileError("the policy file has no weight 'head.0.weight'")
     hidden_size = int(weights["head.0.weight"].shape[0])
     network = QNetwork(kind, num_beams or None, hidden_size)  # type: ignore[arg-type]
-    names = network.state_dict().keys()
-    missing = sorted(set(names) - weights.keys())
+    expected = network.state_dict()
+    missing = sorted(set(expected) - weights.keys() - (unused or set()))
     if missing:
         raise PolicyFileError(f"the policy file lacks the weights {', '.join(missing)}")
-    state = {name: torch.from_numpy(np.array(weights[name], dtype=np.float32)) for name in names}
+    state = {
+        name: torch.from_numpy(np.array(weights[name], dtype=np.float32))
+        if name in weights
+        else torch.zeros_like(value)
+        for name, value in expected.items()
+    }
     network.load_state_dict(state, strict=True)
     return network.eval()

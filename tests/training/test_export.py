@@ -22,12 +22,18 @@ from contracts.policy_file import (
     PolicyContract,
 )
 from controller.onnx_file import read_onnx
-from controller.policy import PolicyRuntime, State
+from controller.policy import BACKENDS, PolicyRuntime, State
 from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 from sim.world import observe, reset, step
 from tests.conftest import PolicyFactory, policy_network
 from training.agent import TorchAgent
-from training.export import REEXPORT_KEY, reexport_file, torch_q_values
+from training.export import (
+    REEXPORT_KEY,
+    export_onnx,
+    policy_contract,
+    reexport_file,
+    torch_q_values,
+)
 
 
 def _random_windows(count: int, frame_size: int, seed: int = 0) -> np.ndarray:
@@ -139,6 +145,21 @@ def test_k_frames_flush_whatever_state_the_stream_was_in(
     for t in range(5):
         q, state = runtime.step_function(windows[:, t].copy(), state)
     assert np.abs(q - torch_q_values(network, windows)).max() <= 1e-4
+
+
+@pytest.mark.parametrize("window", [1, 3])
+def test_other_window_lengths_carry_k_minus_1_windows_and_compute_the_torch_q_values(
+    tmp_path: Path, window: int
+) -> None:
+    world, network = policy_network("toycar-inertia", "recurrent", 32, 0)
+    path = tmp_path / "policy.onnx"
+    export_onnx(network, policy_contract(network, world, window, "tests", "test"), path)
+    windows = _random_windows(100, network.frame_size)[:, :window].copy()
+    expected = torch_q_values(network, windows)
+    for backend in BACKENDS:
+        runtime = PolicyRuntime(path, backend=backend)
+        assert runtime.contract.state_slots == window - 1
+        assert np.abs(runtime.window_q_values(windows) - expected).max() <= 1e-4
 
 
 def test_the_file_picks_the_torch_action_at_every_step_of_recorded_episodes(
