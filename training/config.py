@@ -67,6 +67,10 @@ class TrainSettings:
     """Chance that a re-drawn obstacle starts within 3 m of the robot rather than anywhere in the
     arena (`training.replay.ObstacleRedraw`), so that more samples hold an obstacle that
     matters."""
+    obstacle_bootstrap_within_m: float = 0.0
+    """With re-drawn obstacles, an n-step return stops and bootstraps at the first step where a
+    fresh obstacle's surface comes this close to the robot (0: never): the stored actions never
+    saw that obstacle (`training.replay.ObstacleRedraw`)."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
@@ -111,6 +115,7 @@ class TrainSettings:
         check_range(self, "mirror_probability", self.mirror_probability, 0.0, 1.0)
         check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
         check_range(self, "obstacle_near_probability", self.obstacle_near_probability, 0.0, 1.0)
+        check_range(self, "obstacle_bootstrap_within_m", self.obstacle_bootstrap_within_m, 0.0, 1e3)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)
@@ -127,7 +132,11 @@ class TrainSettings:
         """How sampled transitions get fresh obstacles, or None to keep the episodes' own."""
         if self.obstacle_redraw_probability == 0.0:
             return None
-        return ObstacleRedraw(self.obstacle_redraw_probability, self.obstacle_near_probability)
+        return ObstacleRedraw(
+            probability=self.obstacle_redraw_probability,
+            near_probability=self.obstacle_near_probability,
+            bootstrap_within_m=self.obstacle_bootstrap_within_m,
+        )
 
     def epsilon(self, episode: int) -> float:
         """Exploration probability of the given (0-based) training episode."""

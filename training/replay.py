@@ -52,6 +52,10 @@ class ObstacleRedraw:
     anywhere in the arena, so that more samples show an obstacle that matters."""
     near_radius_m: float = 3.0
     """Radius of the disc around the robot that near obstacles start in."""
+    bootstrap_within_m: float = 0.0
+    """An n-step return stops, and bootstraps, at the first step where a fresh obstacle's surface
+    is this close to the robot (0: never). The stored actions never saw that obstacle, so they
+    must not stand in for the greedy ones while it matters."""
 
 
 class Episode(NamedTuple):
@@ -195,7 +199,9 @@ class EpisodeReplay:
 
         With n_step > 1 the reward is the discounted sum of up to n rewards for the sampled
         target, stopping early where the target is reached, a collision happens or the stored
-        episode ends; the bootstrap window ends where it stopped. Transitions marked in `redraw`
+        episode ends (or, with fresh obstacles, where one comes within
+        `obstacles.bootstrap_within_m`); the bootstrap window ends where it stopped. Transitions
+        marked in `redraw`
         see fresh obstacles drawn with `rng` as `obstacles` says, instead of the episode's own.
         """
         k = self.window
@@ -204,11 +210,13 @@ class EpisodeReplay:
         # Frames past the episode's end are never bootstrapped from; repeat its last frame.
         frame_index = np.minimum(frame_index, self.last[now][:, None])
         scans, clearances = self.scan[frame_index], self.clearance[frame_index]
+        # Distance from the robot to the nearest fresh obstacle (inf where none was drawn).
+        fresh_gap = np.full(clearances.shape, np.inf)
         if redraw is not None and redraw.any():
             if rng is None:
                 raise ValueError("re-drawing obstacles needs a random generator")
             rows = np.flatnonzero(redraw)
-            scans[rows], clearances[rows] = redraw_obstacles(
+            scans[rows], clearances[rows], fresh_gap[rows] = redraw_obstacles(
                 self.config,
                 self.pose[frame_index[rows]],
                 np.diff(frame_index[rows], axis=1) > 0,
@@ -231,6 +239,8 @@ class EpisodeReplay:
         # Steps taken: up to n, the first terminal step, or the episode's last frame.
         available = np.minimum(self.last[now] - now, n_step)
         ends = (step_outcome != Outcome.RUNNING) | (np.arange(1, n_step + 1) >= available[:, None])
+        if obstacles is not None and obstacles.bootstrap_within_m > 0.0:
+            ends |= fresh_gap[:, k:] < obstacles.bootstrap_within_m
         steps = np.argmax(ends, axis=1) + 1
         taken = np.arange(1, n_step + 1) <= steps[:, None]
         discounts = gamma ** np.arange(n_step)
@@ -272,9 +282,10 @@ def redraw_obstacles(
     history: int,
     rng: np.random.Generator,
     law: ObstacleRedraw,
-) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
-    """Encoded scans (N, T, B) and clearances (N, T) along stored robot paths (N, T, 3), with
-    fresh obstacles (`draw_obstacle_paths`) in place of the episode's own.
+) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float64]]:
+    """Encoded scans (N, T, B), clearances (N, T) and the fresh obstacles' own clearances (N, T)
+    along stored robot paths (N, T, 3), with fresh obstacles (`draw_obstacle_paths`) in place of
+    the episode's own.
 
     The obstacles never react to the robot, so its stored path is as possible among any other
     obstacles as among those it met: like the paper's re-drawn targets, a fresh set per sample
@@ -365,9 +376,9 @@ def view_with_obstacles(
     centres: NDArray[np.float64],
     walls_scan: NDArray[np.float32],
     walls_clearance: NDArray[np.float64],
-) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
-    """Encoded scans (N, T, B) and clearances (N, T) from poses (N, T, 3) among obstacles
-    (N, T, M, 2), given what the poses see without them."""
+) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float64]]:
+    """Encoded scans (N, T, B), clearances (N, T) and the obstacles' own clearances (N, T) from
+    poses (N, T, 3) among obstacles (N, T, M, 2), given what the poses see without them."""
     n, frames, m = centres.shape[:3]
     radius = config.obstacles.radius_m
     flat_pose, flat_centres = pose.reshape(n * frames, 3), centres.reshape(n * frames, m, 2)
@@ -382,7 +393,7 @@ def view_with_obstacles(
             scale_m=config.lidar.max_range_m,
         )
     gap = np.linalg.norm(centres - pose[:, :, None, :2], axis=-1).min(axis=-1) - radius
-    return scans, np.minimum(walls_clearance, gap)
+    return scans, np.minimum(walls_clearance, gap), gap
 
 
 _MIRRORED_ACTION = np.array([Action.FORWARD, Action.RIGHT, Action.LEFT], dtype=np.int64)

@@ -284,7 +284,7 @@ def test_redrawn_obstacles_give_the_scans_and_clearances_the_simulator_computes(
     centres = draw_obstacle_paths(
         OBSTACLES, pose, np.zeros((replay.size, 0), bool), history=1, rng=np.random.default_rng(3)
     )
-    scans, gaps = view_with_obstacles(
+    scans, gaps, _ = view_with_obstacles(
         OBSTACLES, pose, centres, replay.walls_scan[index], replay.walls_clearance[index]
     )
     lidar = OBSTACLES.lidar
@@ -327,3 +327,19 @@ def test_near_obstacles_start_around_the_robot_and_still_never_touch_it_before_n
     assert (start <= 2.5 + 1e-9).all()
     gap = np.linalg.norm(centres - pose[:, :, None, :2], axis=-1) - OBSTACLES.obstacles.radius_m
     assert (gap[:, :5] >= OBSTACLES.robot_radius_m).mean() > 0.999
+
+
+def test_returns_bootstrap_at_the_first_step_a_fresh_obstacle_comes_near() -> None:
+    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
+    for seed in range(6):
+        replay.add(_obstacle_episode(seed))
+
+    def sample(within_m: float) -> Batch:
+        law = ObstacleRedraw(bootstrap_within_m=within_m)
+        return replay.sample(256, np.random.default_rng(0), "paper", n_step=5, obstacles=law)
+
+    # Every fresh obstacle is within 1 km: each return stops after its first step.
+    assert (sample(1e3).steps == 1).all()
+    # Never near enough: the returns run as far as without the rule.
+    np.testing.assert_array_equal(sample(0.0).steps, sample(1e-9).steps)
+    assert (sample(0.0).steps > 1).any()
