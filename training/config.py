@@ -156,9 +156,11 @@ FAST = replace(
     grad_clip_norm=10.0,
     bf16_matmul=True,
     keep_best=True,
+    obstacle_redraw_probability=1.0,
 )
 """Our schedule for two CPU cores: the paper's budget of episodes at most, far fewer iterations,
-five-step returns."""
+five-step returns, and fresh obstacles for every sampled transition (no effect without
+obstacles)."""
 
 FAST_EPISODES_WITHOUT_OBSTACLES = 250
 """The fast preset's episodes in walls-only worlds, which it learns within 200."""
