@@ -75,6 +75,9 @@ class TrainSettings:
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
     """LSTM and hidden layer width (paper: 512)."""
+    encoder_init: Literal["default", "centred"] = "default"
+    """The lidar convolutions' initial biases: torch's default, or centred so that each channel
+    is positive on half of the world's first scans (`training.networks.centre_encoder`)."""
     loss: Literal["mse", "huber"] = "mse"
     """TD loss: the paper's squared error, or Huber."""
     grad_clip_norm: float = 0.0

@@ -50,6 +50,26 @@ class LidarEncoder(nn.Module):
         return self.layers(scans.unsqueeze(1)).flatten(1)  # type: ignore[no-any-return]
 
 
+def centre_encoder(encoder: LidarEncoder, scans: Tensor) -> None:
+    """Set each convolution's biases so that every channel is positive on half of `scans`.
+
+    Encoded scans all lie in [0, 1] and change little along a scan, so with the default
+    initialisation a channel's kernel mostly sees one level: many channels start negative on
+    every scan (dead: a ReLU passes no gradient, so they never recover) or positive on every one
+    (linear). Centring each channel's pre-activation on real scans, layer by layer, starts every
+    channel where it responds to some scans and not others (a data-dependent initialisation, as
+    in Kraehenbuehl et al. 2016 and Mishkin and Matas 2016); the architecture is unchanged.
+    """
+    with torch.no_grad():
+        x = scans.unsqueeze(1)
+        for layer in encoder.layers:
+            if isinstance(layer, nn.Conv1d):
+                assert layer.bias is not None
+                pre = layer(x)
+                layer.bias -= pre.transpose(0, 1).flatten(1).median(dim=1).values
+            x = layer(x)
+
+
 class QNetwork(nn.Module):
     """Frames -> per-frame features -> LSTM over the window (or the last frame alone) -> Q.
 

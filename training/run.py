@@ -29,23 +29,27 @@ from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.errors import ConfigError
-from contracts.observation import distance_scale_m
+from contracts.observation import distance_scale_m, encode_scan
 from contracts.settings import from_dict, to_dict, to_toml
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate
 from sim.task import Outcome
+from sim.world import observe, reset
 from training.agent import TorchAgent
 from training.collect import collect_round
 from training.config import TrainSettings
 from training.episode_log import read_rounds, write_round
 from training.learner import td_update
-from training.networks import QNetwork
+from training.networks import QNetwork, centre_encoder
 from training.replay import Episode, EpisodeReplay
 
 VALIDATION_SEED = 999
+_ENCODER_INIT_SEED = 4_242
+"""Layouts whose first scans centre the lidar encoder at the start of a run."""
 """Layouts of the evaluations during training (the final test uses EvalSettings' own seed)."""
 _TRAIN_LAYOUT_SEED = 1_000_003
 
@@ -119,7 +123,10 @@ def train(
         else settings.device
     )
     bf16 = settings.bf16_matmul and (device.type == "cuda" or _cpu_has_bf16())
-    online = make_network(world, settings).to(device)
+    online = make_network(world, settings)
+    if settings.encoder_init == "centred" and online.encoder is not None:
+        centre_encoder(online.encoder, torch.from_numpy(_first_scans(world)))
+    online = online.to(device)
     target = copy.deepcopy(online)
     optimizer = torch.optim.Adam(online.parameters(), lr=settings.learning_rate)
     state = Progress()
@@ -325,6 +332,14 @@ def first_reached(history: list[dict[str, float]], level: float) -> dict[str, fl
         if row.get("eval_success", -1.0) >= level:
             return {k: row[k] for k in ("episodes", "iterations", "wall_s")}
     return None
+
+
+def _first_scans(world: WorldConfig, count: int = 256) -> NDArray[np.float32]:
+    """Encoded first scans (count, B) of `count` episodes of the world."""
+    state = reset(world, np.full(count, _ENCODER_INIT_SEED), np.arange(count))
+    scan = observe(world, state).scan_m
+    assert scan is not None
+    return encode_scan(scan, distance_scale_m(world.lidar))
 
 
 def _crossed(every: int, episodes: int, added: int) -> bool:
