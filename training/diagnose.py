@@ -6,6 +6,7 @@
   transitions from the run's own replay, against the same on fresh episodes collected by the
   same network with the run's own exploration schedule. A fresh error well above the replay's
   means the network memorises its episodes rather than learning the task.
+- **Dead lidar channels.** Convolution channels that no probe scan switches on.
 - **Target sensitivity.** How much of the LSTM's gate input comes from the target features
   against the lidar features, and whether the greedy action follows the target's bearing on
   fixed scans (the share of probe scans on which it turns towards the target).
@@ -23,7 +24,8 @@ import torch
 from torch.nn import functional
 
 from contracts.actions import NUM_ACTIONS, Action
-from contracts.observation import distance_scale_m, encode_frame
+from contracts.observation import distance_scale_m, encode_frame, encode_scan
+from contracts.policy_file import CONV_CHANNELS
 from sim.evaluate import EvalSettings, evaluate
 from sim.world import Observation, observe, reset
 from training.agent import TorchAgent
@@ -53,6 +55,9 @@ class Diagnosis:
     """The same for the lidar features (0 without a lidar or an LSTM)."""
     turns_towards_target: float
     """Share of probes (target to one side) where the greedy action turns towards it."""
+    dead_channels: tuple[int, ...]
+    """Per convolution layer, the channels positive on none of the probe scans (empty without
+    a lidar): a ReLU passes no gradient there, so they never recover."""
     action_mix: tuple[float, float, float]
     """Forward, left and right shares of greedy test actions."""
     test_success: float
@@ -70,6 +75,8 @@ class Diagnosis:
                 f"{self.lidar_gate_std:.3f}",
                 "greedy action turns towards a target to one side: "
                 f"{self.turns_towards_target:.0%}",
+                "dead lidar channels per convolution: "
+                + (", ".join(f"{d} of {CONV_CHANNELS}" for d in self.dead_channels) or "no lidar"),
                 f"greedy test actions: forward {forward:.0%}, left {left:.0%}, right {right:.0%}; "
                 f"success {self.test_success:.3f}",
             ]
@@ -104,6 +111,7 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
         target_gate_std=target_std,
         lidar_gate_std=lidar_std,
         turns_towards_target=_turns_towards_target(network, settings),
+        dead_channels=_dead_channels(network, settings),
         action_mix=actions,
         test_success=success,
     )
@@ -157,6 +165,25 @@ def _turns_towards_target(network: QNetwork, settings: RunSettings, worlds: int 
                 q = network(torch.from_numpy(window)).numpy()
             towards.append(q.argmax(axis=1) == wanted)
     return float(np.mean(towards))
+
+
+def _dead_channels(network: QNetwork, settings: RunSettings, worlds: int = 256) -> tuple[int, ...]:
+    """Per convolution, the channels that no position of the first scans of `worlds` episodes
+    switches on."""
+    if network.encoder is None:
+        return ()
+    world = settings.world
+    state = reset(world, np.full(worlds, 5, dtype=np.int64), np.arange(worlds, dtype=np.int64))
+    scan = observe(world, state).scan_m
+    assert scan is not None
+    dead = []
+    with torch.no_grad():
+        x = torch.from_numpy(encode_scan(scan, distance_scale_m(world.lidar))).unsqueeze(1)
+        for layer in network.encoder.layers:
+            x = layer(x)
+            if isinstance(layer, torch.nn.ReLU):
+                dead.append(int(((x > 0).sum(dim=(0, 2)) == 0).sum()))
+    return tuple(dead)
 
 
 class _CountingAgent:

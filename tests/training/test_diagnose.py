@@ -44,6 +44,7 @@ def test_a_diagnosis_measures_fractions_and_errors_and_repeats_exactly(tiny_run:
     assert 0 <= first.turns_towards_target <= 1 and 0 <= first.test_success <= 1
     assert sum(first.action_mix) == pytest.approx(1.0)
     assert first.lidar_gate_std > 0 and first.target_gate_std > 0
+    assert len(first.dead_channels) == 3 and all(0 <= d <= 8 for d in first.dead_channels)
 
 
 def test_a_network_blind_to_the_target_never_seems_to_turn_towards_it(tiny_run: Path) -> None:
@@ -68,3 +69,4 @@ def test_qnav_diagnose_prints_the_gap_and_the_action_mix(tiny_run: Path) -> None
     assert result.returncode == 0, result.stderr
     assert "TD error (mse): replay" in result.stdout
     assert "greedy test actions: forward" in result.stdout
+    assert "dead lidar channels per convolution: " in result.stdout
