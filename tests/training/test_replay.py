@@ -251,13 +251,19 @@ def _obstacle_episode(seed: int) -> Episode:
     )
 
 
-def test_redrawn_obstacles_move_as_the_simulators_and_never_touch_the_robot_before_now() -> None:
+def _obstacle_windows() -> tuple[EpisodeReplay, np.ndarray]:
+    """A replay of six random obstacle episodes, and the frame indices (N, 8) of the windows of
+    k = 5 frames and 3 steps ahead leaving every stored step but the last of each episode."""
     replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
     for seed in range(6):
         replay.add(_obstacle_episode(seed))
     now = np.arange(replay.size)[replay.last[: replay.size] > np.arange(replay.size)]
     first, last = replay.first[now, None], replay.last[now, None]
-    index = np.clip(now[:, None] + np.arange(-4, 4), first, last)
+    return replay, np.clip(now[:, None] + np.arange(-4, 4), first, last)
+
+
+def test_redrawn_obstacles_move_as_the_simulators_and_never_touch_the_robot_before_now() -> None:
+    replay, index = _obstacle_windows()
     moving = np.diff(index, axis=1) > 0
     rng = np.random.default_rng(2)
     centres = draw_obstacle_paths(OBSTACLES, replay.pose[index], moving, history=5, rng=rng)
@@ -312,12 +318,7 @@ def test_sampling_with_redrawn_obstacles_recomputes_collisions_from_the_fresh_ob
 
 
 def test_near_obstacles_start_around_the_robot_and_still_never_touch_it_before_now() -> None:
-    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
-    for seed in range(6):
-        replay.add(_obstacle_episode(seed))
-    now = np.arange(replay.size)[replay.last[: replay.size] > np.arange(replay.size)]
-    first, last = replay.first[now, None], replay.last[now, None]
-    index = np.clip(now[:, None] + np.arange(-4, 4), first, last)
+    replay, index = _obstacle_windows()
     pose = replay.pose[index]
     law = ObstacleRedraw(near_probability=1.0, near_radius_m=2.5)
     moving = np.diff(index, axis=1) > 0
