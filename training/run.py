@@ -47,6 +47,8 @@ from training.learner import td_update
 from training.networks import QNetwork, centre_encoder
 from training.replay import Episode, EpisodeReplay
 
+REACHED_LEVELS = (0.5, 0.9, 0.99)
+"""Validation success levels whose first crossing results.json records."""
 VALIDATION_SEED = 999
 _ENCODER_INIT_SEED = 4_242
 """Layouts whose first scans centre the lidar encoder at the start of a run."""
@@ -284,7 +286,9 @@ def train(
         "test": {k: v for k, v in asdict(final).items() if k != "mean_steps"},
         "episodes": state.episodes,
         "iterations": state.iterations,
-        "first_reached": {str(level): first_reached(state.history, level) for level in (0.9, 0.99)},
+        "first_reached": {
+            str(level): first_reached(state.history, level) for level in REACHED_LEVELS
+        },
         "collect_s": round(state.collect_s, 1),
         "train_s": round(state.train_s, 1),
         "eval_s": round(state.eval_s + time.perf_counter() - started, 1),

@@ -69,7 +69,10 @@ def test_goals_name_each_verdict_with_the_number_reached(tmp_path: Path) -> None
 def test_ablation_runs_stay_out_of_the_tables_and_fill_only_the_ablation_rows(
     tmp_path: Path,
 ) -> None:
-    reached = {"0.9": {"episodes": 24, "iterations": 150, "wall_s": 90.0}}
+    reached = {
+        "0.5": {"episodes": 16, "iterations": 90, "wall_s": 60.0},
+        "0.9": {"episodes": 24, "iterations": 150, "wall_s": 90.0},
+    }
     for relabel, success in (("paper", 0.5), ("none", 0.25)):
         spec = RunSpec("walls-increment", "recurrent", 0, relabel, ablation=True)
         assert spec.name.endswith(f"-ablation-{relabel}")
@@ -78,6 +81,6 @@ def test_ablation_runs_stay_out_of_the_tables_and_fill_only_the_ablation_rows(
         )
     text = results_markdown(tmp_path, {})
     assert "| Recurrent | 0 | not run yet |" in text.split("## Table III")[1].split("##")[0]
-    assert "| walls-increment | paper | 1 | 24 | 1.5 | 0.500 |" in text
-    assert "| walls-increment | none | 1 | 24 | 1.5 | 0.250 |" in text
+    assert "| walls-increment | paper | 1 | 16 | 1.0 | 24 | 1.5 | 0.500 |" in text
+    assert "| walls-increment | none | 1 | 16 | 1.0 | 24 | 1.5 | 0.250 |" in text
     assert "Status: 0 of 40" in text
