@@ -323,10 +323,10 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         "protocol: greedy policy, 200 episodes of up to 500 steps. Paper values beside ours.",
         "",
         f"Status: {len(_study_runs(results))} of "
-        f"{len(plan())} study runs finished. Known gap: moving obstacles. The fast preset "
-        "learns obstacles-increment only in part and obstacles-inertia not at all; there even "
-        "planners that know the obstacles' future reach only 0.80-0.85, under the goal "
-        "(docs/learner.md, 'Known gap').",
+        f"{len(plan())} study runs finished. Known gap: moving obstacles. In obstacles-inertia "
+        "the learner stops near what a controller blind to obstacles reaches (0.52), and even "
+        "planners that know the obstacles' future reach only 0.80-0.85 there, under the goal "
+        "(docs/learner.md, 'Moving obstacles').",
         "",
         *_goal_lines(results),
     ]
