@@ -137,11 +137,21 @@ def reproduce(args: argparse.Namespace) -> int:
     """Run the study's missing runs, then write docs/results.md."""
     from sim import paper
     from sim.config import scenario
-    from training.study import ablation_plan, plan, results_markdown, run_study
+    from training.study import (
+        MODELS,
+        SCENARIOS,
+        ablation_plan,
+        parse_choices,
+        parse_seeds,
+        plan,
+        results_markdown,
+        run_study,
+    )
 
-    seeds = tuple(int(s) for s in args.seeds.split(","))
-    scenarios = tuple(args.scenarios.split(","))
-    specs = plan(scenarios, tuple(args.models.split(",")), seeds)
+    seeds = parse_seeds(args.seeds)
+    scenarios = parse_choices("--scenarios", args.scenarios, SCENARIOS)
+    models = parse_choices("--models", args.models, MODELS)
+    specs = plan(scenarios, models, seeds)
     if args.ablation:
         specs += [s for s in ablation_plan() if s.scenario in scenarios]
     if not args.tables_only:

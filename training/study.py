@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from contracts.errors import ConfigError
 from sim import paper
 
 SCENARIOS = ("obstacles-inertia", "walls-inertia", "walls-increment", "obstacles-increment")
@@ -49,6 +50,29 @@ class RunSpec:
             return f"{self.scenario}-{self.model}-seed{self.seed}-ablation-{self.relabel}"
         suffix = "" if self.relabel == "paper" else f"-{self.relabel}"
         return f"{self.scenario}-{self.model}-seed{self.seed}{suffix}"
+
+
+def parse_choices(setting: str, text: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+    """A comma-separated list of `allowed` names, in the order given; names the setting if not."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in allowed]
+    if not names or unknown:
+        raise ConfigError(
+            f"{setting} = {text!r}: {'unknown ' + ', '.join(unknown) if unknown else 'empty'}; "
+            f"allowed: {', '.join(allowed)}"
+        )
+    return names
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """A comma-separated list of non-negative seeds; names --seeds if not."""
+    try:
+        seeds = tuple(int(s) for s in text.split(","))
+    except ValueError:
+        seeds = ()
+    if not seeds or min(seeds) < 0:
+        raise ConfigError(f"--seeds = {text!r}: expected comma-separated non-negative integers")
+    return seeds
 
 
 def plan(

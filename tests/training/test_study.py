@@ -1,7 +1,10 @@
 import json
 from pathlib import Path
 
-from training.study import RunSpec, plan, results_markdown
+import pytest
+
+from contracts.errors import ConfigError
+from training.study import MODELS, RunSpec, parse_choices, parse_seeds, plan, results_markdown
 
 
 def test_plan_covers_every_scenario_model_and_seed_once_walls_first() -> None:
@@ -9,6 +12,20 @@ def test_plan_covers_every_scenario_model_and_seed_once_walls_first() -> None:
     assert len(specs) == 4 * 2 * 5 == len(set(specs))
     assert specs[0].scenario.startswith("walls")
     assert specs[-1].scenario.startswith("obstacles")
+
+
+def test_choices_keep_their_order_and_an_unknown_name_is_named_with_the_allowed_ones() -> None:
+    assert parse_choices("--models", "feedforward,recurrent", MODELS) == MODELS[::-1]
+    with pytest.raises(ConfigError, match=r"--models = 'rnn': unknown rnn; allowed: recurrent"):
+        parse_choices("--models", "rnn", MODELS)
+    with pytest.raises(ConfigError, match="--models = '': empty"):
+        parse_choices("--models", "", MODELS)
+
+
+@pytest.mark.parametrize("text", ["a", "1,,2", "-1", ""])
+def test_seeds_that_are_not_non_negative_integers_name_the_option(text: str) -> None:
+    with pytest.raises(ConfigError, match="--seeds"):
+        parse_seeds(text)
 
 
 def _result(spec: RunSpec, success: float, **extra: object) -> dict[str, object]:
