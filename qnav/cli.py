@@ -248,6 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
         "scenarios among walls-increment and obstacles-inertia",
     )
     reproduce.add_argument(
+        "--ablation-seeds", default="0", help="comma-separated seeds of the ablation runs (0)"
+    )
+    reproduce.add_argument(
         "--tables-only", action="store_true", help="rewrite the tables from results/, train nothing"
     )
     reproduce.set_defaults(handler=_lazy("qnav.commands:reproduce"))

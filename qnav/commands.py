@@ -153,7 +153,8 @@ def reproduce(args: argparse.Namespace) -> int:
     models = parse_choices("--models", args.models, MODELS)
     specs = plan(scenarios, models, seeds)
     if args.ablation:
-        specs += [s for s in ablation_plan() if s.scenario in scenarios]
+        ablation_seeds = parse_seeds(args.ablation_seeds, "--ablation-seeds")
+        specs += [s for s in ablation_plan(ablation_seeds) if s.scenario in scenarios]
     if not args.tables_only:
         budget = None if args.time_budget_min is None else args.time_budget_min * 60
         run_study(

@@ -64,14 +64,14 @@ def parse_choices(setting: str, text: str, allowed: tuple[str, ...]) -> tuple[st
     return names
 
 
-def parse_seeds(text: str) -> tuple[int, ...]:
-    """A comma-separated list of non-negative seeds; names --seeds if not."""
+def parse_seeds(text: str, setting: str = "--seeds") -> tuple[int, ...]:
+    """A comma-separated list of non-negative seeds; names the setting if not."""
     try:
         seeds = tuple(int(s) for s in text.split(","))
     except ValueError:
         seeds = ()
     if not seeds or min(seeds) < 0:
-        raise ConfigError(f"--seeds = {text!r}: expected comma-separated non-negative integers")
+        raise ConfigError(f"{setting} = {text!r}: expected comma-separated non-negative integers")
     return seeds
 
 
@@ -413,11 +413,13 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         "",
         "## Target re-drawing ablation",
         "",
-        "Recurrent agents, seed 0, trained by `qnav reproduce --ablation` with each rule for",
+        "Recurrent agents, one run per seed (n; `qnav reproduce --ablation --ablation-seeds`)",
+        "with each rule, trained for",
         ", ".join(f"{n} episodes ({s})" for s, n in ABLATION_EPISODES.items()) + "; validation",
         "success (greedy, 100 episodes of up to 200 steps) every "
         + ", ".join(f"{n} episodes ({s})" for s, n in ABLATION_EVAL_EVERY_EPISODES.items())
-        + ". '-' = never reached within the run.",
+        + ". Figures per run, in seed order; test success is the mean. '-' = never reached "
+        "within the run.",
         "",
         _row(
             "scenario",
