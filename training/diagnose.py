@@ -24,7 +24,7 @@ import torch
 from torch.nn import functional
 
 from contracts.actions import NUM_ACTIONS, Action
-from contracts.observation import distance_scale_m, encode_frame, encode_scan
+from contracts.observation import distance_scale_m, encode_frame
 from contracts.policy_file import CONV_CHANNELS
 from sim.evaluate import EvalSettings, evaluate
 from sim.world import Observation, observe, reset
@@ -32,10 +32,10 @@ from training.agent import TorchAgent
 from training.collect import collect_round
 from training.episode_log import read_rounds
 from training.learner import bootstrap_windows, double_dqn_target
-from training.networks import QNetwork
+from training.networks import QNetwork, channel_activity
 from training.policy import load_network
 from training.replay import Batch, EpisodeReplay
-from training.run import RunSettings, policy_agent
+from training.run import RunSettings, first_scans, policy_agent
 
 _FRESH_LAYOUT_SEED = 777_777
 """Layouts of the fresh episodes (neither training, validation nor test use it)."""
@@ -167,23 +167,13 @@ def _turns_towards_target(network: QNetwork, settings: RunSettings, worlds: int 
     return float(np.mean(towards))
 
 
-def _dead_channels(network: QNetwork, settings: RunSettings, worlds: int = 256) -> tuple[int, ...]:
-    """Per convolution, the channels that no position of the first scans of `worlds` episodes
+def _dead_channels(network: QNetwork, settings: RunSettings) -> tuple[int, ...]:
+    """Per convolution, the channels that no position of the first scans of 256 episodes
     switches on."""
     if network.encoder is None:
         return ()
-    world = settings.world
-    state = reset(world, np.full(worlds, 5, dtype=np.int64), np.arange(worlds, dtype=np.int64))
-    scan = observe(world, state).scan_m
-    assert scan is not None
-    dead = []
-    with torch.no_grad():
-        x = torch.from_numpy(encode_scan(scan, distance_scale_m(world.lidar))).unsqueeze(1)
-        for layer in network.encoder.layers:
-            x = layer(x)
-            if isinstance(layer, torch.nn.ReLU):
-                dead.append(int(((x > 0).sum(dim=(0, 2)) == 0).sum()))
-    return tuple(dead)
+    scans = torch.from_numpy(first_scans(settings.world, seed=5))
+    return tuple(int((layer == 0).sum()) for layer in channel_activity(network.encoder, scans))
 
 
 class _CountingAgent:

@@ -70,6 +70,19 @@ def centre_encoder(encoder: LidarEncoder, scans: Tensor) -> None:
             x = layer(x)
 
 
+def channel_activity(encoder: LidarEncoder, scans: Tensor) -> list[Tensor]:
+    """Per convolution (after its ReLU), each channel's share of (scan, position) pairs where it
+    is positive: 0 is a dead channel (no gradient passes it), 1 a linear one."""
+    activity = []
+    with torch.no_grad():
+        x = scans.unsqueeze(1)
+        for layer in encoder.layers:
+            x = layer(x)
+            if isinstance(layer, nn.ReLU):
+                activity.append((x > 0).float().mean(dim=(0, 2)))
+    return activity
+
+
 class QNetwork(nn.Module):
     """Frames -> per-frame features -> LSTM over the window (or the last frame alone) -> Q.
 

@@ -50,9 +50,9 @@ from training.replay import Episode, EpisodeReplay
 REACHED_LEVELS = (0.5, 0.9, 0.99)
 """Validation success levels whose first crossing results.json records."""
 VALIDATION_SEED = 999
+"""Layouts of the evaluations during training (the final test uses EvalSettings' own seed)."""
 _ENCODER_INIT_SEED = 4_242
 """Layouts whose first scans centre the lidar encoder at the start of a run."""
-"""Layouts of the evaluations during training (the final test uses EvalSettings' own seed)."""
 _TRAIN_LAYOUT_SEED = 1_000_003
 
 
@@ -127,7 +127,7 @@ def train(
     bf16 = settings.bf16_matmul and (device.type == "cuda" or _cpu_has_bf16())
     online = make_network(world, settings)
     if settings.encoder_init == "centred" and online.encoder is not None:
-        centre_encoder(online.encoder, torch.from_numpy(_first_scans(world)))
+        centre_encoder(online.encoder, torch.from_numpy(first_scans(world, _ENCODER_INIT_SEED)))
     online = online.to(device)
     target = copy.deepcopy(online)
     optimizer = torch.optim.Adam(online.parameters(), lr=settings.learning_rate)
@@ -338,9 +338,9 @@ def first_reached(history: list[dict[str, float]], level: float) -> dict[str, fl
     return None
 
 
-def _first_scans(world: WorldConfig, count: int = 256) -> NDArray[np.float32]:
-    """Encoded first scans (count, B) of `count` episodes of the world."""
-    state = reset(world, np.full(count, _ENCODER_INIT_SEED), np.arange(count))
+def first_scans(world: WorldConfig, seed: int, count: int = 256) -> NDArray[np.float32]:
+    """Encoded first scans (count, B) of `count` episodes of the world, layouts from `seed`."""
+    state = reset(world, np.full(count, seed, dtype=np.int64), np.arange(count, dtype=np.int64))
     scan = observe(world, state).scan_m
     assert scan is not None
     return encode_scan(scan, distance_scale_m(world.lidar))

@@ -1,7 +1,13 @@
 import pytest
 import torch
 
-from training.networks import QNetwork, StreamingQNetwork, centre_encoder, conv_output_length
+from training.networks import (
+    QNetwork,
+    StreamingQNetwork,
+    centre_encoder,
+    channel_activity,
+    conv_output_length,
+)
 
 
 def test_paper_encoder_turns_720_beams_into_25_positions_of_8_channels() -> None:
@@ -95,38 +101,18 @@ def test_the_streaming_network_has_the_networks_parameter_names() -> None:
     assert list(streaming.state_dict()) == list(network.state_dict())
 
 
-def _channel_activity(network: QNetwork, scans: torch.Tensor) -> list[torch.Tensor]:
-    """Per layer, the share of (scan, position) pairs where each channel is positive."""
-    assert network.encoder is not None
-    activity, x = [], scans.unsqueeze(1)
-    for layer in network.encoder.layers:
-        x = layer(x)
-        if isinstance(layer, torch.nn.ReLU):
-            activity.append((x > 0).float().mean(dim=(0, 2)))
-    return activity
-
-
 def test_a_centred_encoder_starts_every_channel_alive_on_about_half_of_the_scans() -> None:
-    import numpy as np
-
-    from contracts.observation import encode_scan
     from sim.config import scenario
-    from sim.world import observe, reset
+    from training.run import first_scans
 
     world = scenario("obstacles-inertia")
-
-    def scans(seed: int) -> torch.Tensor:
-        state = reset(world, np.full(256, seed), np.arange(256))
-        scan = observe(world, state).scan_m
-        assert scan is not None
-        return torch.from_numpy(encode_scan(scan, 20.0))
-
     torch.manual_seed(1)
     network = QNetwork("recurrent", 720, 64)
-    with torch.no_grad():
-        default = _channel_activity(network, scans(7))
-        centre_encoder(network.encoder, scans(3))  # type: ignore[arg-type]
-        centred = _channel_activity(network, scans(7))  # other layouts than those centred on
+    assert network.encoder is not None
+    probes = torch.from_numpy(first_scans(world, seed=7))
+    default = channel_activity(network.encoder, probes)
+    centre_encoder(network.encoder, torch.from_numpy(first_scans(world, seed=3)))
+    centred = channel_activity(network.encoder, probes)  # other layouts than those centred on
     # torch's initialisation leaves channels that no scan switches on (dead from the start).
     assert any((layer == 0).any() for layer in default)
     for layer in centred:
