@@ -13,7 +13,8 @@
 
 So one figure covers: encoding the scan, zenoh to the daemon, decoding, resampling, the
 policy's step (onnxruntime, one thread), encoding the Twist, zenoh to the receiver. The
-daemon's own share (`loop.decide_ms` in status: decide and publish) is reported beside it.
+daemon's own share (`loop.decide_ms` in status: from the scan's arrival to the command's
+publication) is reported beside it.
 """
 
 from __future__ import annotations

@@ -1,19 +1,20 @@
 """`qnav controller`: the decision logic of `controller.decision` between zenoh and the car.
 
-The daemon is a thin shell. Zenoh callbacks stamp each payload with its monotonic arrival time
-and queue it; the main thread takes the queue in order, hands each payload to the `Controller`,
-and publishes the controller's command and status:
+The daemon is a thin shell around one `Controller`, guarded by one lock. Each zenoh callback
+stamps its payload with the monotonic arrival time and hands it to the controller in zenoh's own
+thread (no queue, no thread hand-off: the command of a scan leaves from the thread that received
+the scan). The main thread keeps time:
 
 - `trigger = "period"`: one decision per control period of the policy, on absolute monotonic
-  deadlines t0 + n * period (as openpilot's Ratekeeper keeps them). A decision that ends past the
-  next deadline is an overrun: the missed deadlines are counted (status `counters.overruns`)
-  and skipped, not run back to back.
-- `trigger = "scan"`: a decision as soon as a scan arrives (several queued scans: one decision
-  on the newest); every period the safety rules are still checked, and a stop is published if
-  one applies, so the car stops when the scans stop.
+  deadlines t0 + n * period (as openpilot's Ratekeeper keeps them), on the newest inputs. A
+  decision that ends past the next deadline is an overrun: the missed deadlines are counted
+  (status `counters.overruns`) and skipped, not run back to back.
+- `trigger = "scan"`: a decision as soon as a scan arrives, in the callback that received it;
+  every period the main thread still checks the safety rules and publishes a stop if one
+  applies, so the car stops when the scans stop.
 
 SIGINT and SIGTERM end the loop; a stop command (status reason `shutdown`) is published before
-the session is closed.
+the session is closed, and no decision is published after it.
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ from __future__ import annotations
 import argparse
 import gc
 import logging
-import queue
 import signal
 import sys
 import textwrap
@@ -43,9 +43,6 @@ from controller.decision import Controller, Input, Output, Reason
 from controller.policy import PolicyRuntime
 
 log = logging.getLogger("qnav.controller")
-
-_Item = tuple[Input, bytes, float] | None
-"""A queued payload (input, bytes, monotonic arrival time), or None to wake the loop."""
 
 
 class BoundedLog:
@@ -107,9 +104,13 @@ class Daemon:
         self.config = config
         self.controller = controller
         self.period_s = controller.period_s
-        self.inbox: queue.SimpleQueue[_Item] = queue.SimpleQueue()
+        self.decide_on_scan = config.controller.trigger == "scan"
         self.stopping = threading.Event()
         self.bounded = BoundedLog(log, config.controller.log_interval_s)
+        self._lock = threading.Lock()
+        """Held by whoever talks to the controller or publishes (zenoh's threads, the loop)."""
+        self._closed = False
+        """Set (under the lock) once the shutdown stop is published: nothing follows it."""
         self._last_reason: Reason | None = None
         self._late_s = 0.0
         self._command: Any = None
@@ -135,7 +136,6 @@ class Daemon:
     def request_stop(self) -> None:
         """End the loop (safe from a signal handler or another thread)."""
         self.stopping.set()
-        self.inbox.put(None)
 
     def run(self) -> None:
         """Join zenoh, decide until asked to stop, publish a stop, close the session."""
@@ -157,9 +157,14 @@ class Daemon:
             self._status = session.declare_publisher(
                 self.status_key, congestion_control=zenoh.CongestionControl.DROP, express=True
             )
+            # What the imports, the policy and zenoh left is several ms of objects for a full
+            # collection to walk: freeze it, so that collections walk only what the daemon
+            # allocates from now on.
+            gc.collect()
+            gc.freeze()
             subscribers = [
                 session.declare_subscriber(
-                    key, zenoh.handlers.Callback(self._enqueue(source), indirect=False)
+                    key, zenoh.handlers.Callback(self._on_sample(source), indirect=False)
                 )
                 for source, key in self.keys.items()
             ]
@@ -169,17 +174,13 @@ class Daemon:
                 self.command_key,
                 self.status_key,
             )
-
-            # What the imports, the policy and zenoh left is several ms of objects for a full
-            # collection to walk: freeze it, so that collections in the loop walk only what
-            # the loop allocates.
-            gc.collect()
-            gc.freeze()
             try:
                 self._loop()
             finally:
-                now = time.monotonic()
-                self._publish_status(self.controller.shutdown(now, self._send), now)
+                with self._lock:
+                    self._closed = True
+                    now = time.monotonic()
+                    self._publish_status(self.controller.shutdown(now, self._send), now)
                 log.info("stop command published; closing the zenoh session")
                 for subscriber in subscribers:
                     subscriber.undeclare()
@@ -206,71 +207,51 @@ class Daemon:
         self._status.put(wire.encode_json_msg(report))
         self._note_reason(output)
 
-    def _enqueue(self, source: Input) -> Callable[[Any], None]:
-        inbox = self.inbox
+    def _on_sample(self, source: Input) -> Callable[[Any], None]:
+        """The zenoh callback of one input: take the payload, and decide on a scan."""
+        decides = source is Input.SCAN and self.decide_on_scan
 
         def on_sample(sample: Any) -> None:
-            inbox.put((source, sample.payload.to_bytes(), time.monotonic()))
-
-        return on_sample
-
-    def _loop(self) -> None:
-        on_scan = self.config.controller.trigger == "scan"
-        rate = Ratekeeper(self.period_s, time.monotonic())
-        while not self.stopping.is_set():
-            remaining = rate.deadline - time.monotonic()
-            if remaining > 0:
-                try:
-                    item = self.inbox.get(timeout=remaining)
-                except queue.Empty:
-                    continue
-                scans = self._take(item)
-                if on_scan and scans and not self.stopping.is_set():
-                    started = time.monotonic()
-                    self._publish_status(self.controller.decide(started, self._send), started)
-                continue
-            # A deadline: take what has arrived, then decide (or check) on the newest inputs.
-            started = time.monotonic()
-            self._late_s = started - rate.deadline
-            self._take(None)
-            if self.stopping.is_set():
-                break
-            if on_scan:
-                output = self.controller.check(started, self._send)
-                if output is not None:
-                    self._publish_status(output, started)
-            else:
-                self._publish_status(self.controller.decide(started, self._send), started)
-            self.heartbeat.beat(reason=self._last_reason.value if self._last_reason else None)
-            now = time.monotonic()
-            missed = rate.advance(now)
-            if missed:
-                self.controller.note_overruns(missed)
-                self.bounded.warning(
-                    "overrun",
-                    f"overrun: a decision ended {(now - started) * 1e3:.1f} ms after it began "
-                    f"({self._late_s * 1e3:.1f} ms late); skipped {missed} control period(s)",
-                    now,
-                )
-
-    def _take(self, first: _Item) -> int:
-        """Hand `first` and everything queued to the controller; returns the scans taken."""
-        scans = 0
-        item = first
-        while True:
-            if item is not None:
-                source, payload, arrived = item
+            arrived = time.monotonic()
+            payload = sample.payload.to_bytes()
+            with self._lock:
+                if self._closed:
+                    return
                 error = self.controller.receive(source, payload, arrived)
                 if error is not None:
                     self.bounded.warning(
                         source.value, f"{source.value} refused: {error}", time.monotonic()
                     )
-                elif source is Input.SCAN:
-                    scans += 1
-            try:
-                item = self.inbox.get_nowait()
-            except queue.Empty:
-                return scans
+                elif decides and not self.stopping.is_set():
+                    self._publish_status(self.controller.decide(arrived, self._send), arrived)
+
+        return on_sample
+
+    def _loop(self) -> None:
+        rate = Ratekeeper(self.period_s, time.monotonic())
+        while not self.stopping.wait(max(0.0, rate.deadline - time.monotonic())):
+            started = time.monotonic()
+            self._late_s = started - rate.deadline
+            with self._lock:
+                if self.decide_on_scan:
+                    output = self.controller.check(started, self._send)
+                    if output is not None:
+                        self._publish_status(output, started)
+                else:
+                    self._publish_status(self.controller.decide(started, self._send), started)
+            self.heartbeat.beat(reason=self._last_reason.value if self._last_reason else None)
+            now = time.monotonic()
+            missed = rate.advance(now)
+            if missed:
+                with self._lock:
+                    self.controller.note_overruns(missed)
+                    self.bounded.warning(
+                        "overrun",
+                        f"overrun: a decision ended {(now - started) * 1e3:.1f} ms after it "
+                        f"began ({self._late_s * 1e3:.1f} ms late); skipped {missed} control "
+                        "period(s)",
+                        now,
+                    )
 
     def _note_reason(self, output: Output) -> None:
         reason = output.status.reason
