@@ -216,6 +216,12 @@ def build_parser() -> argparse.ArgumentParser:
         "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
     )
     reproduce.add_argument("--jobs", type=int, default=1, help="trainings at once (1)")
+    reproduce.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads per training (default: the machine's cores / --jobs)",
+    )
     reproduce.add_argument("--preset", default="fast", choices=["fast", "paper"], help="schedule")
     reproduce.add_argument(
         "--scenarios",

@@ -162,6 +162,7 @@ def reproduce(args: argparse.Namespace) -> int:
             args.runs_dir,
             results_root=args.results_dir,
             jobs=args.jobs,
+            threads=args.threads,
             preset=args.preset,
             time_budget_s=budget,
         )

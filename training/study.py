@@ -143,13 +143,19 @@ def run_study(
     *,
     results_root: Path,
     jobs: int = 1,
+    threads: int | None = None,
     preset: str = "fast",
     time_budget_s: float | None = None,
 ) -> list[RunSpec]:
-    """Train every spec without a result, `jobs` at a time; returns those finished now."""
+    """Train every spec without a result, `jobs` at a time with `threads` torch threads each
+    (default: the cores shared among the jobs); returns those finished now."""
+    if jobs < 1:
+        raise ConfigError(f"--jobs = {jobs}: give at least 1")
+    if threads is not None and threads < 1:
+        raise ConfigError(f"--threads = {threads}: give at least 1")
     results_root.mkdir(parents=True, exist_ok=True)
     pending = [s for s in specs if not (results_root / f"{s.name}.json").exists()]
-    threads = max(1, (os.cpu_count() or 2) // jobs)
+    threads = threads or max(1, (os.cpu_count() or 2) // jobs)
     started = time.monotonic()
     running: dict[RunSpec, subprocess.Popen[bytes]] = {}
     finished: list[RunSpec] = []

@@ -4,7 +4,15 @@ from pathlib import Path
 import pytest
 
 from contracts.errors import ConfigError
-from training.study import MODELS, RunSpec, parse_choices, parse_seeds, plan, results_markdown
+from training.study import (
+    MODELS,
+    RunSpec,
+    parse_choices,
+    parse_seeds,
+    plan,
+    results_markdown,
+    run_study,
+)
 
 
 def test_plan_covers_every_scenario_model_and_seed_once_walls_first() -> None:
@@ -26,6 +34,16 @@ def test_choices_keep_their_order_and_an_unknown_name_is_named_with_the_allowed_
 def test_seeds_that_are_not_non_negative_integers_name_the_option(text: str) -> None:
     with pytest.raises(ConfigError, match="--seeds"):
         parse_seeds(text)
+
+
+@pytest.mark.parametrize(("jobs", "threads", "named"), [(0, None, "--jobs"), (1, 0, "--threads")])
+def test_a_study_with_no_job_or_thread_names_the_option_and_starts_nothing(
+    tmp_path: Path, jobs: int, threads: int | None, named: str
+) -> None:
+    with pytest.raises(ConfigError, match=named):
+        run_study(plan(), tmp_path / "runs", results_root=tmp_path / "results", jobs=jobs,
+                  threads=threads)  # fmt: skip
+    assert not (tmp_path / "runs").exists()
 
 
 def _result(spec: RunSpec, success: float, **extra: object) -> dict[str, object]:
