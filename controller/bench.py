@@ -4,7 +4,9 @@ A decision is what the daemon pays per control period: check and encode one scan
 step of the policy's graph with the stream's carried state (the windows in progress). The first
 decision of an episode, which primes the state with k steps, falls in the untimed warm-up here.
 Each backend is timed in its own process, pinned to one core with BLAS and onnxruntime on one
-thread, so neither inherits the other's thread pools or caches.
+thread, so neither inherits the other's thread pools or caches. Back to back (the default) the
+weights stay in the caches; with a gap (`--gap-ms`, a sleep before each timed decision) each
+decision pays for what the gap evicted, as the daemon does between scans.
 """
 
 from __future__ import annotations
@@ -19,11 +21,16 @@ import time
 from pathlib import Path
 from typing import Any
 
+from contracts.errors import ConfigError
+
 _ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
-def time_decisions(policy: Path, backend: str, decisions: int, warmup: int) -> dict[str, Any]:
-    """Latency statistics of `decisions` single-stream decisions (after `warmup` untimed)."""
+def time_decisions(
+    policy: Path, backend: str, decisions: int, warmup: int, gap_s: float = 0.0
+) -> dict[str, Any]:
+    """Latency statistics of `decisions` single-stream decisions (after `warmup` untimed), each
+    timed one after a sleep of `gap_s`."""
     import numpy as np
 
     from controller.policy import PolicyRuntime
@@ -39,6 +46,8 @@ def time_decisions(policy: Path, backend: str, decisions: int, warmup: int) -> d
     elapsed = np.empty(decisions)
     for i in range(warmup + decisions):
         scan = None if scans is None else scans[i % 64]
+        if gap_s and i >= warmup:
+            time.sleep(gap_s)
         start = time.perf_counter()
         runtime.step(scan, features[i % 64])
         if i >= warmup:
@@ -50,11 +59,16 @@ def time_decisions(policy: Path, backend: str, decisions: int, warmup: int) -> d
         "mean_ms": round(float(ms.mean()), 4),
         "max_ms": round(float(ms.max()), 4),
         "decisions": decisions,
+        "gap_ms": gap_s * 1e3,
     }
 
 
-def run(policy: Path, backends: list[str], decisions: int = 3000) -> dict[str, Any]:
-    """Each backend timed in a fresh single-threaded process."""
+def run(
+    policy: Path, backends: list[str], decisions: int = 3000, gap_s: float = 0.0
+) -> dict[str, Any]:
+    """Each backend timed in a fresh single-threaded process (`gap_s`: sleep before each)."""
+    if gap_s < 0:
+        raise ConfigError(f"--gap-ms = {gap_s * 1e3:g}: give 0 or more")
     results: dict[str, Any] = {}
     for backend in backends:
         command = [
@@ -64,6 +78,7 @@ def run(policy: Path, backends: list[str], decisions: int = 3000) -> dict[str, A
             str(policy),
             backend,
             str(decisions),
+            str(gap_s),
         ]
         done = subprocess.run(
             command,
@@ -80,6 +95,7 @@ def run(policy: Path, backends: list[str], decisions: int = 3000) -> dict[str, A
         "policy": str(policy),
         "machine": platform.processor() or platform.machine(),
         "threads": 1,
+        "gap_ms": gap_s * 1e3,
         "backends": results,
     }
 
@@ -87,7 +103,8 @@ def run(policy: Path, backends: list[str], decisions: int = 3000) -> dict[str, A
 def format_report(report: dict[str, Any]) -> str:
     """A table of the backends' latencies."""
     lines = [
-        f"per-decision latency, one thread, policy {report['policy']}",
+        f"per-decision latency, one thread, {report['gap_ms']:g} ms between decisions, "
+        f"policy {report['policy']}",
         f"{'backend':<12} {'p50 ms':>8} {'p99 ms':>8} {'mean ms':>8} {'max ms':>8}",
     ]
     for backend, stats in report["backends"].items():
@@ -106,5 +123,6 @@ if __name__ == "__main__":
     parser.add_argument("policy", type=Path)
     parser.add_argument("backend")
     parser.add_argument("decisions", type=int)
+    parser.add_argument("gap_s", type=float)
     args = parser.parse_args()
-    print(json.dumps(time_decisions(args.policy, args.backend, args.decisions, warmup=200)))
+    print(json.dumps(time_decisions(args.policy, args.backend, args.decisions, 200, args.gap_s)))

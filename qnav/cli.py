@@ -424,6 +424,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench_policy.add_argument(
         "--decisions", type=int, default=3000, help="timed decisions per backend (3000)"
     )
+    bench_policy.add_argument(
+        "--gap-ms",
+        type=float,
+        default=0.0,
+        help="sleep before each timed decision, as a daemon waits between scans (0: back to "
+        "back, caches warm; 20 or 200: the 50 Hz or 5 Hz case)",
+    )
     bench_policy.add_argument("--json", action="store_true", help="print one JSON object")
     bench_policy.set_defaults(handler=_lazy("qnav.commands:bench_policy"))
     bench_controller = benches.add_parser(

@@ -235,7 +235,7 @@ def bench_policy(args: argparse.Namespace) -> int:
 
     with tempfile.TemporaryDirectory() as scratch:
         policy = args.policy or _paper_sized_policy(Path(scratch))
-        report = run(policy, args.backends.split(","), args.decisions)
+        report = run(policy, args.backends.split(","), args.decisions, args.gap_ms / 1e3)
         if args.policy is None:
             report["policy"] = PAPER_SIZED
     print(json.dumps(report) if args.json else format_report(report))

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import PolicyFactory
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -34,3 +36,35 @@ def test_bench_controller_times_one_command_per_published_scan_and_prints_json(
         assert result["commands"] == result["scans"]  # a decision for every scan, none lost
         assert 0 < result["p50_ms"] <= result["p99_ms"] <= result["max_ms"]
         assert 0 < result["daemon_p50_ms"] < result["p50_ms"]
+
+
+def test_bench_policy_times_each_backend_after_the_given_gap_and_prints_json(
+    make_policy: PolicyFactory,
+) -> None:
+    policy = make_policy("walls-inertia")
+    done = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "qnav"),
+            *("bench", "policy", "--policy", str(policy), "--decisions", "20"),
+            *("--gap-ms", "2", "--json"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    report = json.loads(done.stdout)
+    assert report["gap_ms"] == 2.0
+    assert set(report["backends"]) == {"onnxruntime", "numpy"}
+    for stats in report["backends"].values():
+        assert stats["decisions"] == 20 and stats["gap_ms"] == 2.0
+        assert 0 < stats["p50_ms"] <= stats["p99_ms"] <= stats["max_ms"]
+
+
+def test_bench_policy_refuses_a_negative_gap_naming_the_option() -> None:
+    from contracts.errors import ConfigError
+    from controller.bench import run
+
+    with pytest.raises(ConfigError, match="--gap-ms"):
+        run(Path("unused.onnx"), ["numpy"], 10, gap_s=-0.001)
