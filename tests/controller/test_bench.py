@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -14,23 +15,28 @@ from tests.conftest import PolicyFactory
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_bench_controller_times_one_command_per_published_scan_and_prints_json(
-    make_policy: PolicyFactory,
-) -> None:
-    policy = make_policy("walls-inertia")
+def _qnav_json(*args: str) -> dict[str, Any]:
+    """Run `qnav ARGS` as a user would and parse the JSON it prints."""
     done = subprocess.run(
-        [
-            str(Path(sys.executable).parent / "qnav"),
-            *("bench", "controller", "--policy", str(policy)),
-            *("--rates", "20,50", "--seconds", "0.5", "--json"),
-        ],
+        [str(Path(sys.executable).parent / "qnav"), *args],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=120,
         check=True,
     )
-    report = json.loads(done.stdout)
+    report: dict[str, Any] = json.loads(done.stdout)
+    return report
+
+
+def test_bench_controller_times_one_command_per_published_scan_and_prints_json(
+    make_policy: PolicyFactory,
+) -> None:
+    policy = make_policy("walls-inertia")
+    report = _qnav_json(
+        *("bench", "controller", "--policy", str(policy)),
+        *("--rates", "20,50", "--seconds", "0.5", "--json"),
+    )
     assert [r["rate_hz"] for r in report["results"]] == [20.0, 50.0]
     for result in report["results"]:
         assert result["commands"] == result["scans"]  # a decision for every scan, none lost
@@ -42,19 +48,10 @@ def test_bench_policy_times_each_backend_after_the_given_gap_and_prints_json(
     make_policy: PolicyFactory,
 ) -> None:
     policy = make_policy("walls-inertia")
-    done = subprocess.run(
-        [
-            str(Path(sys.executable).parent / "qnav"),
-            *("bench", "policy", "--policy", str(policy), "--decisions", "20"),
-            *("--gap-ms", "2", "--json"),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
+    report = _qnav_json(
+        *("bench", "policy", "--policy", str(policy), "--decisions", "20"),
+        *("--gap-ms", "2", "--json"),
     )
-    report = json.loads(done.stdout)
     assert report["gap_ms"] == 2.0
     assert set(report["backends"]) == {"onnxruntime", "numpy"}
     for stats in report["backends"].values():
