@@ -50,6 +50,24 @@ BEAM_CONVENTION = "ccw-from-heading-0-to-2pi"
 
 METADATA_PREFIX = "qnav."
 
+WEIGHT_TYPES = ("float32", "int8")
+"""How a file stores its large weights: float32, or int8 (the LSTM's two matrices and the hidden
+layer quantised per output column, a quarter of the bytes; docs/policy.md, "int8 weights")."""
+
+QUANTIZED_SUFFIXES = ("_quantized", "_scale", "_zero_point")
+"""An int8 weight W is stored as three initializers W_quantized (int8, (K, N)), W_scale and
+W_zero_point (per column, (N,)): W = (W_quantized - W_zero_point) * W_scale. onnxruntime's
+quantiser writes these names."""
+
+TRANSPOSED_SUFFIX = "_Transposed"
+"""An initializer named P_Transposed holds the transpose of the training parameter P (the
+products of an int8 file take their weights as (in, out))."""
+
+ENTRIES_ADDED_LATER = ("weight_type",)
+"""Contract fields added after files of this format were written: a file without the entry gets
+the field's default (weight_type: float32, all such files have float32 weights)."""
+
+
 CONV_LAYERS, CONV_CHANNELS, CONV_KERNEL, CONV_STRIDE = 3, 8, 6, 3
 """The paper's lidar encoder (3 x Conv1d, 8 channels, kernel 6, stride 3): the training network
 is built from these, and the numpy backend runs the file's weights with them."""
@@ -94,13 +112,21 @@ class PolicyContract:
     state_size: int
     """Values per slot of each of h and c (the LSTM's hidden size; 0 without a state)."""
     evaluation: Mapping[str, float] = field(default_factory=dict)
-    """Test-protocol results of this file (success, collision, unfinished, episodes)."""
+    """Test-protocol results of this file (success, collision, unfinished, episodes; for an
+    int8 file also agreement_with_float32, the share of its decisions that the float32 network
+    takes too)."""
+    weight_type: str = "float32"
+    """How the large weights are stored: float32, or int8 (`WEIGHT_TYPES`)."""
     beam_convention: str = BEAM_CONVENTION
     """How beam indices map to angles."""
     format: str = POLICY_FORMAT
     """File layout version."""
 
     def __post_init__(self) -> None:
+        if self.weight_type not in WEIGHT_TYPES:
+            raise PolicyFileError(
+                f"weight_type = {self.weight_type!r} is not one of {', '.join(WEIGHT_TYPES)}"
+            )
         slots = self.window_length - 1 if self.model_kind == "recurrent" else 0
         if self.state_slots != slots or (self.state_size > 0) != (slots > 0):
             raise PolicyFileError(
@@ -141,6 +167,8 @@ class PolicyContract:
         values: dict[str, Any] = {}
         for spec in fields(cls):
             key = METADATA_PREFIX + spec.name
+            if key not in metadata and spec.name in ENTRIES_ADDED_LATER:
+                continue  # a file written before the entry existed: the field's default
             if key not in metadata:
                 raise PolicyFileError(f"{source} lacks the metadata entry '{key}'")
             try:

@@ -17,24 +17,30 @@ import numpy as np
 from numpy.typing import NDArray
 
 from contracts.errors import PolicyFileError
+from contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
 
 # Field numbers from onnx.proto3.
 _MODEL_GRAPH = 7
 _MODEL_METADATA = 14
 _GRAPH_INITIALIZER = 5
 _ENTRY_KEY, _ENTRY_VALUE = 1, 2
-_TENSOR_DIMS, _TENSOR_TYPE, _TENSOR_FLOATS, _TENSOR_NAME = 1, 2, 4, 8
+_TENSOR_DIMS, _TENSOR_TYPE, _TENSOR_FLOATS, _TENSOR_INTS, _TENSOR_NAME = 1, 2, 4, 5, 8
 _TENSOR_RAW, _TENSOR_LOCATION = 9, 14
 
 _VARINT, _FIXED64, _BYTES, _FIXED32 = 0, 1, 2, 5
 
 _DTYPES: dict[int, type[np.generic]] = {
     1: np.float32,
+    2: np.uint8,
+    3: np.int8,
     6: np.int32,
     7: np.int64,
     11: np.float64,
 }
 """TensorProto.DataType codes this reader decodes."""
+
+_INT32_DATA_CODES = (2, 3, 6)
+"""Codes whose values, when not raw, are in int32_data (float32's are in float_data)."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +73,34 @@ def read_onnx(path: Path) -> OnnxContents:
             raise
         raise PolicyFileError(f"{path} is not a readable ONNX file ({error})") from None
     return OnnxContents(metadata=metadata, initializers=initializers)
+
+
+def float_weights(initializers: dict[str, NDArray[np.generic]]) -> dict[str, NDArray[np.float32]]:
+    """The training network's parameters by name, in float32, from a file's initializers.
+
+    float32 files store them as they are. int8 files store some as W_quantized, W_scale and
+    W_zero_point, of the transpose (W_Transposed) of the parameter: these are dequantised,
+    (W_quantized - W_zero_point) * W_scale column by column, and transposed back. Integer
+    initializers that are not quantised weights (shape constants) are left out.
+    """
+    values, scales, zero_points = QUANTIZED_SUFFIXES
+    weights: dict[str, NDArray[np.float32]] = {}
+    for stored_name, stored in initializers.items():
+        name, array = stored_name, stored
+        if name.endswith((scales, zero_points)):
+            continue
+        if name.endswith(values):
+            name = name.removesuffix(values)
+            if name + scales not in initializers or name + zero_points not in initializers:
+                raise PolicyFileError(f"int8 weight '{stored_name}' lacks its scale or zero point")
+            offset = stored.astype(np.float32) - initializers[name + zero_points].astype(np.float32)
+            array = offset * initializers[name + scales].astype(np.float32)
+        elif not np.issubdtype(stored.dtype, np.floating):
+            continue
+        if name.endswith(TRANSPOSED_SUFFIX):
+            name, array = name.removesuffix(TRANSPOSED_SUFFIX), array.T
+        weights[name] = np.ascontiguousarray(array, dtype=np.float32)
+    return weights
 
 
 def _fields(data: memoryview) -> Iterator[tuple[int, int, int | memoryview]]:
@@ -105,6 +139,17 @@ def _varint(data: memoryview, position: int) -> tuple[int, int]:
             raise ValueError("malformed varint")
 
 
+def _varints(wire: int, value: int | memoryview) -> list[int]:
+    """A repeated varint field's values from one occurrence: packed or a single value."""
+    if wire != _BYTES:
+        return [int(value)]
+    packed, position, result = _as_bytes(value), 0, []
+    while position < len(packed):
+        number, position = _varint(packed, position)
+        result.append(number)
+    return result
+
+
 def _as_bytes(value: int | memoryview) -> memoryview:
     if isinstance(value, int):
         raise ValueError("expected a length-delimited field")
@@ -115,17 +160,14 @@ def _tensor(data: memoryview, path: Path) -> tuple[str, NDArray[np.generic]]:
     name, dims, dtype_code = "", [], 1
     raw: memoryview | None = None
     floats: list[float] = []
+    ints: list[int] = []  # int32_data: int32, and the 8- and 16-bit types, as signed varints
     for number, wire, value in _fields(data):
         if number == _TENSOR_NAME:
             name = bytes(_as_bytes(value)).decode()
         elif number == _TENSOR_DIMS:
-            if wire == _BYTES:  # packed
-                packed, position = _as_bytes(value), 0
-                while position < len(packed):
-                    dim, position = _varint(packed, position)
-                    dims.append(dim)
-            else:
-                dims.append(int(value))
+            dims.extend(_varints(wire, value))
+        elif number == _TENSOR_INTS:
+            ints.extend(v - (1 << 64) if v >= 1 << 63 else v for v in _varints(wire, value))
         elif number == _TENSOR_TYPE:
             dtype_code = int(value)
         elif number == _TENSOR_RAW:
@@ -145,5 +187,8 @@ def _tensor(data: memoryview, path: Path) -> tuple[str, NDArray[np.generic]]:
             f"{path}: weight '{name}' has unsupported ONNX data type {dtype_code}"
         )
     dtype = np.dtype(_DTYPES[dtype_code]).newbyteorder("<")
-    array = np.frombuffer(raw, dtype=dtype) if raw is not None else np.asarray(floats, dtype=dtype)
+    if raw is not None:
+        array = np.frombuffer(raw, dtype=dtype)
+    else:
+        array = np.asarray(ints if dtype_code in _INT32_DATA_CODES else floats, dtype=dtype)
     return name, array.reshape(dims).astype(dtype.newbyteorder("="), copy=True)

@@ -13,8 +13,8 @@ Two backends run the same file:
 - onnxruntime (default): one intra-op thread, sequential execution, all graph optimisations.
 - numpy: for boards without an onnxruntime wheel (32-bit ARM). It reads the weights from the
   ONNX file's initializers, which the exporter keeps under the training network's parameter
-  names (`controller.onnx_file` parses the file without the onnx package), and runs the same
-  streaming arithmetic in float32.
+  names (`controller.onnx_file` parses the file without the onnx package, and dequantises the
+  weights of an int8 file), and runs the same streaming arithmetic in float32.
 
 Input rules (tested): a scan of the wrong length is refused with `PolicyInputError`; NaN and
 +inf read as the maximum range, negative values and -inf as 0 (`contracts.observation`), so
@@ -43,7 +43,7 @@ from contracts.policy_file import (
     STATE_OUTPUTS,
     PolicyContract,
 )
-from controller.onnx_file import read_onnx
+from controller.onnx_file import float_weights, read_onnx
 
 Backend = Literal["onnxruntime", "numpy"]
 BACKENDS: tuple[Backend, ...] = ("onnxruntime", "numpy")
@@ -135,7 +135,7 @@ class NumpyBackend:
     """The exported network's streaming arithmetic in numpy, weights taken from the file by
     name (the same operations as `training.networks.StreamingQNetwork`)."""
 
-    def __init__(self, weights: dict[str, NDArray[np.generic]], contract: PolicyContract) -> None:
+    def __init__(self, weights: dict[str, F32], contract: PolicyContract) -> None:
         def weight(name: str) -> F32:
             if name not in weights:
                 raise PolicyFileError(
@@ -253,7 +253,7 @@ class PolicyRuntime:
         self.step_function: StepFunction = (
             OnnxRuntimeBackend(self.path, self.contract)
             if backend == "onnxruntime"
-            else NumpyBackend(contents.initializers, self.contract)
+            else NumpyBackend(float_weights(contents.initializers), self.contract)
         )
         self.state = self.zero_state(num_streams)
         self.fresh = np.ones(num_streams, dtype=bool)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from contracts.health import DEFAULT_MAX_AGE_S
+from contracts.policy_file import WEIGHT_TYPES
 from qnav import __version__
 
 Handler = Callable[[argparse.Namespace], int]
@@ -172,7 +173,16 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="test-protocol episodes run on the exported file and recorded in it (0: none; "
-        "default 200 for a run, 0 for a policy file, whose recorded results are kept)",
+        "default 200 for a run or a change of --weights, else 0 for a policy file, whose "
+        "recorded results are kept)",
+    )
+    export.add_argument(
+        "--weights",
+        choices=WEIGHT_TYPES,
+        default=None,
+        help="how the large weights are stored: float32, or int8 (a quarter of the bytes, "
+        "quicker decisions; its test records how often it agrees with float32). Default: "
+        "float32 for a run, the file's own for a policy file",
     )
     export.add_argument("--quiet", action="store_true", help="no progress bar")
     export.set_defaults(handler=_lazy("qnav.commands:export"))
@@ -412,12 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_policy = benches.add_parser(
         "policy", help="per-decision latency of the onboard runtime, per backend, one thread"
     )
-    bench_policy.add_argument(
-        "--policy",
-        type=Path,
-        default=None,
-        help="policy file (default: an untrained paper-sized recurrent policy, exported here)",
-    )
+    _bench_policy_file(bench_policy)
     bench_policy.add_argument(
         "--backends", default="onnxruntime,numpy", help="comma-separated (onnxruntime,numpy)"
     )
@@ -437,12 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
         "controller",
         help="end to end: scan published by one process to command received by another",
     )
-    bench_controller.add_argument(
-        "--policy",
-        type=Path,
-        default=None,
-        help="policy file (default: an untrained paper-sized recurrent policy, exported here)",
-    )
+    _bench_policy_file(bench_controller)
     bench_controller.add_argument(
         "--rates", default="5,50", help="comma-separated scan rates in Hz (5,50)"
     )
@@ -453,6 +453,23 @@ def build_parser() -> argparse.ArgumentParser:
     bench_controller.set_defaults(handler=_lazy("qnav.commands:bench_controller"))
     _bench_bridge(benches)
     return parser
+
+
+def _bench_policy_file(bench: argparse.ArgumentParser) -> None:
+    """The policy a latency bench times: a file, or the paper-sized one in either weight type."""
+    policy = bench.add_mutually_exclusive_group()
+    policy.add_argument(
+        "--policy",
+        type=Path,
+        default=None,
+        help="policy file (default: an untrained paper-sized recurrent policy, exported here)",
+    )
+    policy.add_argument(
+        "--weights",
+        choices=WEIGHT_TYPES,
+        default="float32",
+        help="weights of the default paper-sized policy: float32 or int8 (float32)",
+    )
 
 
 def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -200,20 +200,34 @@ def diagnose(args: argparse.Namespace) -> int:
 
 def export(args: argparse.Namespace) -> int:
     """A run's network as one ONNX policy file, tested and stamped with its results."""
-    from training.export import export_run, reexport_file
+    from training.export import AGREEMENT_KEY, export_run, reexport_file
 
+    default_episodes = 200 if args.run.suffix != ".onnx" or args.weights else 0
+    episodes = default_episodes if args.eval_episodes is None else args.eval_episodes
     if args.run.suffix == ".onnx":
         if args.output is None:
             raise ConfigError("re-exporting a policy file needs -o FILE.onnx (it may be the same)")
         output = args.output
         contract = reexport_file(
-            args.run, output, eval_episodes=args.eval_episodes or 0, progress=not args.quiet
+            args.run,
+            output,
+            eval_episodes=episodes,
+            weight_type=args.weights,
+            progress=not args.quiet,
         )
     else:
         output = args.output or args.run / "policy.onnx"
-        episodes = 200 if args.eval_episodes is None else args.eval_episodes
-        contract = export_run(args.run, output, eval_episodes=episodes, progress=not args.quiet)
-    print(f"wrote {output} ({output.stat().st_size / 1e6:.1f} MB, weights inside)")
+        contract = export_run(
+            args.run,
+            output,
+            eval_episodes=episodes,
+            weight_type=args.weights or "float32",
+            progress=not args.quiet,
+        )
+    print(
+        f"wrote {output} ({output.stat().st_size / 1e6:.1f} MB, {contract.weight_type} weights "
+        "inside)"
+    )
     print(
         f"  {contract.model_kind}, {contract.scenario}, window {contract.window_length}, "
         f"{contract.num_beams} beams, period {contract.control_period_s} s"
@@ -224,6 +238,8 @@ def export(args: argparse.Namespace) -> int:
             f"  this file under the test protocol ({int(e['episodes'])} episodes): success "
             f"{e['success']:.3f}, collision {e['collision']:.3f}, unfinished {e['unfinished']:.3f}"
         )
+        if AGREEMENT_KEY in e:
+            print(f"  its decisions agree with the float32 network's in {e[AGREEMENT_KEY]:.2%}")
     return 0
 
 
@@ -234,10 +250,10 @@ def bench_policy(args: argparse.Namespace) -> int:
     from controller.bench import format_report, run
 
     with tempfile.TemporaryDirectory() as scratch:
-        policy = args.policy or _paper_sized_policy(Path(scratch))
+        policy = args.policy or _paper_sized_policy(Path(scratch), args.weights)
         report = run(policy, args.backends.split(","), args.decisions, args.gap_ms / 1e3)
         if args.policy is None:
-            report["policy"] = PAPER_SIZED
+            report["policy"] = f"{PAPER_SIZED}, {args.weights} weights"
     print(json.dumps(report) if args.json else format_report(report))
     return 0
 
@@ -245,7 +261,7 @@ def bench_policy(args: argparse.Namespace) -> int:
 PAPER_SIZED = "untrained paper-sized recurrent (720 beams, LSTM 512, k = 5)"
 
 
-def _paper_sized_policy(folder: Path) -> Path:
+def _paper_sized_policy(folder: Path, weight_type: str = "float32") -> Path:
     """An untrained policy file of the paper's size (the benches time its arithmetic)."""
     from sim.config import scenario
     from training.export import export_onnx, policy_contract
@@ -253,8 +269,9 @@ def _paper_sized_policy(folder: Path) -> Path:
 
     world = scenario("obstacles-inertia")
     network = QNetwork("recurrent", 720)
-    policy = folder / "paper-sized.onnx"
-    export_onnx(network, policy_contract(network, world, 5, "untrained (bench)", ""), policy)
+    policy = folder / f"paper-sized-{weight_type}.onnx"
+    contract = policy_contract(network, world, 5, "untrained (bench)", "", weight_type=weight_type)
+    export_onnx(network, contract, policy)
     return policy
 
 
@@ -266,10 +283,10 @@ def bench_controller(args: argparse.Namespace) -> int:
 
     rates = [float(r) for r in args.rates.split(",")]
     with tempfile.TemporaryDirectory() as scratch:
-        policy = args.policy or _paper_sized_policy(Path(scratch))
+        policy = args.policy or _paper_sized_policy(Path(scratch), args.weights)
         report = run(policy, rates, args.seconds)
         if args.policy is None:
-            report["policy"] = PAPER_SIZED
+            report["policy"] = f"{PAPER_SIZED}, {args.weights} weights"
     print(json.dumps(report) if args.json else format_report(report))
     return 0
 

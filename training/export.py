@@ -19,6 +19,7 @@ import hashlib
 import io
 import json
 import logging
+import tempfile
 import warnings
 from collections.abc import Mapping
 from dataclasses import asdict, replace
@@ -45,8 +46,9 @@ from contracts.policy_file import (
 )
 from sim.config import WorldConfig
 from sim.dynamics import action_velocities
-from sim.evaluate import EvalResult
+from sim.evaluate import EvalResult, StreamPolicy
 from training.networks import QNetwork, StreamingQNetwork
+from training.quantize import quantize_int8
 
 REEXPORT_KEY = METADATA_PREFIX + "reexported_from"
 """Metadata entry (not part of the contract) that `reexport_file` leaves: what the weights were
@@ -59,8 +61,11 @@ def policy_contract(
     window_length: int,
     training_run: str,
     commit: str,
+    *,
+    weight_type: str = "float32",
 ) -> PolicyContract:
-    """The contract of `network` trained in `world` (no evaluation yet)."""
+    """The contract of `network` trained in `world` (no evaluation yet), its weights to be
+    stored as `weight_type` (float32 or int8)."""
     velocities = action_velocities(world.dynamics, world.control_period_s)
     streaming = StreamingQNetwork(network, window_length)
     return PolicyContract(
@@ -76,6 +81,7 @@ def policy_contract(
         commit=commit,
         state_slots=streaming.state_slots,
         state_size=streaming.state_size,
+        weight_type=weight_type,
     )
 
 
@@ -86,9 +92,11 @@ def export_onnx(
     extra_metadata: dict[str, str] | None = None,
 ) -> None:
     """Write `network` to `path` as one ONNX file (weights inside) carrying `contract`, its
-    streaming form as the graph (`StreamingQNetwork`); `extra_metadata` is written beside the
-    contract's entries."""
+    streaming form as the graph (`StreamingQNetwork`), with int8 weights if the contract says
+    so (`training.quantize`); `extra_metadata` is written beside the contract's entries."""
     model = streaming_model(network, contract)
+    if contract.weight_type == "int8":
+        model = quantize_int8(model)
     write_metadata(model, contract)
     for key, value in (extra_metadata or {}).items():
         model.metadata_props.add(key=key, value=value)
@@ -220,9 +228,11 @@ def export_run(
     *,
     eval_episodes: int = 200,
     backend: str = "onnxruntime",
+    weight_type: str = "float32",
     progress: bool = True,
 ) -> PolicyContract:
-    """Export a training run's network to `output`, then test the file itself and record it."""
+    """Export a training run's network to `output` (weights in `weight_type`), then test the
+    file itself and record it."""
     from training.policy import load_network
     from training.run import source_commit
 
@@ -230,27 +240,108 @@ def export_run(
     results_path = run_dir / "results.json"
     commit = json.loads(results_path.read_text()).get("commit", "") if results_path.exists() else ""
     contract = policy_contract(
-        network, run.world, run.train.window, str(run_dir), commit or source_commit()
+        network,
+        run.world,
+        run.train.window,
+        str(run_dir),
+        commit or source_commit(),
+        weight_type=weight_type,
     )
     export_onnx(network, contract, output)
     if eval_episodes <= 0:
         return contract
-    return evaluate_file(output, run.world, eval_episodes, backend, progress)
+    return evaluate_export(
+        network,
+        contract,
+        output,
+        run.world,
+        episodes=eval_episodes,
+        backend=backend,
+        progress=progress,
+    )
+
+
+def evaluate_export(
+    network: QNetwork,
+    contract: PolicyContract,
+    path: Path,
+    world: WorldConfig,
+    *,
+    episodes: int,
+    backend: str,
+    progress: bool,
+) -> PolicyContract:
+    """Test the file `network` was exported to (`contract`); an int8 file is run beside the
+    float32 export of the same network, which sees the same observations, and the share of
+    decisions where the two agree is recorded too."""
+    if contract.weight_type == "float32":
+        return evaluate_file(path, world, episodes=episodes, backend=backend, progress=progress)
+    with tempfile.TemporaryDirectory() as scratch:
+        reference = Path(scratch) / "float32.onnx"
+        export_onnx(network, replace(contract, weight_type="float32"), reference)
+        return evaluate_file(
+            path, world, episodes=episodes, backend=backend, progress=progress, reference=reference
+        )
 
 
 def evaluate_file(
-    path: Path, world: WorldConfig, episodes: int, backend: str, progress: bool
+    path: Path,
+    world: WorldConfig,
+    *,
+    episodes: int,
+    backend: str,
+    progress: bool,
+    reference: Path | None = None,
 ) -> PolicyContract:
     """Run the test protocol on the policy file itself (through the onboard runtime) in
-    `world` and record the results in its metadata."""
+    `world` and record the results in its metadata; with a `reference` policy file, also the
+    share of the file's decisions that the reference takes too (`agreement_with_float32`)."""
     from controller.policy import PolicyRuntime
     from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 
     settings = EvalSettings(episodes=episodes)
     worlds = min(settings.num_worlds, episodes)
-    runtime = PolicyRuntime(path, backend=backend, num_streams=worlds)  # type: ignore[arg-type]
-    result = evaluate(world, StreamPolicyAgent(runtime, worlds), settings, progress=progress)
-    return set_evaluation(path, evaluation_summary(result))
+
+    def runtime(file: Path) -> PolicyRuntime:
+        return PolicyRuntime(file, backend=backend, num_streams=worlds)  # type: ignore[arg-type]
+
+    acting = runtime(path)
+    policy = acting if reference is None else AgreementPolicy(acting, runtime(reference))
+    result = evaluate(world, StreamPolicyAgent(policy, worlds), settings, progress=progress)
+    summary = evaluation_summary(result)
+    if isinstance(policy, AgreementPolicy):
+        summary[AGREEMENT_KEY] = policy.agreement()
+    return set_evaluation(path, summary)
+
+
+AGREEMENT_KEY = "agreement_with_float32"
+"""Evaluation entry of an int8 file: the share of its test decisions the float32 network takes."""
+
+
+class AgreementPolicy:
+    """Acts as `acting` and counts how often `reference`, fed the same observations, picks the
+    same action (a `sim.evaluate.StreamPolicy`)."""
+
+    def __init__(self, acting: StreamPolicy, reference: StreamPolicy) -> None:
+        self.acting, self.reference = acting, reference
+        self.decisions = self.agreed = 0
+
+    def reset(self, streams: NDArray[np.intp] | None = None) -> None:
+        self.acting.reset(streams)
+        self.reference.reset(streams)
+
+    def step_batch(
+        self, scan_m: NDArray[np.floating] | None, target_features: NDArray[np.floating]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+        actions, q = self.acting.step_batch(scan_m, target_features)
+        expected, _ = self.reference.step_batch(scan_m, target_features)
+        self.decisions += actions.size
+        self.agreed += int(np.count_nonzero(actions == expected))
+        return actions, q
+
+    def agreement(self) -> float:
+        """Share of decisions so far where the two picked the same action."""
+        return self.agreed / max(self.decisions, 1)
 
 
 def reexport_file(
@@ -259,18 +350,21 @@ def reexport_file(
     *,
     eval_episodes: int = 0,
     backend: str = "onnxruntime",
+    weight_type: str | None = None,
     progress: bool = True,
 ) -> PolicyContract:
     """Export a policy file again, in this version's layout, from its own weights.
 
     The file's initializers carry the training network's parameter names, so the QNetwork is
-    rebuilt from them (its sizes read off the weights) and exported as `export_onnx` exports a
-    run's. Every metadata entry is kept (training run, commit, evaluation...) apart from the
-    format and the state's shape, which the new graph defines; a `qnav.reexported_from` entry
-    says what the weights came from. With `eval_episodes` > 0 the new file is evaluated under
-    the test protocol in its scenario's default world and the results replace the old ones.
+    rebuilt from them (its sizes read off the weights; int8 weights dequantised) and exported
+    as `export_onnx` exports a run's, its weights stored as `weight_type` (None: as in the
+    source). Every metadata entry is kept (training run, commit, evaluation...) apart from the
+    format and the state's shape, which the new graph defines, and the evaluation when the
+    weight type changes; a `qnav.reexported_from` entry says what the weights came from. With
+    `eval_episodes` > 0 the new file is evaluated under the test protocol in its scenario's
+    default world and the results replace the old ones.
     """
-    from controller.onnx_file import read_onnx
+    from controller.onnx_file import float_weights, read_onnx
     from sim.config import scenario
 
     contents = read_onnx(source)
@@ -287,27 +381,35 @@ def reexport_file(
     # With a window of one frame the graph never reads the recurrent matrix, so the exporter
     # left it out: any value rebuilds the same policy.
     unused = {"lstm.weight_hh_l0"} if kind == "recurrent" and window == 1 else set()
-    network = network_from_weights(contents.initializers, kind, beams, unused)
+    network = network_from_weights(float_weights(contents.initializers), kind, beams, unused)
     streaming = StreamingQNetwork(network, window)
     metadata |= {
         METADATA_PREFIX + "format": json.dumps(POLICY_FORMAT),
         METADATA_PREFIX + "state_slots": json.dumps(streaming.state_slots),
         METADATA_PREFIX + "state_size": json.dumps(streaming.state_size),
     }
-    contract = PolicyContract.from_metadata(metadata, str(source))
+    source_contract = PolicyContract.from_metadata(metadata, str(source))
+    contract = source_contract
+    if weight_type is not None and weight_type != source_contract.weight_type:
+        contract = replace(source_contract, weight_type=weight_type, evaluation={})
     note = {
         "file": str(source),
         "format": found,
         "sha256": hashlib.sha256(source.read_bytes()).hexdigest(),
         "date": datetime.now(UTC).date().isoformat(),
         "by": "qnav export FILE.onnx (training.export.reexport_file)",
-        "weights": "the file's own initializers, unchanged",
+        "weights": "the file's own initializers, unchanged"
+        if source_contract.weight_type == "float32"
+        else "the file's own int8 initializers, dequantised",
     }
     extra = {k: v for k, v in metadata.items() if k not in contract.to_metadata()}
     export_onnx(network, contract, output, extra | {REEXPORT_KEY: json.dumps(note)})
     if eval_episodes <= 0:
         return contract
-    return evaluate_file(output, scenario(contract.scenario), eval_episodes, backend, progress)
+    world = scenario(contract.scenario)
+    return evaluate_export(
+        network, contract, output, world, episodes=eval_episodes, backend=backend, progress=progress
+    )
 
 
 def network_from_weights(

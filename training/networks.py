@@ -15,6 +15,7 @@ from typing import Literal, cast
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional
 
 from contracts.actions import NUM_ACTIONS
 from contracts.observation import TARGET_FEATURES
@@ -152,7 +153,10 @@ class StreamingQNetwork(nn.Module):
     def forward(
         self, frame: Tensor, state_h: Tensor | None = None, state_c: Tensor | None = None
     ) -> tuple[Tensor, ...]:
-        features = frame_features(self.encoder, self.num_beams, frame.unsqueeze(1)).squeeze(1)
+        features = frame
+        if self.encoder is not None:  # one frame: no time axis to fold into the batch
+            beams = self.num_beams
+            features = torch.cat([self.encoder(frame[:, :beams]), frame[:, beams:]], dim=-1)
         if self.lstm is None:
             return (self.head(features),)
         if not self.state_slots:
@@ -192,7 +196,9 @@ def lstm_input_projection(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
 def lstm_cell(gates: Tensor, cell: Tensor | None) -> tuple[Tensor, Tensor]:
     """One LSTM step from its gate pre-activations (..., 4H) in torch's order (i, f, g, o) and
     the previous cell state (None: the zero state, whose products are skipped) -> (h, c)."""
-    i, f, g, o = gates.chunk(4, dim=-1)
+    # Slices, not chunk(): the ONNX exporter turns chunk into a sequence and seven ops.
+    size = gates.shape[-1] // 4
+    i, f, g, o = (gates[..., k * size : (k + 1) * size] for k in range(4))
     update = torch.sigmoid(i) * torch.tanh(g)
     cell = update if cell is None else torch.sigmoid(f) * cell + update
     return torch.sigmoid(o) * torch.tanh(cell), cell
@@ -205,16 +211,17 @@ def lstm_stream_step(
     the output of the window this frame completes (N, H) and the next partial windows.
 
     The input projection is computed once for all slots, and all slots share one recurrent
-    product (N * S rows against the recurrent matrix, read once); the new window's first step
-    starts from the zero state and needs none.
+    product (N * S rows against the recurrent matrix, read once). The window that starts at
+    this frame is one more slot, in front, with a zero state: its recurrent product and its
+    forget gate's product are exactly zero, so it gets the zero-state step exactly, and every
+    slot goes through one cell (a short graph when exported).
     """
     _, weight_hh, _, _ = _lstm_weights(lstm)
     projected = lstm_input_projection(lstm, inputs)
-    started_h, started_c = lstm_cell(projected, None)
-    advanced_h, advanced_c = lstm_cell(projected.unsqueeze(1) + state_h @ weight_hh.T, state_c)
-    next_h = torch.cat([started_h.unsqueeze(1), advanced_h[:, :-1]], dim=1)
-    next_c = torch.cat([started_c.unsqueeze(1), advanced_c[:, :-1]], dim=1)
-    return advanced_h[:, -1], next_h, next_c
+    previous_h = functional.pad(state_h, (0, 0, 1, 0))  # (N, S + 1, H), zero state in front
+    previous_c = functional.pad(state_c, (0, 0, 1, 0))
+    hidden, cell = lstm_cell(projected.unsqueeze(1) + previous_h @ weight_hh.T, previous_c)
+    return hidden[:, -1], hidden[:, :-1], cell[:, :-1]
 
 
 def lstm_last_output(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
