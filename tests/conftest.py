@@ -45,6 +45,20 @@ def make_policy(tmp_path_factory: pytest.TempPathFactory) -> PolicyFactory:
     return make
 
 
+def with_metadata(source: Path, target: Path, entries: dict[str, object]) -> Path:
+    """A copy of the policy file `source` at `target` with some `qnav.*` entries set (JSON)."""
+    import json
+
+    import onnx
+
+    model = onnx.load(str(source))
+    for entry in model.metadata_props:
+        if entry.key in entries:
+            entry.value = json.dumps(entries[entry.key])
+    onnx.save(model, str(target))
+    return target
+
+
 def policy_network(
     scenario: str, kind: str, hidden_size: int, seed: int
 ) -> tuple[WorldConfig, QNetwork]:

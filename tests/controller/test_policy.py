@@ -3,7 +3,6 @@ its streaming decisions are the window network's."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 from contracts.errors import PolicyFileError, PolicyInputError
 from contracts.observation import FrameWindow
 from controller.policy import BACKENDS, Expectation, PolicyRuntime
-from tests.conftest import PolicyFactory, policy_network
+from tests.conftest import PolicyFactory, policy_network, with_metadata
 
 BEAMS = 720
 
@@ -61,15 +60,21 @@ def test_a_missing_metadata_entry_is_named(make_policy: PolicyFactory, tmp_path:
 def test_a_file_of_the_earlier_window_layout_is_refused_with_the_fix_named(
     make_policy: PolicyFactory, tmp_path: Path
 ) -> None:
-    model = onnx.load(str(make_policy("walls-inertia")))
-    for entry in model.metadata_props:
-        if entry.key == "qnav.format":
-            entry.value = json.dumps("qnav-policy/1")
-    path = tmp_path / "window.onnx"
-    onnx.save(model, str(path))
+    path = with_metadata(
+        make_policy("walls-inertia"), tmp_path / "window.onnx", {"qnav.format": "qnav-policy/1"}
+    )
     for backend in BACKENDS:
         with pytest.raises(PolicyFileError, match=r"qnav-policy/1.*Re-export it: `qnav export"):
             PolicyRuntime(path, backend=backend)
+
+
+def test_an_unknown_weight_type_is_refused_naming_it(
+    make_policy: PolicyFactory, tmp_path: Path
+) -> None:
+    source = make_policy("walls-inertia")
+    path = with_metadata(source, tmp_path / "int4.onnx", {"qnav.weight_type": "int4"})
+    with pytest.raises(PolicyFileError, match=r"weight_type = 'int4'.*float32, int8"):
+        PolicyRuntime(path)
 
 
 @pytest.mark.parametrize(

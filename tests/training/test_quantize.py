@@ -11,7 +11,6 @@ import numpy as np
 import onnx
 import pytest
 
-from contracts.errors import PolicyFileError
 from contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
 from controller.onnx_file import float_weights, read_onnx
 from controller.policy import PolicyRuntime
@@ -177,16 +176,3 @@ def test_a_file_written_before_weight_types_reads_as_float32(make_policy: Policy
     assert "qnav.weight_type" not in read_onnx(TRAINED).metadata
     assert PolicyRuntime(TRAINED).contract.weight_type == "float32"
     assert PolicyRuntime(make_policy("walls-inertia")).contract.weight_type == "float32"
-
-
-def test_an_unknown_weight_type_is_refused_naming_it(
-    make_policy: PolicyFactory, tmp_path: Path
-) -> None:
-    model = onnx.load(str(make_policy("walls-inertia")))
-    for entry in model.metadata_props:
-        if entry.key == "qnav.weight_type":
-            entry.value = json.dumps("int4")
-    path = tmp_path / "int4.onnx"
-    onnx.save(model, str(path))
-    with pytest.raises(PolicyFileError, match=r"weight_type = 'int4'.*float32, int8"):
-        PolicyRuntime(path)
