@@ -67,7 +67,6 @@ ENTRIES_ADDED_LATER = ("weight_type",)
 """Contract fields added after files of this format were written: a file without the entry gets
 the field's default (weight_type: float32, all such files have float32 weights)."""
 
-
 CONV_LAYERS, CONV_CHANNELS, CONV_KERNEL, CONV_STRIDE = 3, 8, 6, 3
 """The paper's lidar encoder (3 x Conv1d, 8 channels, kernel 6, stride 3): the training network
 is built from these, and the numpy backend runs the file's weights with them."""
