@@ -84,7 +84,8 @@ def test_the_reader_dequantises_each_weight_to_within_half_a_step_of_the_float32
             assert np.array_equal(weights[name], value), name
             continue
         # Per output row of the torch weight (column of the stored transpose): half a step.
-        step_size = stored[name + TRANSPOSED_SUFFIX + QUANTIZED_SUFFIXES[1]][:, None]
+        scale = stored[name + TRANSPOSED_SUFFIX + QUANTIZED_SUFFIXES[1]].astype(np.float32)
+        step_size = scale[:, None]
         assert weights[name].shape == value.shape
         assert (np.abs(weights[name] - value) <= step_size / 2 + 1e-7).all(), name
 
