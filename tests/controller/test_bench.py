@@ -65,3 +65,20 @@ def test_bench_policy_refuses_a_negative_gap_naming_the_option() -> None:
 
     with pytest.raises(ConfigError, match="--gap-ms"):
         run(Path("unused.onnx"), ["numpy"], 10, gap_s=-0.001)
+
+
+def test_bench_policy_times_the_paper_sized_policy_in_the_weight_type_asked_for() -> None:
+    report = _qnav_json(
+        *("bench", "policy", "--weights", "int8", "--backends", "onnxruntime"),
+        *("--decisions", "20", "--json"),
+    )
+    assert report["policy"].endswith("int8 weights")
+    assert report["backends"]["onnxruntime"]["decisions"] == 20
+
+
+def test_bench_weights_and_policy_are_exclusive(make_policy: PolicyFactory) -> None:
+    from qnav.cli import main as qnav
+
+    with pytest.raises(SystemExit) as refused:
+        qnav(["bench", "policy", "--policy", str(make_policy()), "--weights", "int8"])
+    assert refused.value.code == 2
