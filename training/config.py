@@ -71,6 +71,15 @@ class TrainSettings:
     """With re-drawn obstacles, an n-step return stops and bootstraps at the first step where a
     fresh obstacle's surface comes this close to the robot (0: never): the stored actions never
     saw that obstacle (`training.replay.ObstacleRedraw`)."""
+    next_scan_weight: float = 0.0
+    """Weight of an auxiliary loss, in training only: predict the next frame's near ranges from
+    the window's summary and the action taken (`training.networks.NextScanPredictor`; 0: off;
+    paper: none)."""
+    next_scan_range_m: float = 5.0
+    """Range within which the auxiliary loss predicts returns; farther ones count as this far."""
+    next_scan_sectors: int = 72
+    """Sectors of the predicted scan (each the nearest return over its beams; must divide the
+    lidar's beam count)."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
@@ -119,6 +128,9 @@ class TrainSettings:
         check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
         check_range(self, "obstacle_near_probability", self.obstacle_near_probability, 0.0, 1.0)
         check_range(self, "obstacle_bootstrap_within_m", self.obstacle_bootstrap_within_m, 0.0, 1e3)
+        check_range(self, "next_scan_weight", self.next_scan_weight, 0.0, 1e6)
+        check_range(self, "next_scan_range_m", self.next_scan_range_m, 0.0, 1e4, exclusive_low=True)
+        check_range(self, "next_scan_sectors", self.next_scan_sectors, 1, 100_000)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 from torch.nn import functional
 
-from training.networks import QNetwork
+from training.networks import NextScanPredictor, QNetwork, near_scan_bins
 from training.replay import Batch
 
 
@@ -33,6 +35,25 @@ def bootstrap_windows(features: Tensor, steps: Tensor, window: int) -> Tensor:
     return features.gather(1, index[..., None].expand(-1, -1, features.shape[-1]))
 
 
+@dataclass(frozen=True)
+class NextScanLoss:
+    """The auxiliary next-scan loss of `td_update` (`TrainSettings.next_scan_weight`)."""
+
+    predictor: NextScanPredictor
+    """The head that predicts the next frame's near ranges."""
+    weight: float
+    """Its squared error's weight against the TD loss."""
+    sectors: int
+    """Sectors of the predicted scan."""
+    near_fraction: float
+    """The near range as a fraction of the encoding's range."""
+
+    def __call__(self, summary: Tensor, action: Tensor, next_scans: Tensor) -> Tensor:
+        predicted = self.predictor(summary, action).float()
+        wanted = near_scan_bins(next_scans, self.sectors, self.near_fraction)
+        return self.weight * functional.mse_loss(predicted, wanted)
+
+
 def td_update(
     online: QNetwork,
     target: QNetwork,
@@ -43,8 +64,10 @@ def td_update(
     loss_kind: str = "mse",
     grad_clip_norm: float = 0.0,
     bf16: bool = False,
+    next_scan: NextScanLoss | None = None,
 ) -> float:
-    """One gradient step on a batch; returns the loss."""
+    """One gradient step on a batch; returns the loss (the TD loss, plus the auxiliary
+    next-scan loss when `next_scan` is given: its predictor must be in `optimizer`)."""
     device = next(online.parameters()).device
     frames = torch.from_numpy(batch.frames).to(device)
     action = torch.from_numpy(batch.action).to(device)
@@ -52,11 +75,12 @@ def td_update(
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
         # The windows of s_t and of the bootstrap state overlap: encode each frame once.
         features = online.frame_features(frames)
-        q_taken = (
-            online.q_from_features(features[:, :window])
-            .float()
-            .gather(1, action.unsqueeze(1))
-            .squeeze(1)
+        summary = online.window_summary(features[:, :window])
+        q_taken = online.head(summary).float().gather(1, action.unsqueeze(1)).squeeze(1)
+        auxiliary = (
+            next_scan(summary, action, frames[:, window, : online.num_beams])
+            if next_scan is not None
+            else None
         )
         with torch.no_grad():
             later = bootstrap_windows(features.detach(), steps, window)
@@ -74,9 +98,12 @@ def td_update(
         loss = functional.smooth_l1_loss(q_taken, y)
     else:
         loss = functional.mse_loss(q_taken, y)
+    total = loss if auxiliary is None else loss + auxiliary
     optimizer.zero_grad(set_to_none=True)
-    loss.backward()  # type: ignore[no-untyped-call]
+    total.backward()  # type: ignore[no-untyped-call]
     if grad_clip_norm > 0:
-        torch.nn.utils.clip_grad_norm_(online.parameters(), grad_clip_norm)
+        torch.nn.utils.clip_grad_norm_(
+            [p for group in optimizer.param_groups for p in group["params"]], grad_clip_norm
+        )
     optimizer.step()
     return float(loss.item())

@@ -98,11 +98,13 @@ class QNetwork(nn.Module):
         self.num_beams = num_beams or 0
         self.hidden_size = hidden_size
         self.encoder = LidarEncoder(num_beams) if num_beams else None
-        feature_size = (self.encoder.output_size if self.encoder else 0) + TARGET_FEATURES
+        self.feature_size = (self.encoder.output_size if self.encoder else 0) + TARGET_FEATURES
         self.lstm = (
-            nn.LSTM(feature_size, hidden_size, batch_first=True) if kind == "recurrent" else None
+            nn.LSTM(self.feature_size, hidden_size, batch_first=True)
+            if kind == "recurrent"
+            else None
         )
-        head_input = hidden_size if kind == "recurrent" else feature_size
+        head_input = self.summary_size
         self.head = nn.Sequential(
             nn.Linear(head_input, hidden_size), nn.ReLU(), nn.Linear(hidden_size, NUM_ACTIONS)
         )
@@ -116,14 +118,58 @@ class QNetwork(nn.Module):
         """(N, T, F) frames -> (N, T, D) features; the encoder runs once per frame."""
         return frame_features(self.encoder, self.num_beams, frames)
 
+    @property
+    def summary_size(self) -> int:
+        """Values in the window's summary (`window_summary`)."""
+        return self.hidden_size if self.lstm is not None else self.feature_size
+
+    def window_summary(self, features: Tensor) -> Tensor:
+        """(N, k, D) features of one window -> what the head reads (N, S): the LSTM's last
+        output, or the last frame's features for the feedforward network."""
+        if self.lstm is None:
+            return features[:, -1]
+        return lstm_last_output(self.lstm, features)
+
     def q_from_features(self, features: Tensor) -> Tensor:
         """(N, k, D) features of one window -> (N, 3) Q values."""
-        if self.lstm is None:
-            return self.head(features[:, -1])  # type: ignore[no-any-return]
-        return self.head(lstm_last_output(self.lstm, features))  # type: ignore[no-any-return]
+        return self.head(self.window_summary(features))  # type: ignore[no-any-return]
 
     def forward(self, frames: Tensor) -> Tensor:
         return self.q_from_features(self.frame_features(frames))
+
+
+class NextScanPredictor(nn.Module):
+    """An auxiliary head, used in training only: the window's summary and the action taken ->
+    the next frame's near ranges (`near_scan_bins`).
+
+    Dodging a moving obstacle needs its motion, which only the window shows; a loss on what the
+    next scan will be asks the LSTM for exactly that (as UNREAL's auxiliary tasks do, Jaderberg
+    et al. 2017), where the TD error alone may not. The policy never runs it: it is not part of
+    the Q-network, its checkpoint or the exported file.
+    """
+
+    def __init__(self, summary_size: int, bins: int, hidden_size: int = 256) -> None:
+        super().__init__()
+        self.layers = nn.Sequential(
+            nn.Linear(summary_size + NUM_ACTIONS, hidden_size),
+            nn.ReLU(),
+            nn.Linear(hidden_size, bins),
+        )
+
+    def forward(self, summary: Tensor, action: Tensor) -> Tensor:
+        taken = functional.one_hot(action, NUM_ACTIONS).to(summary.dtype)
+        return self.layers(torch.cat([summary, taken], dim=-1))  # type: ignore[no-any-return]
+
+
+def near_scan_bins(scans: Tensor, bins: int, near_fraction: float) -> Tensor:
+    """Encoded scans (N, B) -> (N, bins): the nearest return in each of `bins` equal sectors,
+    as a fraction of `near_fraction` (the near range over the encoding's range) clipped to 1,
+    so that only what is near, which decides collisions, carries weight."""
+    n, beams = scans.shape
+    if beams % bins:
+        raise ValueError(f"{beams} beams do not split into {bins} equal sectors")
+    nearest = scans.reshape(n, bins, beams // bins).amin(dim=-1)
+    return (nearest / near_fraction).clamp(max=1.0)
 
 
 class StreamingQNetwork(nn.Module):

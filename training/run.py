@@ -43,8 +43,8 @@ from training.agent import TorchAgent
 from training.collect import collect_round
 from training.config import TrainSettings
 from training.episode_log import read_rounds, write_round
-from training.learner import td_update
-from training.networks import QNetwork, centre_encoder
+from training.learner import NextScanLoss, td_update
+from training.networks import NextScanPredictor, QNetwork, centre_encoder
 from training.replay import Episode, EpisodeReplay
 
 REACHED_LEVELS = (0.5, 0.9, 0.99)
@@ -74,6 +74,26 @@ def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
     """The Q-network for this world and these settings."""
     beams = world.lidar.num_beams if world.lidar else None
     return QNetwork(settings.model, beams, settings.hidden_size)
+
+
+def next_scan_loss(
+    world: WorldConfig, settings: TrainSettings, network: QNetwork
+) -> NextScanLoss | None:
+    """The auxiliary next-scan loss the settings ask for, with a fresh predictor (or None)."""
+    if settings.next_scan_weight == 0.0 or world.lidar is None:
+        return None
+    beams = world.lidar.num_beams
+    if beams % settings.next_scan_sectors:
+        raise ConfigError(
+            f"train.next_scan_sectors = {settings.next_scan_sectors} does not divide the "
+            f"lidar's {beams} beams"
+        )
+    return NextScanLoss(
+        predictor=NextScanPredictor(network.summary_size, settings.next_scan_sectors),
+        weight=settings.next_scan_weight,
+        sectors=settings.next_scan_sectors,
+        near_fraction=settings.next_scan_range_m / distance_scale_m(world.lidar),
+    )
 
 
 def policy_agent(
@@ -130,7 +150,12 @@ def train(
         centre_encoder(online.encoder, torch.from_numpy(first_scans(world, _ENCODER_INIT_SEED)))
     online = online.to(device)
     target = copy.deepcopy(online)
-    optimizer = torch.optim.Adam(online.parameters(), lr=settings.learning_rate)
+    next_scan = next_scan_loss(world, settings, online)
+    trained = list(online.parameters())
+    if next_scan is not None:
+        next_scan.predictor.to(device)
+        trained += list(next_scan.predictor.parameters())
+    optimizer = torch.optim.Adam(trained, lr=settings.learning_rate)
     state = Progress()
     checkpoint = run_dir / "checkpoint.pt"
     if checkpoint.exists():
@@ -138,6 +163,8 @@ def train(
         online.load_state_dict(saved["online"])
         target.load_state_dict(saved["target"])
         optimizer.load_state_dict(saved["optimizer"])
+        if next_scan is not None:
+            next_scan.predictor.load_state_dict(saved["next_scan"])
         state = Progress(**saved["progress"])
     replay = EpisodeReplay(
         world, settings.episodes * (settings.max_episode_steps + 1), settings.window
@@ -198,6 +225,7 @@ def train(
                     loss_kind=settings.loss,
                     grad_clip_norm=settings.grad_clip_norm,
                     bf16=bf16,
+                    next_scan=next_scan,
                 )
             )
             state.iterations += 1
@@ -245,7 +273,7 @@ def train(
                 "eval_unfinished": result.unfinished,
             }
         state.history.append(row)
-        _checkpoint(checkpoint, online, target, optimizer, state)
+        _checkpoint(checkpoint, online, target, optimizer, state, next_scan=next_scan)
         _write_progress(
             run_dir, state.history, f"{world.name}, {settings.model}, seed {settings.seed}"
         )
@@ -392,17 +420,19 @@ def _checkpoint(
     target: QNetwork,
     optimizer: torch.optim.Optimizer,
     state: Progress,
+    *,
+    next_scan: NextScanLoss | None,
 ) -> None:
     partial = path.with_suffix(".partial")
-    torch.save(
-        {
-            "online": online.state_dict(),
-            "target": target.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "progress": asdict(state),
-        },
-        partial,
-    )
+    saved = {
+        "online": online.state_dict(),
+        "target": target.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "progress": asdict(state),
+    }
+    if next_scan is not None:
+        saved["next_scan"] = next_scan.predictor.state_dict()
+    torch.save(saved, partial)
     partial.replace(path)
 
 

@@ -1,8 +1,8 @@
 import numpy as np
 import torch
 
-from training.learner import double_dqn_target, td_update
-from training.networks import QNetwork
+from training.learner import NextScanLoss, double_dqn_target, td_update
+from training.networks import NextScanPredictor, QNetwork
 from training.replay import Batch
 
 
@@ -48,3 +48,67 @@ def test_soft_update_moves_the_target_a_fraction_towards_the_online_network() ->
     soft_update(target, online, 0.25)
     for old, new, towards in zip(before, target.parameters(), online.parameters(), strict=True):
         torch.testing.assert_close(new, old + 0.25 * (towards - old))
+
+
+def _next_scan_batch(size: int, beams: int, rng: np.random.Generator) -> Batch:
+    """Windows of 6 frames in which one near return moves one beam per frame, left or right."""
+    start = rng.integers(6, beams - 6, size)
+    direction = rng.choice([-1, 1], size)
+    scans = np.ones((size, 6, beams), dtype=np.float32)
+    for t in range(6):
+        scans[np.arange(size), t, start + direction * t] = 0.05
+    target = np.zeros((size, 6, 3), dtype=np.float32)
+    return Batch(
+        frames=np.concatenate([scans, target], axis=-1),
+        action=np.zeros(size, dtype=np.int64),
+        reward=np.zeros(size, dtype=np.float32),
+        terminal=np.ones(size, dtype=bool),
+        steps=np.ones(size, dtype=np.int64),
+        discount=np.full(size, 0.97, dtype=np.float32),
+    )
+
+
+def _next_scan_setup(beams: int) -> tuple[QNetwork, QNetwork, NextScanLoss, torch.optim.Adam]:
+    torch.manual_seed(0)
+    online, target = QNetwork("recurrent", beams, 32), QNetwork("recurrent", beams, 32)
+    next_scan = NextScanLoss(
+        predictor=NextScanPredictor(online.summary_size, beams, 64),
+        weight=1.0,
+        sectors=beams,
+        near_fraction=0.25,
+    )
+    optimizer = torch.optim.Adam([*online.parameters(), *next_scan.predictor.parameters()], 3e-3)
+    return online, target, next_scan, optimizer
+
+
+def test_the_next_scan_loss_fits_the_next_frames_near_ranges() -> None:
+    beams = 96
+    online, target, next_scan, optimizer = _next_scan_setup(beams)
+    batch = _next_scan_batch(64, beams, np.random.default_rng(0))
+    frames = torch.from_numpy(batch.frames)
+
+    def predicted_error() -> float:
+        with torch.no_grad():
+            summary = online.window_summary(online.frame_features(frames[:, :5]))
+            loss = next_scan(summary, torch.from_numpy(batch.action), frames[:, 5, :beams])
+        return float(loss)
+
+    first = predicted_error()
+    for _ in range(300):
+        td_update(online, target, optimizer, batch, window=5, next_scan=next_scan)
+    assert predicted_error() < first / 100
+
+
+def test_the_next_scan_loss_trains_the_q_networks_encoder_and_lstm() -> None:
+    beams = 96
+    batch = _next_scan_batch(16, beams, np.random.default_rng(0))
+    changed = []
+    for weight in (0.0, 1.0):
+        online, target, next_scan, optimizer = _next_scan_setup(beams)
+        next_scan = NextScanLoss(next_scan.predictor, weight, beams, 0.25)
+        td_update(online, target, optimizer, batch, window=5, next_scan=next_scan)
+        changed.append([p.detach().clone() for p in online.parameters()])
+    names = [name for name, _ in QNetwork("recurrent", beams, 32).named_parameters()]
+    for name, without, with_loss in zip(names, *changed, strict=True):
+        # The head maps the summary to Q values and is the TD loss's alone.
+        assert torch.equal(without, with_loss) == name.startswith("head"), name

@@ -7,6 +7,7 @@ from training.networks import (
     centre_encoder,
     channel_activity,
     conv_output_length,
+    near_scan_bins,
 )
 
 
@@ -117,3 +118,24 @@ def test_a_centred_encoder_starts_every_channel_alive_on_about_half_of_the_scans
     assert any((layer == 0).any() for layer in default)
     for layer in centred:
         assert ((layer > 0.3) & (layer < 0.7)).all(), layer
+
+
+def test_near_scan_bins_keep_each_sectors_nearest_return_as_a_share_of_the_near_range() -> None:
+    scans = torch.ones(1, 12)
+    scans[0, 1] = 0.1  # sector 0: 0.1 / 0.25
+    scans[0, 5] = 0.05  # sector 1: 0.05 / 0.25
+    scans[0, 6] = 0.3  # sector 2: beyond the near range
+    bins = near_scan_bins(scans, 3, near_fraction=0.25)
+    torch.testing.assert_close(bins, torch.tensor([[0.4, 0.2, 1.0]]))
+    with pytest.raises(ValueError, match="12 beams do not split into 5"):
+        near_scan_bins(scans, 5, near_fraction=0.25)
+
+
+@pytest.mark.parametrize("kind", ["recurrent", "feedforward"])
+def test_the_head_reads_the_window_summary(kind: str) -> None:
+    network = QNetwork(kind, 720, 16)  # type: ignore[arg-type]
+    frames = torch.rand(4, 5, network.frame_size)
+    features = network.frame_features(frames)
+    summary = network.window_summary(features)
+    assert summary.shape == (4, network.summary_size)
+    torch.testing.assert_close(network.head(summary), network(frames))
