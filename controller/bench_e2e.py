@@ -12,9 +12,11 @@
    monotonic clock is shared by all processes of the machine.
 
 So one figure covers: encoding the scan, zenoh to the daemon, decoding, resampling, the
-policy's step (onnxruntime, one thread), encoding the Twist, zenoh to the receiver. The
-daemon's own share (`loop.decide_ms` in status: from the scan's arrival to the command's
-publication) is reported beside it.
+policy's step (onnxruntime, one thread), encoding the Twist, zenoh to the receiver. It is
+reported beside its three parts, from the status (`time_s` is the scan's arrival in the
+daemon's callback, `loop.decide_ms` the time from there to the command's publication): inbound
+(stamp -> the daemon's callback), the daemon's own share, and outbound (publication -> the
+receiver's callback).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -138,12 +140,23 @@ class Receiver:
         self.session.close()
 
 
-def latencies(
-    events: list[tuple[str, float, bytes]], since: float
-) -> tuple[list[float], list[float]]:
-    """(scan publish -> command arrival, daemon decide-and-publish) in ms for each policy
-    decision on a scan stamped at or after `since`."""
-    end_to_end, daemon = [], []
+class Latencies(NamedTuple):
+    """Per policy decision, in ms: the whole path and its three parts."""
+
+    end_to_end: list[float]
+    """Scan stamped by the publisher -> command in the receiver's callback."""
+    inbound: list[float]
+    """Scan stamped -> scan in the daemon's callback (encoding, zenoh, the daemon's wake-up)."""
+    daemon: list[float]
+    """Scan in the daemon's callback -> command published (decode, decide, encode, put)."""
+    outbound: list[float]
+    """Command published -> command in the receiver's callback."""
+
+
+def latencies(events: list[tuple[str, float, bytes]], since: float) -> Latencies:
+    """The latencies of each policy decision on a scan stamped at or after `since` (all
+    processes read the same monotonic clock)."""
+    found = Latencies([], [], [], [])
     last_command: float | None = None
     seen: set[float] = set()
     for kind, arrived, payload in events:
@@ -157,9 +170,12 @@ def latencies(
         if last_command is None:
             continue
         seen.add(stamp)
-        end_to_end.append((last_command - stamp) * 1e3)
-        daemon.append(float(status["loop"]["decide_ms"]))
-    return end_to_end, daemon
+        decide_ms = float(status["loop"]["decide_ms"])
+        found.end_to_end.append((last_command - stamp) * 1e3)
+        found.inbound.append((status["time_s"] - stamp) * 1e3)
+        found.daemon.append(decide_ms)
+        found.outbound.append((last_command - status["time_s"]) * 1e3 - decide_ms)
+    return found
 
 
 def run(policy: Path, rates: list[float], seconds: float) -> dict[str, Any]:
@@ -200,8 +216,7 @@ def run(policy: Path, rates: list[float], seconds: float) -> dict[str, Any]:
                     check=True,
                 )
                 since = float(done.stdout.strip())
-                ms, daemon_ms = latencies(receiver.take(), since)
-                results.append(_summary(rate, count, ms, daemon_ms))
+                results.append(_summary(rate, count, latencies(receiver.take(), since)))
         finally:
             daemon.terminate()
             daemon.wait(timeout=30)
@@ -227,23 +242,22 @@ def _wait_for_status(receiver: Receiver, daemon: subprocess.Popen[bytes]) -> Non
     raise RuntimeError("no status from the controller daemon within 60 s")
 
 
-def _summary(rate: float, scans: int, ms: list[float], daemon_ms: list[float]) -> dict[str, Any]:
-    values = np.asarray(ms) if ms else np.full(1, np.nan)
-    inside = np.asarray(daemon_ms) if daemon_ms else np.full(1, np.nan)
+def _summary(rate: float, scans: int, found: Latencies) -> dict[str, Any]:
+    def stat(values: list[float], q: float) -> float:
+        return round(float(np.percentile(values, q)), 3) if values else math.nan
 
-    def stat(array: np.ndarray[Any, Any], q: float) -> float:
-        return round(float(np.percentile(array, q)), 3)
-
-    return {
+    summary: dict[str, Any] = {
         "rate_hz": rate,
-        "p50_ms": stat(values, 50),
-        "p99_ms": stat(values, 99),
-        "max_ms": round(float(values.max()), 3),
+        "p50_ms": stat(found.end_to_end, 50),
+        "p99_ms": stat(found.end_to_end, 99),
+        "max_ms": round(max(found.end_to_end), 3) if found.end_to_end else math.nan,
         "scans": scans,
-        "commands": len(ms),
-        "daemon_p50_ms": stat(inside, 50),
-        "daemon_p99_ms": stat(inside, 99),
+        "commands": len(found.end_to_end),
     }
+    for part in ("inbound", "daemon", "outbound"):
+        values = getattr(found, part)
+        summary |= {f"{part}_p50_ms": stat(values, 50), f"{part}_p99_ms": stat(values, 99)}
+    return summary
 
 
 def format_report(report: dict[str, Any]) -> str:
@@ -251,14 +265,17 @@ def format_report(report: dict[str, Any]) -> str:
     lines = [
         f"end to end: {report['measured']}",
         f"policy {report['policy']}",
-        f"{'rate Hz':>8} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'commands':>9} "
-        f"{'daemon p50':>11} {'daemon p99':>11}",
+        f"{'rate Hz':>8} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'commands':>9}   "
+        "p50 / p99 ms of: in (publisher -> daemon), daemon, out (daemon -> receiver)",
     ]
     for r in report["results"]:
+        parts = "   ".join(
+            f"{part} {r[f'{part}_p50_ms']:.3f} / {r[f'{part}_p99_ms']:.3f}"
+            for part in ("inbound", "daemon", "outbound")
+        )
         lines.append(
             f"{r['rate_hz']:>8g} {r['p50_ms']:>8.3f} {r['p99_ms']:>8.3f} {r['max_ms']:>8.3f} "
-            f"{r['commands']:>4}/{r['scans']:<4} {r['daemon_p50_ms']:>11.3f} "
-            f"{r['daemon_p99_ms']:>11.3f}"
+            f"{r['commands']:>4}/{r['scans']:<4}   {parts}"
         )
     lines.append("goal: p99 <= 3 ms")
     return "\n".join(lines)
