@@ -45,24 +45,28 @@ def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) ->
     return np.concatenate([np.array(structured)[:, :horizon], random[:, :horizon]])
 
 
-def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> int:
-    """The first action of the best sequence for the single world in `state`."""
-    count, horizon = sequences.shape
-    pose = np.repeat(state.pose, count, axis=0)
-    velocity = np.repeat(state.velocity, count, axis=0)
-    obstacles = np.repeat(state.obstacle_xy, count, axis=0)
-    obstacle_velocity = np.repeat(state.obstacle_velocity, count, axis=0)
-    target = np.repeat(state.target_xy, count, axis=0)
+def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(N,) the first action of the best of the (S, horizon) sequences for each world in
+    `state` (all S are simulated for every world at once)."""
+    candidates, horizon = sequences.shape
+    worlds = state.pose.shape[0]
+    count = worlds * candidates
+    actions = np.tile(sequences, (worlds, 1))  # (N * S, horizon), world-major like the states
+    pose = np.repeat(state.pose, candidates, axis=0)
+    velocity = np.repeat(state.velocity, candidates, axis=0)
+    obstacles = np.repeat(state.obstacle_xy, candidates, axis=0)
+    obstacle_velocity = np.repeat(state.obstacle_velocity, candidates, axis=0)
+    target = np.repeat(state.target_xy, candidates, axis=0)
     radius = config.robot_radius_m
     score = np.zeros(count)
     alive = np.ones(count, dtype=bool)
     distance = gap = np.zeros(count)
     for h in range(horizon):
         if isinstance(config.dynamics, IncrementDynamics):
-            pose, velocity = step_increment(pose, velocity, sequences[:, h], config.dynamics)
+            pose, velocity = step_increment(pose, velocity, actions[:, h], config.dynamics)
         else:
             pose, velocity = step_inertia(
-                pose, velocity, sequences[:, h], config.dynamics, config.control_period_s
+                pose, velocity, actions[:, h], config.dynamics, config.control_period_s
             )
         obstacles, obstacle_velocity = move_obstacles(
             obstacles,
@@ -79,7 +83,25 @@ def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -
         score[hit] = -1000.0 + h
         alive &= ~(reached | hit)
     score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], 1.0)
-    return int(sequences[int(np.argmax(score)), 0])
+    best = np.argmax(score.reshape(worlds, candidates), axis=1)
+    return np.asarray(sequences[best, 0], dtype=np.int64)
+
+
+class OracleDriver:
+    """The planner driving N worlds at once, for collecting demonstrations: `act(state)`."""
+
+    def __init__(
+        self, config: WorldConfig, seed: int, *, horizon: int = 20, random_sequences: int = 128
+    ) -> None:
+        self.config = config
+        self.horizon = horizon
+        self.random_sequences = random_sequences
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, state: WorldState) -> NDArray[np.int64]:
+        """(N,) the planner's action in each world."""
+        sequences = held_sequences(self.horizon, self.random_sequences, self.rng)
+        return plan(self.config, state, sequences)
 
 
 def run_oracle(
@@ -99,7 +121,7 @@ def run_oracle(
         result = Outcome.RUNNING
         while True:
             action = plan(config, state, held_sequences(horizon, random_sequences, rng))
-            state, _, transition = step(config, state, np.array([action]))
+            state, _, transition = step(config, state, action)
             if transition.terminated[0] or transition.truncated[0]:
                 result = Outcome(int(transition.outcome[0]))
                 break

@@ -2,20 +2,30 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
 from sim.config import WorldConfig
 from sim.task import Outcome
-from sim.world import observe, reset, step
+from sim.world import WorldState, observe, reset, step
 from training.agent import TorchAgent
 from training.replay import Episode
 
 
 def collect_round(
-    config: WorldConfig, agent: TorchAgent, seed: int, episode_ids: NDArray[np.int64]
+    config: WorldConfig,
+    agent: TorchAgent,
+    seed: int,
+    episode_ids: NDArray[np.int64],
+    *,
+    demonstrator: Callable[[WorldState], NDArray[np.int64]] | None = None,
 ) -> list[Episode]:
-    """Run one episode per world, each with the layout of (seed, its episode id), to its end."""
+    """Run one episode per world, each with the layout of (seed, its episode id), to its end.
+
+    With a `demonstrator` (the worlds' full state -> actions, e.g. `sim.oracle.OracleDriver`)
+    it drives instead of the agent, and the episodes are marked as demonstrations."""
     n = episode_ids.size
     state = reset(config, np.full(n, seed, dtype=np.int64), episode_ids)
     observation = observe(config, state)
@@ -30,7 +40,7 @@ def collect_round(
     ending = np.full(n, Outcome.RUNNING, dtype=np.int64)
     active = np.ones(n, dtype=bool)
     while active.any():
-        action = agent.act(observation)
+        action = agent.act(observation) if demonstrator is None else demonstrator(state)
         state, observation, transition = step(config, state, action)
         poses.append(observation.pose)
         scans.append(observation.scan_m)
@@ -50,6 +60,7 @@ def collect_round(
             action=act[: length[i], i],
             target_xy=state.target_xy[i],
             outcome=int(ending[i]),
+            demonstrated=demonstrator is not None,
         )
         for i in range(n)
     ]

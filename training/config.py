@@ -80,6 +80,15 @@ class TrainSettings:
     next_scan_sectors: int = 72
     """Sectors of the predicted scan (each the nearest return over its beams; must divide the
     lidar's beam count)."""
+    demonstration_episodes: int = 0
+    """The first this many training episodes are driven by the oracle planner, which knows the
+    obstacles' future (`sim.oracle.OracleDriver`), instead of the agent; they count towards
+    `episodes` (0: none; paper: none, this is outside its method)."""
+    demonstration_margin: float = 0.05
+    """Q-value lead the learner's large-margin loss asks of a demonstrated action over every
+    other (DQfD's margin)."""
+    demonstration_loss_weight: float = 1.0
+    """Weight of the large-margin loss against the TD loss."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
@@ -131,6 +140,9 @@ class TrainSettings:
         check_range(self, "next_scan_weight", self.next_scan_weight, 0.0, 1e6)
         check_range(self, "next_scan_range_m", self.next_scan_range_m, 0.0, 1e4, exclusive_low=True)
         check_range(self, "next_scan_sectors", self.next_scan_sectors, 1, 100_000)
+        check_range(self, "demonstration_episodes", self.demonstration_episodes, 0, self.episodes)
+        check_range(self, "demonstration_margin", self.demonstration_margin, 0.0, 1e6)
+        check_range(self, "demonstration_loss_weight", self.demonstration_loss_weight, 0.0, 1e6)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)

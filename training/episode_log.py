@@ -30,6 +30,7 @@ def write_round(folder: Path, round_index: int, episodes: list[Episode]) -> Path
         action=np.concatenate([e.action for e in episodes]),
         target=np.stack([e.target_xy for e in episodes]),
         outcome=np.array([e.outcome for e in episodes]),
+        demonstrated=np.array([e.demonstrated for e in episodes]),
     )
     partial.replace(path)
     return path
@@ -44,6 +45,10 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
             frame_ends = np.cumsum(lengths + 1)
             action_ends = np.cumsum(lengths)
             has_scan = data["scan"].size > 0
+            # Rounds written before demonstrations existed hold none.
+            demonstrated = (
+                data["demonstrated"] if "demonstrated" in data else np.zeros(lengths.size, bool)
+            )
             episodes = []
             for i, length in enumerate(lengths):
                 frames = slice(frame_ends[i] - length - 1, frame_ends[i])
@@ -55,6 +60,7 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
                         action=data["action"][action_ends[i] - length : action_ends[i]],
                         target_xy=data["target"][i],
                         outcome=int(data["outcome"][i]),
+                        demonstrated=bool(demonstrated[i]),
                     )
                 )
             rounds.append(episodes)

@@ -54,6 +54,26 @@ class NextScanLoss:
         return self.weight * functional.mse_loss(predicted, wanted)
 
 
+def large_margin_loss(q: Tensor, demonstrated_action: Tensor, margin: float) -> Tensor:
+    """DQfD's supervised loss (Hester et al. 2018) per row: max_a [Q(s, a) + margin * (a is
+    not the demonstrated action)] - Q(s, a_demo). Zero once the demonstrated action leads
+    every other by the margin."""
+    penalty = torch.full_like(q, margin)
+    penalty.scatter_(1, demonstrated_action.unsqueeze(1), 0.0)
+    taken = q.gather(1, demonstrated_action.unsqueeze(1)).squeeze(1)
+    return (q + penalty).amax(dim=1) - taken
+
+
+@dataclass(frozen=True)
+class DemonstrationLoss:
+    """The large-margin loss of `td_update` on demonstrated transitions."""
+
+    margin: float
+    """Q-value lead the demonstrated action must have over every other."""
+    weight: float
+    """The loss's weight against the TD loss (it is averaged over the whole batch)."""
+
+
 def td_update(
     online: QNetwork,
     target: QNetwork,
@@ -65,6 +85,7 @@ def td_update(
     grad_clip_norm: float = 0.0,
     bf16: bool = False,
     next_scan: NextScanLoss | None = None,
+    demonstration: DemonstrationLoss | None = None,
 ) -> float:
     """One gradient step on a batch; returns the loss (the TD loss, plus the auxiliary
     next-scan loss when `next_scan` is given: its predictor must be in `optimizer`)."""
@@ -76,7 +97,8 @@ def td_update(
         # The windows of s_t and of the bootstrap state overlap: encode each frame once.
         features = online.frame_features(frames)
         summary = online.window_summary(features[:, :window])
-        q_taken = online.head(summary).float().gather(1, action.unsqueeze(1)).squeeze(1)
+        q = online.head(summary).float()
+        q_taken = q.gather(1, action.unsqueeze(1)).squeeze(1)
         auxiliary = (
             next_scan(summary, action, frames[:, window, : online.num_beams])
             if next_scan is not None
@@ -99,6 +121,10 @@ def td_update(
     else:
         loss = functional.mse_loss(q_taken, y)
     total = loss if auxiliary is None else loss + auxiliary
+    if demonstration is not None and batch.demonstrated is not None:
+        shown = torch.from_numpy(batch.demonstrated).to(device)
+        margins = large_margin_loss(q, action, demonstration.margin)
+        total = total + demonstration.weight * (margins * shown).mean()
     optimizer.zero_grad(set_to_none=True)
     total.backward()  # type: ignore[no-untyped-call]
     if grad_clip_norm > 0:

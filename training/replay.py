@@ -73,6 +73,9 @@ class Episode(NamedTuple):
     """(2,) the episode's own target."""
     outcome: int
     """How it ended (sim.task.Outcome; RUNNING = truncated)."""
+    demonstrated: bool = False
+    """Driven by a demonstrator that knew the obstacles' future (`TrainSettings.
+    demonstration_episodes`), not by the agent."""
 
 
 class Batch(NamedTuple):
@@ -90,6 +93,9 @@ class Batch(NamedTuple):
     """(N,) m: steps taken before bootstrapping (1 <= m <= n)."""
     discount: NDArray[np.float32]
     """(N,) gamma ** m, the bootstrap's discount."""
+    demonstrated: NDArray[np.bool_] | None = None
+    """(N,) the transition is a demonstration's, with its own target and obstacles (None:
+    none is)."""
 
 
 class EpisodeReplay:
@@ -105,6 +111,7 @@ class EpisodeReplay:
         self.clearance = np.zeros(capacity_frames)
         self.action = np.zeros(capacity_frames, dtype=np.int64)
         self.own_target = np.zeros((capacity_frames, 2))
+        self.demonstrated = np.zeros(capacity_frames, dtype=bool)
         # What each stored step would have seen without the episode's obstacles, so that
         # fresh ones can be put in when a transition is sampled (`redraw_obstacles`).
         self.has_obstacles = config.obstacles.count > 0
@@ -144,6 +151,7 @@ class EpisodeReplay:
             )
         self.action[self.size : self.size + frames - 1] = episode.action
         self.own_target[span] = episode.target_xy
+        self.demonstrated[span] = episode.demonstrated
         self.first[span] = self.size
         self.last[span] = self.size + frames - 1
         self._transitions.append(np.arange(self.size, self.size + frames - 1))
@@ -164,22 +172,30 @@ class EpisodeReplay:
     ) -> Batch:
         """Uniformly random transitions, each with its own target drawn by `relabel`, fresh
         obstacles as `obstacles` says (none by default), and each seen in a mirror
-        (`mirror_batch`) with probability `mirror_probability`."""
+        (`mirror_batch`) with probability `mirror_probability`.
+
+        A demonstration's transitions keep their episode's target and obstacles: its actions
+        answer those, and the learner's margin loss holds them to it."""
         if not self._transition_index.size:
             self._transition_index = np.concatenate(self._transitions)
         now = self._transition_index[rng.integers(0, self._transition_index.size, batch_size)]
+        demonstrated = self.demonstrated[now]
         redraw = None
         if obstacles is not None and self.has_obstacles:
-            redraw = rng.random(batch_size) < obstacles.probability
+            redraw = (rng.random(batch_size) < obstacles.probability) & ~demonstrated
+        targets = self._targets(now, rng, relabel)
+        targets[demonstrated] = self.own_target[now[demonstrated]]
         batch = self.transitions_at(
             now,
-            self._targets(now, rng, relabel),
+            targets,
             n_step,
             gamma,
             redraw=redraw,
             rng=rng,
             obstacles=obstacles,
         )
+        if demonstrated.any():
+            batch = batch._replace(demonstrated=demonstrated)
         if mirror_probability > 0.0:
             batch = mirror_batch(batch, rng.random(batch_size) < mirror_probability, self.num_beams)
         return batch

@@ -37,13 +37,14 @@ from contracts.observation import distance_scale_m, encode_scan
 from contracts.settings import from_dict, to_dict, to_toml
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate
+from sim.oracle import OracleDriver
 from sim.task import Outcome
 from sim.world import observe, reset
 from training.agent import TorchAgent
 from training.collect import collect_round
 from training.config import TrainSettings
 from training.episode_log import read_rounds, write_round
-from training.learner import NextScanLoss, td_update
+from training.learner import DemonstrationLoss, NextScanLoss, td_update
 from training.networks import NextScanPredictor, QNetwork, centre_encoder
 from training.replay import Episode, EpisodeReplay
 
@@ -151,6 +152,11 @@ def train(
     online = online.to(device)
     target = copy.deepcopy(online)
     next_scan = next_scan_loss(world, settings, online)
+    demonstration = (
+        DemonstrationLoss(settings.demonstration_margin, settings.demonstration_loss_weight)
+        if settings.demonstration_episodes
+        else None
+    )
     trained = list(online.parameters())
     if next_scan is not None:
         next_scan.predictor.to(device)
@@ -226,6 +232,7 @@ def train(
                     grad_clip_norm=settings.grad_clip_norm,
                     bf16=bf16,
                     next_scan=next_scan,
+                    demonstration=demonstration,
                 )
             )
             state.iterations += 1
@@ -383,6 +390,10 @@ def _collect(
     world: WorldConfig, settings: TrainSettings, online: QNetwork, first: int, round_index: int
 ) -> list[Episode]:
     count = min(settings.parallel_worlds, settings.episodes - first)
+    demonstrator = None
+    if first < settings.demonstration_episodes:
+        count = min(count, settings.demonstration_episodes - first)
+        demonstrator = OracleDriver(world, seed=settings.seed * 1_000_000 + round_index).act
     ids = np.arange(first, first + count, dtype=np.int64)
     agent = policy_agent(
         online,
@@ -394,7 +405,9 @@ def _collect(
     )
     agent.exploration.epsilon[:] = [settings.epsilon(int(i)) for i in ids]
     online.eval()
-    return collect_round(world, agent, _TRAIN_LAYOUT_SEED + settings.seed, ids)
+    return collect_round(
+        world, agent, _TRAIN_LAYOUT_SEED + settings.seed, ids, demonstrator=demonstrator
+    )
 
 
 def _evaluate(

@@ -1,7 +1,13 @@
 import numpy as np
 import torch
 
-from training.learner import NextScanLoss, double_dqn_target, td_update
+from training.learner import (
+    DemonstrationLoss,
+    NextScanLoss,
+    double_dqn_target,
+    large_margin_loss,
+    td_update,
+)
 from training.networks import NextScanPredictor, QNetwork
 from training.replay import Batch
 
@@ -112,3 +118,36 @@ def test_the_next_scan_loss_trains_the_q_networks_encoder_and_lstm() -> None:
     for name, without, with_loss in zip(names, *changed, strict=True):
         # The head maps the summary to Q values and is the TD loss's alone.
         assert torch.equal(without, with_loss) == name.startswith("head"), name
+
+
+def test_the_large_margin_loss_vanishes_once_the_demonstrated_action_leads_by_the_margin() -> None:
+    q = torch.tensor([[1.0, 0.9, 0.5], [1.0, 0.97, 0.5], [0.2, 1.0, 0.0]])
+    loss = large_margin_loss(q, torch.tensor([0, 0, 0]), margin=0.05)
+    # leads by 0.1: nothing; leads by 0.03: 0.02 short; trails by 0.8: 0.8 + 0.05.
+    torch.testing.assert_close(loss, torch.tensor([0.0, 0.02, 0.85]))
+
+
+def test_demonstrated_transitions_teach_their_action_by_the_margin() -> None:
+    rng = np.random.default_rng(0)
+    batch = Batch(
+        frames=rng.random((8, 6, 3), dtype=np.float32),
+        action=np.full(8, 2),
+        reward=np.zeros(8, dtype=np.float32),
+        terminal=np.ones(8, dtype=bool),
+        steps=np.ones(8, dtype=np.int64),
+        discount=np.full(8, 0.97, dtype=np.float32),
+        demonstrated=np.ones(8, dtype=bool),
+    )
+    leads = []
+    for demonstration in (None, DemonstrationLoss(margin=0.1, weight=1.0)):
+        torch.manual_seed(0)
+        online, target = QNetwork("feedforward", None, 16), QNetwork("feedforward", None, 16)
+        optimizer = torch.optim.Adam(online.parameters(), lr=3e-3)
+        for _ in range(200):
+            td_update(online, target, optimizer, batch, window=5, demonstration=demonstration)
+        with torch.no_grad():
+            q = online(torch.from_numpy(batch.frames[:, :5]))
+        leads.append(q[:, 2] - q[:, :2].amax(dim=1))
+    # The TD loss alone fits Q(s, 2) to 0 and leaves the other actions where they fall.
+    assert not (leads[0] >= 0.09).all(), leads[0]
+    assert (leads[1] >= 0.09).all(), leads[1]

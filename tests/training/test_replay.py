@@ -344,3 +344,26 @@ def test_returns_bootstrap_at_the_first_step_a_fresh_obstacle_comes_near() -> No
     # Never near enough: the returns run as far as without the rule.
     np.testing.assert_array_equal(sample(0.0).steps, sample(1e-9).steps)
     assert (sample(0.0).steps > 1).any()
+
+
+def test_demonstrated_transitions_keep_their_own_target_and_obstacles() -> None:
+    shown = _obstacle_episode(1)._replace(demonstrated=True)
+    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
+    replay.add(_obstacle_episode(0))
+    replay.add(shown)
+    batch = replay.sample(
+        256, np.random.default_rng(0), "paper", n_step=3, obstacles=ObstacleRedraw()
+    )
+    assert batch.demonstrated is not None
+    assert 0 < batch.demonstrated.sum() < 256
+    rows = np.flatnonzero(batch.demonstrated)
+    # Every demonstrated row is one of the demonstration's transitions, exactly as it happened.
+    own = replay.transitions_at(
+        np.arange(replay.first[replay.size - 1], replay.size - 1),
+        np.repeat(shown.target_xy[None], shown.action.size, axis=0),
+        n_step=3,
+    )
+    for row in rows:
+        match = np.flatnonzero((own.frames == batch.frames[row]).all(axis=(1, 2)))
+        assert match.size, row
+        assert own.reward[match[0]] == batch.reward[row]

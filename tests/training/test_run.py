@@ -146,3 +146,14 @@ def test_next_scan_sectors_must_divide_the_beams(tmp_path: Path) -> None:
     settings = replace(FAST, episodes=8, next_scan_weight=1.0, next_scan_sectors=7)
     with pytest.raises(ConfigError, match=r"train\.next_scan_sectors = 7 does not divide"):
         train(scenario("obstacles-increment"), settings, tmp_path, progress=False)
+
+
+def test_a_run_collects_its_demonstrations_first_and_marks_them(tmp_path: Path) -> None:
+    settings = replace(
+        FAST, episodes=8, parallel_worlds=4, hidden_size=8, iterations_per_episode=1.0,
+        batch_size=8, warmup_episodes=0, eval_every_episodes=0, final_eval_episodes=2,
+        max_episode_steps=20, demonstration_episodes=6,
+    )  # fmt: skip
+    train(scenario("obstacles-increment"), settings, tmp_path, progress=False)
+    rounds = read_rounds(tmp_path / "episodes")
+    assert [[e.demonstrated for e in r] for r in rounds] == [[True] * 4, [True] * 2, [False] * 2]
