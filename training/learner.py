@@ -87,8 +87,11 @@ def td_update(
     next_scan: NextScanLoss | None = None,
     demonstration: DemonstrationLoss | None = None,
 ) -> float:
-    """One gradient step on a batch; returns the loss (the TD loss, plus the auxiliary
-    next-scan loss when `next_scan` is given: its predictor must be in `optimizer`)."""
+    """One gradient step on a batch; returns its TD loss.
+
+    The step also follows the auxiliary next-scan loss when `next_scan` is given (its predictor
+    must be in `optimizer`) and the large-margin loss on the batch's demonstrated transitions
+    when `demonstration` is given."""
     device = next(online.parameters()).device
     frames = torch.from_numpy(batch.frames).to(device)
     action = torch.from_numpy(batch.action).to(device)
