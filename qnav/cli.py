@@ -222,6 +222,27 @@ def build_parser() -> argparse.ArgumentParser:
     )
     diagnose.set_defaults(handler=_lazy("qnav.commands:diagnose"))
 
+    imitate = verbs.add_parser(
+        "imitate",
+        help="behaviour-cloning ceiling: train the network to copy the oracle planner, test it",
+    )
+    _world_options(imitate, "obstacles-increment")
+    imitate.add_argument(
+        "--model", default="recurrent", choices=["recurrent", "feedforward"], help="network"
+    )
+    imitate.add_argument("--episodes", type=int, default=2000, help="planner episodes (2000)")
+    imitate.add_argument(
+        "--held-out-episodes", type=int, default=200, help="planner episodes not copied (200)"
+    )
+    imitate.add_argument("--iterations", type=int, default=3000, help="gradient steps (3000)")
+    imitate.add_argument(
+        "--test-episodes", type=int, default=200, help="test protocol episodes (200)"
+    )
+    imitate.add_argument("--seed", type=int, default=0, help="seed (0)")
+    imitate.add_argument("--threads", type=int, default=2, help="torch threads (2)")
+    imitate.add_argument("--json", action="store_true", help="print the result as JSON")
+    imitate.set_defaults(handler=_lazy("qnav.commands:imitate"))
+
     reproduce = verbs.add_parser(
         "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
     )

@@ -198,6 +198,39 @@ def diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
+def imitate(args: argparse.Namespace) -> int:
+    """Copy the oracle planner with the learner's network; test the copy."""
+    from contracts.observation import WINDOW_LENGTH
+    from training.imitate import ImitationSettings
+    from training.imitate import imitate as measure
+
+    world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
+    settings = ImitationSettings(
+        model=args.model,
+        episodes=args.episodes,
+        held_out_episodes=args.held_out_episodes,
+        test_episodes=args.test_episodes,
+        iterations=args.iterations,
+        seed=args.seed,
+        threads=args.threads,
+    )
+    result = measure(world, settings, WINDOW_LENGTH)
+    if args.json:
+        print(json.dumps(result.to_dict()))
+        return 0
+    test = result.test
+    print(
+        f"{world.name}, {settings.model}: planner success {result.planner_success:.3f} on the "
+        f"{settings.episodes} copied episodes ({result.windows} decisions)\n"
+        f"clone agrees with the planner on {result.train_agreement:.1%} of copied decisions, "
+        f"{result.held_out_agreement:.1%} of held-out ones\n"
+        f"clone, test protocol ({test.episodes} episodes of up to 500 steps): success "
+        f"{test.success:.3f}, collision {test.collision:.3f}, unfinished {test.unfinished:.3f}"
+        f"\n{result.minutes} minutes"
+    )
+    return 0
+
+
 def export(args: argparse.Namespace) -> int:
     """A run's network as one ONNX policy file, tested and stamped with its results."""
     from training.export import AGREEMENT_KEY, export_run, reexport_file

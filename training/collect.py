@@ -8,15 +8,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sim.config import WorldConfig
+from sim.evaluate import Agent
 from sim.task import Outcome
 from sim.world import WorldState, observe, reset, step
-from training.agent import TorchAgent
 from training.replay import Episode
 
 
 def collect_round(
     config: WorldConfig,
-    agent: TorchAgent,
+    agent: Agent | None,
     seed: int,
     episode_ids: NDArray[np.int64],
     *,
@@ -25,11 +25,15 @@ def collect_round(
     """Run one episode per world, each with the layout of (seed, its episode id), to its end.
 
     With a `demonstrator` (the worlds' full state -> actions, e.g. `sim.oracle.OracleDriver`)
-    it drives instead of the agent, and the episodes are marked as demonstrations."""
+    it drives instead of the agent (which may then be None), and the episodes are marked as
+    demonstrations."""
+    if agent is None and demonstrator is None:
+        raise ValueError("collect_round needs an agent or a demonstrator")
     n = episode_ids.size
     state = reset(config, np.full(n, seed, dtype=np.int64), episode_ids)
     observation = observe(config, state)
-    agent.start(np.arange(n), episode_ids)
+    if agent is not None:
+        agent.start(np.arange(n), episode_ids)
     poses, scans, clearances, actions = (
         [observation.pose],
         [observation.scan_m],
@@ -40,7 +44,11 @@ def collect_round(
     ending = np.full(n, Outcome.RUNNING, dtype=np.int64)
     active = np.ones(n, dtype=bool)
     while active.any():
-        action = agent.act(observation) if demonstrator is None else demonstrator(state)
+        if demonstrator is not None:
+            action = demonstrator(state)
+        else:
+            assert agent is not None
+            action = agent.act(observation)
         state, observation, transition = step(config, state, action)
         poses.append(observation.pose)
         scans.append(observation.scan_m)

@@ -145,7 +145,7 @@ def train(
         if settings.device == "auto"
         else settings.device
     )
-    bf16 = settings.bf16_matmul and (device.type == "cuda" or _cpu_has_bf16())
+    bf16 = settings.bf16_matmul and (device.type == "cuda" or cpu_has_bf16())
     online = make_network(world, settings)
     if settings.encoder_init == "centred" and online.encoder is not None:
         centre_encoder(online.encoder, torch.from_numpy(first_scans(world, _ENCODER_INIT_SEED)))
@@ -352,7 +352,7 @@ def source_commit() -> str:
     return head + ("+dirty" if dirty else "")
 
 
-def _cpu_has_bf16() -> bool:
+def cpu_has_bf16() -> bool:
     """Whether this CPU multiplies bfloat16 natively (otherwise autocast would be slower)."""
     checks = ("_is_amx_tile_supported", "_is_avx512_bf16_supported")
     return any(getattr(torch.cpu, name, lambda: False)() for name in checks)

@@ -1,0 +1,23 @@
+"""The behaviour-cloning ceiling, run as a user runs it."""
+
+import json
+import subprocess
+import sys
+
+COMMAND = [
+    sys.executable, "-m", "qnav", "imitate", "--scenario", "walls-increment",
+    "--episodes", "48", "--held-out-episodes", "16", "--iterations", "150",
+    "--test-episodes", "8", "--threads", "1", "--json",
+]  # fmt: skip
+
+
+def test_imitate_clones_the_planner_and_prints_json() -> None:
+    done = subprocess.run(COMMAND, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["planner_success"] == 1.0  # walls only: the planner reaches every target
+    assert result["windows"] > 48
+    assert result["test"]["episodes"] == 8
+    # Copying works: most of the planner's decisions, seen or not, are the clone's too.
+    assert result["train_agreement"] > 0.8
+    assert result["held_out_agreement"] > 0.7

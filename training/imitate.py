@@ -1,0 +1,178 @@
+"""How well can the Q-network copy the oracle planner? A behaviour-cloning ceiling.
+
+`qnav imitate --scenario S` collects episodes driven by the planner that knows the obstacles'
+future (`sim.oracle.OracleDriver`), trains the learner's own network (recurrent or feedforward,
+the paper's sizes) to pick the planner's action from the same windows of k observations the
+policy sees (cross-entropy on its three outputs as logits), and runs the clone under the test
+protocol. Nothing of reinforcement learning is involved, so the result separates two reasons a
+DQN run can stall below the planner:
+
+- the clone gets near the planner: the network and its inputs can hold a policy that good,
+  and what is missing is in the learning (data, targets, optimisation);
+- the clone stalls too: the window of observations, or the network reading it, is the limit.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from torch.nn import functional
+from tqdm import tqdm
+
+from contracts.settings import check_range
+from sim.config import WorldConfig
+from sim.evaluate import EvalResult, EvalSettings, evaluate
+from sim.oracle import OracleDriver
+from sim.task import Outcome
+from training.collect import collect_round
+from training.networks import ModelKind, QNetwork
+from training.replay import Episode, EpisodeReplay
+from training.run import cpu_has_bf16, policy_agent
+
+_DEMONSTRATION_LAYOUT_SEED = 555_555
+"""Layouts of the demonstrations: neither the training runs', the validation's nor the test's."""
+
+
+@dataclass(frozen=True)
+class ImitationSettings:
+    """What `imitate` collects and how it trains the clone."""
+
+    SECTION = "imitate"
+
+    model: ModelKind = "recurrent"
+    """Network to train (the paper's sizes)."""
+    episodes: int = 2000
+    """Planner episodes to copy."""
+    held_out_episodes: int = 200
+    """Further planner episodes, only to measure the clone's agreement on unseen windows."""
+    test_episodes: int = 200
+    """Episodes of the clone's test (the paper's protocol: 200)."""
+    iterations: int = 3000
+    """Gradient steps."""
+    batch_size: int = 256
+    """Windows per step."""
+    learning_rate: float = 5e-4
+    """Adam's learning rate."""
+    parallel_worlds: int = 32
+    """Planner episodes collected at once."""
+    max_episode_steps: int = 200
+    """Steps before a planner episode is cut (as in training)."""
+    seed: int = 0
+    """Seed of the layouts, the planner's random sequences, the network and the sampling."""
+    threads: int = 2
+    """Torch threads."""
+
+    def __post_init__(self) -> None:
+        for name in ("episodes", "held_out_episodes", "test_episodes", "iterations"):
+            check_range(self, name, getattr(self, name), 1, 10**7)
+        check_range(self, "batch_size", self.batch_size, 1, 10**6)
+        check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
+        check_range(self, "threads", self.threads, 1, 1024)
+
+
+@dataclass(frozen=True)
+class ImitationResult:
+    """The planner on the copied episodes, the clone's agreement with it, and the clone's test."""
+
+    planner_success: float
+    """Success of the planner's episodes that were copied (training layouts, up to 200 steps)."""
+    windows: int
+    """Windows (decisions) copied."""
+    train_agreement: float
+    """Share of 4096 copied windows on which the clone picks the planner's action."""
+    held_out_agreement: float
+    """The same on windows of the held-out planner episodes."""
+    test: EvalResult
+    """The clone under the test protocol (greedy, 200 episodes of up to 500 steps)."""
+    minutes: float
+    """Wall time of the whole measurement."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """As JSON-ready values."""
+        found = asdict(self)
+        found["test"] = {k: v for k, v in found["test"].items() if k != "mean_steps"}
+        return found
+
+
+def collect_demonstrations(
+    world: WorldConfig, count: int, first_episode: int, settings: ImitationSettings
+) -> list[Episode]:
+    """`count` planner episodes with the layouts of episodes first_episode, ... ."""
+    world = replace(world, max_episode_steps=settings.max_episode_steps)
+    driver = OracleDriver(world, seed=settings.seed + first_episode)
+    episodes: list[Episode] = []
+    with tqdm(total=count, unit="ep", desc="planner episodes", leave=False) as bar:
+        while len(episodes) < count:
+            start = first_episode + len(episodes)
+            ids = np.arange(start, start + min(settings.parallel_worlds, count - len(episodes)))
+            layout_seed = _DEMONSTRATION_LAYOUT_SEED + settings.seed
+            episodes += collect_round(world, None, layout_seed, ids, demonstrator=driver.act)
+            bar.update(ids.size)
+    return episodes
+
+
+def _windows(replay: EpisodeReplay) -> tuple[NDArray[Any], NDArray[Any]]:
+    """Every decision of the replay: its window of k frames (own target, own obstacles) and
+    the action taken."""
+    now = np.flatnonzero(replay.last[: replay.size] > np.arange(replay.size))
+    batch = replay.transitions_at(now, replay.own_target[now])
+    return batch.frames[:, : replay.window], batch.action
+
+
+def _agreement(network: QNetwork, frames: NDArray[Any], actions: NDArray[Any]) -> float:
+    with torch.no_grad():
+        chosen = network(torch.from_numpy(frames)).argmax(dim=1).numpy()
+    return float(np.mean(chosen == actions))
+
+
+def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> ImitationResult:
+    """Collect, clone, test (module docstring)."""
+    started = time.perf_counter()
+    torch.set_num_threads(settings.threads)
+    torch.manual_seed(settings.seed)
+    copied = collect_demonstrations(world, settings.episodes, 0, settings)
+    held_out = collect_demonstrations(
+        world, settings.held_out_episodes, settings.episodes, settings
+    )
+    replays = []
+    for episodes in (copied, held_out):
+        replay = EpisodeReplay(world, len(episodes) * (settings.max_episode_steps + 1), window)
+        for episode in episodes:
+            replay.add(episode)
+        replays.append(replay)
+    frames, actions = _windows(replays[0])
+    held_frames, held_actions = _windows(replays[1])
+
+    network = QNetwork(settings.model, world.lidar.num_beams if world.lidar else None)
+    optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
+    rng = np.random.default_rng(settings.seed)
+    network.train()
+    for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
+        rows = rng.integers(0, actions.size, settings.batch_size)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cpu_has_bf16()):
+            logits = network(torch.from_numpy(frames[rows])).float()
+        loss = functional.cross_entropy(logits, torch.from_numpy(actions[rows]))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()  # type: ignore[no-untyped-call]
+        optimizer.step()
+    network.eval()
+    probe = rng.integers(0, actions.size, 4096)
+    worlds = min(100, settings.test_episodes)
+    test = evaluate(
+        world,
+        policy_agent(network, world, worlds, window),
+        EvalSettings(episodes=settings.test_episodes, num_worlds=worlds),
+    )
+    return ImitationResult(
+        planner_success=float(np.mean([e.outcome == Outcome.SUCCESS for e in copied])),
+        windows=int(actions.size),
+        train_agreement=_agreement(network, frames[probe], actions[probe]),
+        held_out_agreement=_agreement(network, held_frames, held_actions),
+        test=test,
+        minutes=round((time.perf_counter() - started) / 60, 1),
+    )
