@@ -230,6 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument(
         "--model", default="recurrent", choices=["recurrent", "feedforward"], help="network"
     )
+    imitate.add_argument(
+        "--conv-channels", type=int, default=8, help="channels per lidar convolution (paper: 8)"
+    )
     imitate.add_argument("--episodes", type=int, default=2000, help="planner episodes (2000)")
     imitate.add_argument(
         "--held-out-episodes", type=int, default=200, help="planner episodes not copied (200)"

@@ -207,6 +207,7 @@ def imitate(args: argparse.Namespace) -> int:
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
     settings = ImitationSettings(
         model=args.model,
+        conv_channels=args.conv_channels,
         episodes=args.episodes,
         held_out_episodes=args.held_out_episodes,
         test_episodes=args.test_episodes,
@@ -220,7 +221,8 @@ def imitate(args: argparse.Namespace) -> int:
         return 0
     test = result.test
     print(
-        f"{world.name}, {settings.model}: planner success {result.planner_success:.3f} on the "
+        f"{world.name}, {settings.model}, {settings.conv_channels} lidar channels: planner "
+        f"success {result.planner_success:.3f} on the "
         f"{settings.episodes} copied episodes ({result.windows} decisions)\n"
         f"clone agrees with the planner on {result.train_agreement:.1%} of copied decisions, "
         f"{result.held_out_agreement:.1%} of held-out ones\n"

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from torch.nn import functional
 from tqdm import tqdm
 
+from contracts.policy_file import CONV_CHANNELS
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate
@@ -46,6 +47,9 @@ class ImitationSettings:
 
     model: ModelKind = "recurrent"
     """Network to train (the paper's sizes)."""
+    conv_channels: int = CONV_CHANNELS
+    """Channels of each lidar convolution (the paper's 8; others only to ask whether the
+    encoder's width is the limit)."""
     episodes: int = 2000
     """Planner episodes to copy."""
     held_out_episodes: int = 200
@@ -73,6 +77,7 @@ class ImitationSettings:
         check_range(self, "batch_size", self.batch_size, 1, 10**6)
         check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
         check_range(self, "threads", self.threads, 1, 1024)
+        check_range(self, "conv_channels", self.conv_channels, 1, 1024)
 
 
 @dataclass(frozen=True)
@@ -148,7 +153,11 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     frames, actions = _windows(replays[0])
     held_frames, held_actions = _windows(replays[1])
 
-    network = QNetwork(settings.model, world.lidar.num_beams if world.lidar else None)
+    network = QNetwork(
+        settings.model,
+        world.lidar.num_beams if world.lidar else None,
+        conv_channels=settings.conv_channels,
+    )
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)
     network.train()

@@ -33,19 +33,22 @@ def conv_output_length(num_beams: int) -> int:
 
 
 class LidarEncoder(nn.Module):
-    """3 x Conv1d(8 channels, kernel 6, stride 3) + ReLU over a scan: (M, B) -> (M, 8 * L)."""
+    """3 x Conv1d(8 channels, kernel 6, stride 3) + ReLU over a scan: (M, B) -> (M, 8 * L).
 
-    def __init__(self, num_beams: int) -> None:
+    Other channel counts exist for diagnostics only (`qnav imitate --conv-channels`): policy
+    files fix the paper's 8."""
+
+    def __init__(self, num_beams: int, channels: int = CONV_CHANNELS) -> None:
         super().__init__()
         if conv_output_length(num_beams) < 1:
             raise ValueError(f"num_beams = {num_beams} is too few for three stride-3 convolutions")
         layers: list[nn.Module] = []
-        channels = 1
+        previous = 1
         for _ in range(CONV_LAYERS):
-            layers += [nn.Conv1d(channels, CONV_CHANNELS, CONV_KERNEL, CONV_STRIDE), nn.ReLU()]
-            channels = CONV_CHANNELS
+            layers += [nn.Conv1d(previous, channels, CONV_KERNEL, CONV_STRIDE), nn.ReLU()]
+            previous = channels
         self.layers = nn.Sequential(*layers)
-        self.output_size = CONV_CHANNELS * conv_output_length(num_beams)
+        self.output_size = channels * conv_output_length(num_beams)
 
     def forward(self, scans: Tensor) -> Tensor:
         return self.layers(scans.unsqueeze(1)).flatten(1)  # type: ignore[no-any-return]
@@ -92,12 +95,18 @@ class QNetwork(nn.Module):
     The LSTM starts from a zero state on every window, as in the paper.
     """
 
-    def __init__(self, kind: ModelKind, num_beams: int | None, hidden_size: int = 512) -> None:
+    def __init__(
+        self,
+        kind: ModelKind,
+        num_beams: int | None,
+        hidden_size: int = 512,
+        conv_channels: int = CONV_CHANNELS,
+    ) -> None:
         super().__init__()
         self.kind: ModelKind = kind
         self.num_beams = num_beams or 0
         self.hidden_size = hidden_size
-        self.encoder = LidarEncoder(num_beams) if num_beams else None
+        self.encoder = LidarEncoder(num_beams, conv_channels) if num_beams else None
         self.feature_size = (self.encoder.output_size if self.encoder else 0) + TARGET_FEATURES
         self.lstm = (
             nn.LSTM(self.feature_size, hidden_size, batch_first=True)
