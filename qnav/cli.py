@@ -237,7 +237,13 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument(
         "--held-out-episodes", type=int, default=200, help="planner episodes not copied (200)"
     )
-    imitate.add_argument("--iterations", type=int, default=3000, help="gradient steps (3000)")
+    imitate.add_argument(
+        "--iterations", type=int, default=3000, help="gradient steps, and per DAgger round (3000)"
+    )
+    imitate.add_argument("--dagger-rounds", type=int, default=0, help="DAgger rounds (0)")
+    imitate.add_argument(
+        "--dagger-episodes", type=int, default=1000, help="episodes per DAgger round (1000)"
+    )
     imitate.add_argument(
         "--test-episodes", type=int, default=200, help="test protocol episodes (200)"
     )

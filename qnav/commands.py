@@ -210,6 +210,8 @@ def imitate(args: argparse.Namespace) -> int:
         conv_channels=args.conv_channels,
         episodes=args.episodes,
         held_out_episodes=args.held_out_episodes,
+        dagger_rounds=args.dagger_rounds,
+        dagger_episodes=args.dagger_episodes,
         test_episodes=args.test_episodes,
         iterations=args.iterations,
         seed=args.seed,
@@ -228,7 +230,12 @@ def imitate(args: argparse.Namespace) -> int:
         f"{result.held_out_agreement:.1%} of held-out ones\n"
         f"clone, test protocol ({test.episodes} episodes of up to 500 steps): success "
         f"{test.success:.3f}, collision {test.collision:.3f}, unfinished {test.unfinished:.3f}"
-        f"\n{result.minutes} minutes"
+        + "".join(
+            f"\nDAgger round {r['round']}: {r['windows']} decisions, test success "
+            f"{r['test_success']:.3f}"
+            for r in result.dagger
+        )
+        + f"\n{result.minutes} minutes"
     )
     return 0
 

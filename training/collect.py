@@ -21,12 +21,14 @@ def collect_round(
     episode_ids: NDArray[np.int64],
     *,
     demonstrator: Callable[[WorldState], NDArray[np.int64]] | None = None,
+    labeller: Callable[[WorldState], NDArray[np.int64]] | None = None,
 ) -> list[Episode]:
     """Run one episode per world, each with the layout of (seed, its episode id), to its end.
 
     With a `demonstrator` (the worlds' full state -> actions, e.g. `sim.oracle.OracleDriver`)
     it drives instead of the agent (which may then be None), and the episodes are marked as
-    demonstrations."""
+    demonstrations. With a `labeller` the episodes store its action for each state visited
+    instead of the action taken (DAgger's labels, `training.imitate`)."""
     if agent is None and demonstrator is None:
         raise ValueError("collect_round needs an agent or a demonstrator")
     n = episode_ids.size
@@ -49,11 +51,12 @@ def collect_round(
         else:
             assert agent is not None
             action = agent.act(observation)
+        recorded = action if labeller is None else labeller(state)
         state, observation, transition = step(config, state, action)
         poses.append(observation.pose)
         scans.append(observation.scan_m)
         clearances.append(observation.clearance_m)
-        actions.append(action)
+        actions.append(recorded)
         length[active] += 1
         done = (transition.terminated | transition.truncated) & active
         ending[done] = transition.outcome[done]

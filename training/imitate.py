@@ -54,6 +54,12 @@ class ImitationSettings:
     """Planner episodes to copy."""
     held_out_episodes: int = 200
     """Further planner episodes, only to measure the clone's agreement on unseen windows."""
+    dagger_rounds: int = 0
+    """DAgger rounds after the first copy (Ross et al. 2011): each runs the copy, labels every
+    state it visits with the planner's action, adds them to the copied decisions and trains
+    `iterations` more steps on all of them (0: none)."""
+    dagger_episodes: int = 1000
+    """Episodes the copy drives in each DAgger round."""
     test_episodes: int = 200
     """Episodes of the clone's test (the paper's protocol: 200)."""
     iterations: int = 3000
@@ -78,6 +84,8 @@ class ImitationSettings:
         check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
         check_range(self, "threads", self.threads, 1, 1024)
         check_range(self, "conv_channels", self.conv_channels, 1, 1024)
+        check_range(self, "dagger_rounds", self.dagger_rounds, 0, 1000)
+        check_range(self, "dagger_episodes", self.dagger_episodes, 1, 10**7)
 
 
 @dataclass(frozen=True)
@@ -87,13 +95,16 @@ class ImitationResult:
     planner_success: float
     """Success of the planner's episodes that were copied (training layouts, up to 200 steps)."""
     windows: int
-    """Windows (decisions) copied."""
+    """Windows (decisions) of the planner's episodes copied (DAgger's come on top)."""
     train_agreement: float
     """Share of 4096 copied windows on which the clone picks the planner's action."""
     held_out_agreement: float
     """The same on windows of the held-out planner episodes."""
     test: EvalResult
     """The clone under the test protocol (greedy, 200 episodes of up to 500 steps)."""
+    dagger: list[dict[str, float]]
+    """Per DAgger round (0: the first copy): decisions copied so far, and the clone's test
+    success after the round (empty without DAgger rounds)."""
     minutes: float
     """Wall time of the whole measurement."""
 
@@ -121,12 +132,79 @@ def collect_demonstrations(
     return episodes
 
 
+def collect_corrections(
+    world: WorldConfig,
+    network: QNetwork,
+    *,
+    count: int,
+    first_episode: int,
+    settings: ImitationSettings,
+    window: int,
+) -> list[Episode]:
+    """DAgger's data: `count` episodes driven by the copy, each state labelled with the
+    planner's action (stored as the episodes' actions)."""
+    world = replace(world, max_episode_steps=settings.max_episode_steps)
+    driver = OracleDriver(world, seed=settings.seed + first_episode)
+    episodes: list[Episode] = []
+    with tqdm(total=count, unit="ep", desc="DAgger episodes", leave=False) as bar:
+        while len(episodes) < count:
+            start = first_episode + len(episodes)
+            ids = np.arange(start, start + min(settings.parallel_worlds, count - len(episodes)))
+            agent = policy_agent(network, world, ids.size, window)
+            layout_seed = _DEMONSTRATION_LAYOUT_SEED + settings.seed
+            episodes += collect_round(world, agent, layout_seed, ids, labeller=driver.act)
+            bar.update(ids.size)
+    return episodes
+
+
 def _windows(replay: EpisodeReplay) -> tuple[NDArray[Any], NDArray[Any]]:
     """Every decision of the replay: its window of k frames (own target, own obstacles) and
     the action taken."""
     now = np.flatnonzero(replay.last[: replay.size] > np.arange(replay.size))
     batch = replay.transitions_at(now, replay.own_target[now])
     return batch.frames[:, : replay.window], batch.action
+
+
+def _replay_of(
+    world: WorldConfig, episodes: list[Episode], settings: ImitationSettings, window: int
+) -> EpisodeReplay:
+    replay = EpisodeReplay(world, len(episodes) * (settings.max_episode_steps + 1), window)
+    for episode in episodes:
+        replay.add(episode)
+    return replay
+
+
+def _clone(
+    network: QNetwork,
+    optimizer: torch.optim.Optimizer,
+    *,
+    frames: NDArray[Any],
+    actions: NDArray[Any],
+    settings: ImitationSettings,
+    rng: np.random.Generator,
+) -> None:
+    """`settings.iterations` cross-entropy steps on random rows of (frames, actions)."""
+    network.train()
+    for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
+        rows = rng.integers(0, actions.size, settings.batch_size)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cpu_has_bf16()):
+            logits = network(torch.from_numpy(frames[rows])).float()
+        loss = functional.cross_entropy(logits, torch.from_numpy(actions[rows]))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()  # type: ignore[no-untyped-call]
+        optimizer.step()
+    network.eval()
+
+
+def _test(
+    world: WorldConfig, network: QNetwork, settings: ImitationSettings, window: int
+) -> EvalResult:
+    worlds = min(100, settings.test_episodes)
+    return evaluate(
+        world,
+        policy_agent(network, world, worlds, window),
+        EvalSettings(episodes=settings.test_episodes, num_worlds=worlds),
+    )
 
 
 def _agreement(network: QNetwork, frames: NDArray[Any], actions: NDArray[Any]) -> float:
@@ -144,14 +222,8 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     held_out = collect_demonstrations(
         world, settings.held_out_episodes, settings.episodes, settings
     )
-    replays = []
-    for episodes in (copied, held_out):
-        replay = EpisodeReplay(world, len(episodes) * (settings.max_episode_steps + 1), window)
-        for episode in episodes:
-            replay.add(episode)
-        replays.append(replay)
-    frames, actions = _windows(replays[0])
-    held_frames, held_actions = _windows(replays[1])
+    frames, actions = _windows(_replay_of(world, copied, settings, window))
+    held_frames, held_actions = _windows(_replay_of(world, held_out, settings, window))
 
     network = QNetwork(
         settings.model,
@@ -160,28 +232,39 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     )
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)
-    network.train()
-    for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
-        rows = rng.integers(0, actions.size, settings.batch_size)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cpu_has_bf16()):
-            logits = network(torch.from_numpy(frames[rows])).float()
-        loss = functional.cross_entropy(logits, torch.from_numpy(actions[rows]))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()  # type: ignore[no-untyped-call]
-        optimizer.step()
-    network.eval()
+    _clone(network, optimizer, frames=frames, actions=actions, settings=settings, rng=rng)
     probe = rng.integers(0, actions.size, 4096)
-    worlds = min(100, settings.test_episodes)
-    test = evaluate(
-        world,
-        policy_agent(network, world, worlds, window),
-        EvalSettings(episodes=settings.test_episodes, num_worlds=worlds),
-    )
+    train_agreement = _agreement(network, frames[probe], actions[probe])
+    copied_windows = actions.size
+    test = _test(world, network, settings, window)
+    dagger: list[dict[str, float]] = []
+    first = settings.episodes + settings.held_out_episodes
+    for round_index in range(settings.dagger_rounds):
+        if not dagger:
+            dagger.append({"round": 0, "windows": actions.size, "test_success": test.success})
+        corrected = collect_corrections(
+            world,
+            network,
+            count=settings.dagger_episodes,
+            first_episode=first,
+            settings=settings,
+            window=window,
+        )
+        first += settings.dagger_episodes
+        more_frames, more_actions = _windows(_replay_of(world, corrected, settings, window))
+        frames = np.concatenate([frames, more_frames])
+        actions = np.concatenate([actions, more_actions])
+        _clone(network, optimizer, frames=frames, actions=actions, settings=settings, rng=rng)
+        test = _test(world, network, settings, window)
+        dagger.append(
+            {"round": round_index + 1, "windows": actions.size, "test_success": test.success}
+        )
     return ImitationResult(
         planner_success=float(np.mean([e.outcome == Outcome.SUCCESS for e in copied])),
-        windows=int(actions.size),
-        train_agreement=_agreement(network, frames[probe], actions[probe]),
+        windows=int(copied_windows),
+        train_agreement=train_agreement,
         held_out_agreement=_agreement(network, held_frames, held_actions),
         test=test,
+        dagger=dagger,
         minutes=round((time.perf_counter() - started) / 60, 1),
     )
