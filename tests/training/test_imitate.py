@@ -7,7 +7,8 @@ import sys
 COMMAND = [
     sys.executable, "-m", "qnav", "imitate", "--scenario", "walls-increment",
     "--episodes", "48", "--held-out-episodes", "16", "--iterations", "150",
-    "--test-episodes", "8", "--threads", "1", "--json",
+    "--test-episodes", "8", "--dagger-rounds", "1", "--dagger-episodes", "8",
+    "--threads", "1", "--json",
 ]  # fmt: skip
 
 
@@ -21,3 +22,7 @@ def test_imitate_clones_the_planner_and_prints_json() -> None:
     # Copying works: most of the planner's decisions, seen or not, are the clone's too.
     assert result["train_agreement"] > 0.8
     assert result["held_out_agreement"] > 0.7
+    # DAgger: the first copy, then one round that added the copy's own states, labelled.
+    first, second = result["dagger"]
+    assert (first["round"], second["round"]) == (0, 1)
+    assert first["windows"] == result["windows"] < second["windows"]

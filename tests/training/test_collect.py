@@ -1,0 +1,39 @@
+"""Collection rounds: who drives, and what is stored."""
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sim.config import scenario
+from sim.evaluate import RandomAgent
+from sim.world import WorldState
+from training.collect import collect_round
+
+WORLD = scenario("walls-increment")
+IDS = np.arange(4, dtype=np.int64)
+
+
+def _always(action: int) -> Callable[[WorldState], NDArray[np.int64]]:
+    def choose(state: WorldState) -> NDArray[np.int64]:
+        return np.full(state.pose.shape[0], action, dtype=np.int64)
+
+    return choose
+
+
+def test_a_demonstrator_drives_and_its_episodes_are_marked() -> None:
+    episodes = collect_round(WORLD, None, 0, IDS, demonstrator=_always(0))
+    for episode in episodes:
+        assert episode.demonstrated
+        assert (episode.action == 0).all()
+        # Always forward: the heading never changes.
+        np.testing.assert_allclose(episode.pose[:, 2], episode.pose[0, 2])
+
+
+def test_a_labeller_is_stored_while_the_agent_drives() -> None:
+    driven = collect_round(WORLD, RandomAgent(4, seed=1), 0, IDS)
+    labelled = collect_round(WORLD, RandomAgent(4, seed=1), 0, IDS, labeller=_always(2))
+    for plain, relabelled in zip(driven, labelled, strict=True):
+        np.testing.assert_array_equal(relabelled.pose, plain.pose)  # the same drive
+        assert (relabelled.action == 2).all() and not (plain.action == 2).all()
+        assert not relabelled.demonstrated
