@@ -115,44 +115,32 @@ class ImitationResult:
         return found
 
 
-def collect_demonstrations(
-    world: WorldConfig, count: int, first_episode: int, settings: ImitationSettings
-) -> list[Episode]:
-    """`count` planner episodes with the layouts of episodes first_episode, ... ."""
-    world = replace(world, max_episode_steps=settings.max_episode_steps)
-    driver = OracleDriver(world, seed=settings.seed + first_episode)
-    episodes: list[Episode] = []
-    with tqdm(total=count, unit="ep", desc="planner episodes", leave=False) as bar:
-        while len(episodes) < count:
-            start = first_episode + len(episodes)
-            ids = np.arange(start, start + min(settings.parallel_worlds, count - len(episodes)))
-            layout_seed = _DEMONSTRATION_LAYOUT_SEED + settings.seed
-            episodes += collect_round(world, None, layout_seed, ids, demonstrator=driver.act)
-            bar.update(ids.size)
-    return episodes
-
-
-def collect_corrections(
+def collect_labelled(
     world: WorldConfig,
-    network: QNetwork,
     *,
     count: int,
     first_episode: int,
     settings: ImitationSettings,
-    window: int,
+    copy: QNetwork | None = None,
+    window: int = 0,
 ) -> list[Episode]:
-    """DAgger's data: `count` episodes driven by the copy, each state labelled with the
-    planner's action (stored as the episodes' actions)."""
+    """`count` episodes with the layouts of episodes first_episode, ..., each state labelled
+    with the planner's action (stored as the episodes' actions): driven by the planner itself,
+    or, for DAgger, by `copy` (reading windows of `window` frames)."""
     world = replace(world, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(world, seed=settings.seed + first_episode)
+    layout_seed = _DEMONSTRATION_LAYOUT_SEED + settings.seed
     episodes: list[Episode] = []
-    with tqdm(total=count, unit="ep", desc="DAgger episodes", leave=False) as bar:
+    desc = "planner episodes" if copy is None else "DAgger episodes"
+    with tqdm(total=count, unit="ep", desc=desc, leave=False) as bar:
         while len(episodes) < count:
             start = first_episode + len(episodes)
             ids = np.arange(start, start + min(settings.parallel_worlds, count - len(episodes)))
-            agent = policy_agent(network, world, ids.size, window)
-            layout_seed = _DEMONSTRATION_LAYOUT_SEED + settings.seed
-            episodes += collect_round(world, agent, layout_seed, ids, labeller=driver.act)
+            if copy is None:
+                episodes += collect_round(world, None, layout_seed, ids, demonstrator=driver.act)
+            else:
+                agent = policy_agent(copy, world, ids.size, window)
+                episodes += collect_round(world, agent, layout_seed, ids, labeller=driver.act)
             bar.update(ids.size)
     return episodes
 
@@ -218,9 +206,12 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     started = time.perf_counter()
     torch.set_num_threads(settings.threads)
     torch.manual_seed(settings.seed)
-    copied = collect_demonstrations(world, settings.episodes, 0, settings)
-    held_out = collect_demonstrations(
-        world, settings.held_out_episodes, settings.episodes, settings
+    copied = collect_labelled(world, count=settings.episodes, first_episode=0, settings=settings)
+    held_out = collect_labelled(
+        world,
+        count=settings.held_out_episodes,
+        first_episode=settings.episodes,
+        settings=settings,
     )
     frames, actions = _windows(_replay_of(world, copied, settings, window))
     held_frames, held_actions = _windows(_replay_of(world, held_out, settings, window))
@@ -242,12 +233,12 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     for round_index in range(settings.dagger_rounds):
         if not dagger:
             dagger.append({"round": 0, "windows": actions.size, "test_success": test.success})
-        corrected = collect_corrections(
+        corrected = collect_labelled(
             world,
-            network,
             count=settings.dagger_episodes,
             first_episode=first,
             settings=settings,
+            copy=network,
             window=window,
         )
         first += settings.dagger_episodes
