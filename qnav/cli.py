@@ -14,6 +14,7 @@ from pathlib import Path
 
 from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from contracts.health import DEFAULT_MAX_AGE_S
+from contracts.observation import WINDOW_LENGTH
 from contracts.policy_file import WEIGHT_TYPES
 from qnav import __version__
 
@@ -232,6 +233,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     imitate.add_argument(
         "--conv-channels", type=int, default=8, help="channels per lidar convolution (paper: 8)"
+    )
+    imitate.add_argument(
+        "--window",
+        type=int,
+        default=WINDOW_LENGTH,
+        help=f"observations per decision (paper: {WINDOW_LENGTH})",
     )
     imitate.add_argument("--episodes", type=int, default=2000, help="planner episodes (2000)")
     imitate.add_argument(

@@ -200,7 +200,6 @@ def diagnose(args: argparse.Namespace) -> int:
 
 def imitate(args: argparse.Namespace) -> int:
     """Copy the oracle planner with the learner's network; test the copy."""
-    from contracts.observation import WINDOW_LENGTH
     from training.imitate import ImitationSettings
     from training.imitate import imitate as measure
 
@@ -217,7 +216,7 @@ def imitate(args: argparse.Namespace) -> int:
         seed=args.seed,
         threads=args.threads,
     )
-    result = measure(world, settings, WINDOW_LENGTH)
+    result = measure(world, settings, args.window)
     if args.json:
         print(json.dumps(result.to_dict()))
         return 0
