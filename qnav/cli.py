@@ -15,7 +15,7 @@ from pathlib import Path
 from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from contracts.health import DEFAULT_MAX_AGE_S
 from contracts.observation import WINDOW_LENGTH
-from contracts.policy_file import WEIGHT_TYPES
+from contracts.policy_file import CONV_CHANNELS, WEIGHT_TYPES
 from qnav import __version__
 
 Handler = Callable[[argparse.Namespace], int]
@@ -232,7 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--model", default="recurrent", choices=["recurrent", "feedforward"], help="network"
     )
     imitate.add_argument(
-        "--conv-channels", type=int, default=8, help="channels per lidar convolution (paper: 8)"
+        "--conv-channels",
+        type=int,
+        default=CONV_CHANNELS,
+        help=f"channels per lidar convolution (paper: {CONV_CHANNELS})",
     )
     imitate.add_argument(
         "--window",

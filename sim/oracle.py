@@ -114,14 +114,13 @@ def run_oracle(
 ) -> EvalResult:
     """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
-    rng = np.random.default_rng(settings.seed)
+    driver = OracleDriver(config, settings.seed, horizon=horizon, random_sequences=random_sequences)
     outcomes, lengths = [], []
     for episode in tqdm(range(settings.episodes), desc="oracle", unit="ep", disable=not progress):
         state = reset(config, np.array([settings.seed]), np.array([episode]))
         result = Outcome.RUNNING
         while True:
-            action = plan(config, state, held_sequences(horizon, random_sequences, rng))
-            state, _, transition = step(config, state, action)
+            state, _, transition = step(config, state, driver.act(state))
             if transition.terminated[0] or transition.truncated[0]:
                 result = Outcome(int(transition.outcome[0]))
                 break

@@ -172,10 +172,11 @@ def _clone(
     rng: np.random.Generator,
 ) -> None:
     """`settings.iterations` cross-entropy steps on random rows of (frames, actions)."""
+    bf16 = cpu_has_bf16()
     network.train()
     for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
         rows = rng.integers(0, actions.size, settings.batch_size)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cpu_has_bf16()):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             logits = network(torch.from_numpy(frames[rows])).float()
         loss = functional.cross_entropy(logits, torch.from_numpy(actions[rows]))
         optimizer.zero_grad(set_to_none=True)
@@ -229,10 +230,10 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     copied_windows = actions.size
     test = _test(world, network, settings, window)
     dagger: list[dict[str, float]] = []
+    if settings.dagger_rounds:
+        dagger.append({"round": 0, "windows": actions.size, "test_success": test.success})
     first = settings.episodes + settings.held_out_episodes
     for round_index in range(settings.dagger_rounds):
-        if not dagger:
-            dagger.append({"round": 0, "windows": actions.size, "test_success": test.success})
         corrected = collect_labelled(
             world,
             count=settings.dagger_episodes,
