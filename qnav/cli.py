@@ -15,7 +15,7 @@ from pathlib import Path
 from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from contracts.health import DEFAULT_MAX_AGE_S
 from contracts.observation import WINDOW_LENGTH
-from contracts.policy_file import CONV_CHANNELS, WEIGHT_TYPES
+from contracts.policy_file import CONV_CHANNELS, CONV_STRIDE, WEIGHT_TYPES
 from qnav import __version__
 
 Handler = Callable[[argparse.Namespace], int]
@@ -236,6 +236,17 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=CONV_CHANNELS,
         help=f"channels per lidar convolution (paper: {CONV_CHANNELS})",
+    )
+    imitate.add_argument(
+        "--conv-stride",
+        type=int,
+        default=CONV_STRIDE,
+        help=f"stride of each lidar convolution (paper: {CONV_STRIDE})",
+    )
+    imitate.add_argument(
+        "--scan-difference",
+        action="store_true",
+        help="give the lidar encoder each scan's change since the previous one as a 2nd channel",
     )
     imitate.add_argument(
         "--window",

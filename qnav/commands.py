@@ -207,6 +207,8 @@ def imitate(args: argparse.Namespace) -> int:
     settings = ImitationSettings(
         model=args.model,
         conv_channels=args.conv_channels,
+        conv_stride=args.conv_stride,
+        scan_difference=args.scan_difference,
         episodes=args.episodes,
         held_out_episodes=args.held_out_episodes,
         dagger_rounds=args.dagger_rounds,
@@ -222,7 +224,10 @@ def imitate(args: argparse.Namespace) -> int:
         return 0
     test = result.test
     print(
-        f"{world.name}, {settings.model}, {settings.conv_channels} lidar channels: planner "
+        f"{world.name}, {settings.model}, {settings.conv_channels} lidar channels of stride "
+        f"{settings.conv_stride}"
+        + (", scan differences" if settings.scan_difference else "")
+        + ": planner "
         f"success {result.planner_success:.3f} on the "
         f"{settings.episodes} copied episodes ({result.windows} decisions)\n"
         f"clone agrees with the planner on {result.train_agreement:.1%} of copied decisions, "

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from torch.nn import functional
 from tqdm import tqdm
 
-from contracts.policy_file import CONV_CHANNELS
+from contracts.policy_file import CONV_CHANNELS, CONV_STRIDE
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate
@@ -50,6 +50,11 @@ class ImitationSettings:
     conv_channels: int = CONV_CHANNELS
     """Channels of each lidar convolution (the paper's 8; others only to ask whether the
     encoder's width is the limit)."""
+    conv_stride: int = CONV_STRIDE
+    """Stride of each lidar convolution (the paper's 3; smaller keeps finer angular detail)."""
+    scan_difference: bool = False
+    """Give the encoder each frame's change since the previous one as a second input channel
+    (`training.networks.scan_change`): the obstacles' motion made explicit."""
     episodes: int = 2000
     """Planner episodes to copy."""
     held_out_episodes: int = 200
@@ -84,6 +89,7 @@ class ImitationSettings:
         check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
         check_range(self, "threads", self.threads, 1, 1024)
         check_range(self, "conv_channels", self.conv_channels, 1, 1024)
+        check_range(self, "conv_stride", self.conv_stride, 1, 6)
         check_range(self, "dagger_rounds", self.dagger_rounds, 0, 1000)
         check_range(self, "dagger_episodes", self.dagger_episodes, 1, 10**7)
 
@@ -221,6 +227,8 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
         settings.model,
         world.lidar.num_beams if world.lidar else None,
         conv_channels=settings.conv_channels,
+        conv_stride=settings.conv_stride,
+        scan_difference=settings.scan_difference,
     )
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)

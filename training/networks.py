@@ -24,34 +24,59 @@ from contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_
 ModelKind = Literal["recurrent", "feedforward"]
 
 
-def conv_output_length(num_beams: int) -> int:
+def conv_output_length(num_beams: int, stride: int = CONV_STRIDE) -> int:
     """Length of the lidar encoder's output per channel."""
     length = num_beams
     for _ in range(CONV_LAYERS):
-        length = (length - CONV_KERNEL) // CONV_STRIDE + 1
+        length = (length - CONV_KERNEL) // stride + 1
     return length
+
+
+SCAN_CHANGE_SCALE = 20.0
+"""Scan differences (`scan_change`) are multiplied by this before clipping to [-1, 1]: with
+scans encoded as range / 20 m, a difference reads in metres, so an obstacle's step of 0.1-0.3 m
+between frames is a tenth or more of the channel's span instead of a hundredth."""
+
+
+def scan_change(scans: Tensor) -> Tensor:
+    """(N, T, B) encoded scans of a window -> each frame's scan minus the previous frame's,
+    scaled by `SCAN_CHANGE_SCALE` and clipped to [-1, 1]; zero for the window's first frame."""
+    change = torch.diff(scans, dim=1, prepend=scans[:, :1])
+    return (change * SCAN_CHANGE_SCALE).clamp(-1.0, 1.0)
 
 
 class LidarEncoder(nn.Module):
     """3 x Conv1d(8 channels, kernel 6, stride 3) + ReLU over a scan: (M, B) -> (M, 8 * L).
 
-    Other channel counts exist for diagnostics only (`qnav imitate --conv-channels`): policy
-    files fix the paper's 8."""
+    Other channel counts and strides, and a second input channel with the scan's change since
+    the previous frame (`scan_change`), exist for diagnostics only (`qnav imitate`): policy
+    files fix the paper's encoder."""
 
-    def __init__(self, num_beams: int, channels: int = CONV_CHANNELS) -> None:
+    def __init__(
+        self,
+        num_beams: int,
+        channels: int = CONV_CHANNELS,
+        stride: int = CONV_STRIDE,
+        scan_difference: bool = False,
+    ) -> None:
         super().__init__()
-        if conv_output_length(num_beams) < 1:
-            raise ValueError(f"num_beams = {num_beams} is too few for three stride-3 convolutions")
+        if conv_output_length(num_beams, stride) < 1:
+            raise ValueError(
+                f"num_beams = {num_beams} is too few for three stride-{stride} convolutions"
+            )
+        self.scan_difference = scan_difference
         layers: list[nn.Module] = []
-        previous = 1
+        previous = 2 if scan_difference else 1
         for _ in range(CONV_LAYERS):
-            layers += [nn.Conv1d(previous, channels, CONV_KERNEL, CONV_STRIDE), nn.ReLU()]
+            layers += [nn.Conv1d(previous, channels, CONV_KERNEL, stride), nn.ReLU()]
             previous = channels
         self.layers = nn.Sequential(*layers)
-        self.output_size = channels * conv_output_length(num_beams)
+        self.output_size = channels * conv_output_length(num_beams, stride)
 
     def forward(self, scans: Tensor) -> Tensor:
-        return self.layers(scans.unsqueeze(1)).flatten(1)  # type: ignore[no-any-return]
+        """(M, B) scans, or (M, 2, B) scans and their changes -> (M, output_size)."""
+        inputs = scans.unsqueeze(1) if scans.dim() == 2 else scans
+        return self.layers(inputs).flatten(1)  # type: ignore[no-any-return]
 
 
 def centre_encoder(encoder: LidarEncoder, scans: Tensor) -> None:
@@ -100,13 +125,20 @@ class QNetwork(nn.Module):
         kind: ModelKind,
         num_beams: int | None,
         hidden_size: int = 512,
+        *,
         conv_channels: int = CONV_CHANNELS,
+        conv_stride: int = CONV_STRIDE,
+        scan_difference: bool = False,
     ) -> None:
         super().__init__()
         self.kind: ModelKind = kind
         self.num_beams = num_beams or 0
         self.hidden_size = hidden_size
-        self.encoder = LidarEncoder(num_beams, conv_channels) if num_beams else None
+        self.encoder = (
+            LidarEncoder(num_beams, conv_channels, conv_stride, scan_difference)
+            if num_beams
+            else None
+        )
         self.feature_size = (self.encoder.output_size if self.encoder else 0) + TARGET_FEATURES
         self.lstm = (
             nn.LSTM(self.feature_size, hidden_size, batch_first=True)
@@ -198,6 +230,8 @@ class StreamingQNetwork(nn.Module):
 
     def __init__(self, network: QNetwork, window_length: int) -> None:
         super().__init__()
+        if network.encoder is not None and network.encoder.scan_difference:
+            raise ValueError("a network reading scan differences cannot be stepped frame by frame")
         self.num_beams = network.num_beams
         self.encoder = network.encoder
         self.lstm = network.lstm
@@ -229,8 +263,10 @@ def frame_features(encoder: LidarEncoder | None, num_beams: int, frames: Tensor)
     if encoder is None:
         return frames
     n, t, _ = frames.shape
-    scans = frames[..., :num_beams].reshape(n * t, num_beams)
-    encoded = encoder(scans).reshape(n, t, -1)
+    scans = frames[..., :num_beams]
+    if encoder.scan_difference:
+        scans = torch.stack([scans, scan_change(scans)], dim=2)
+    encoded = encoder(scans.reshape(n * t, -1, num_beams)).reshape(n, t, -1)
     return torch.cat([encoded, frames[..., num_beams:]], dim=-1)
 
 

@@ -8,6 +8,7 @@ from training.networks import (
     channel_activity,
     conv_output_length,
     near_scan_bins,
+    scan_change,
 )
 
 
@@ -23,6 +24,38 @@ def test_every_variant_maps_a_window_to_three_q_values(kind: str, beams: int | N
     network = QNetwork(kind, beams, hidden_size=32)  # type: ignore[arg-type]
     frames = torch.rand(4, 5, network.frame_size)
     assert network(frames).shape == (4, 3)
+
+
+def test_scan_change_is_zero_on_the_first_frame_in_metres_and_clipped() -> None:
+    scans = torch.zeros(1, 3, 4)
+    scans[0, 1] = torch.tensor([0.01, -0.01, 0.5, -0.5])  # ranges / 20 m
+    change = scan_change(scans)
+    assert torch.equal(change[0, 0], torch.zeros(4))
+    torch.testing.assert_close(change[0, 1], torch.tensor([0.2, -0.2, 1.0, -1.0]))
+    torch.testing.assert_close(change[0, 2], torch.tensor([-0.2, 0.2, -1.0, 1.0]))
+
+
+def test_feedforward_with_scan_differences_sees_the_previous_frame_and_no_earlier() -> None:
+    network = QNetwork("feedforward", 720, hidden_size=32, scan_difference=True)
+    frames = torch.rand(2, 5, network.frame_size)
+    earlier, previous = frames.clone(), frames.clone()
+    earlier[:, :-2] = torch.rand_like(earlier[:, :-2])
+    previous[:, -2] = torch.rand_like(previous[:, -2])
+    torch.testing.assert_close(network(frames), network(earlier))
+    assert not torch.allclose(network(frames), network(previous))
+
+
+def test_a_finer_stride_keeps_more_positions() -> None:
+    assert conv_output_length(720, stride=2) == 86
+    network = QNetwork("recurrent", 720, hidden_size=32, conv_stride=2)
+    assert network.encoder is not None and network.encoder.output_size == 8 * 86
+    assert network(torch.rand(3, 5, network.frame_size)).shape == (3, 3)
+
+
+def test_a_network_reading_scan_differences_is_not_streamed() -> None:
+    network = QNetwork("recurrent", 720, hidden_size=32, scan_difference=True)
+    with pytest.raises(ValueError, match="scan differences"):
+        StreamingQNetwork(network, 5)
 
 
 def test_lidarless_network_has_no_convolutions() -> None:
