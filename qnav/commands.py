@@ -215,6 +215,7 @@ def imitate(args: argparse.Namespace) -> int:
         dagger_episodes=args.dagger_episodes,
         test_episodes=args.test_episodes,
         iterations=args.iterations,
+        dodge_weight=args.dodge_weight,
         seed=args.seed,
         threads=args.threads,
     )
@@ -232,6 +233,9 @@ def imitate(args: argparse.Namespace) -> int:
         f"{settings.episodes} copied episodes ({result.windows} decisions)\n"
         f"clone agrees with the planner on {result.train_agreement:.1%} of copied decisions, "
         f"{result.held_out_agreement:.1%} of held-out ones\n"
+        f"dodges (the planner's action is not go-to-target's): {result.dodge_share:.1%} of "
+        f"held-out decisions; the clone copies {result.dodge_agreement:.1%} of them and goes to "
+        f"the target instead on {result.dodge_as_baseline:.1%}\n"
         f"clone, test protocol ({test.episodes} episodes of up to 500 steps): success "
         f"{test.success:.3f}, collision {test.collision:.3f}, unfinished {test.unfinished:.3f}"
         + "".join(

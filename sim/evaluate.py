@@ -72,10 +72,15 @@ class GoToTargetAgent:
         """No memory to reset."""
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
-        features = observation.target_features()
-        left, ahead = features[:, 1], features[:, 2]
-        turn = np.where(left > 0, Action.LEFT, Action.RIGHT)
-        return np.where(ahead >= self.aligned_cos, Action.FORWARD, turn).astype(np.int64)
+        return go_to_target(observation.target_features(), self.aligned_cos)
+
+
+def go_to_target(target_features: NDArray[np.floating], aligned_cos: float) -> NDArray[np.int64]:
+    """`GoToTargetAgent`'s choice from (..., 3) target features (d_g, sin phi, cos phi): forward
+    when cos phi >= aligned_cos, else a turn towards the target."""
+    left, ahead = target_features[..., 1], target_features[..., 2]
+    turn = np.where(left > 0, Action.LEFT, Action.RIGHT)
+    return np.where(ahead >= aligned_cos, Action.FORWARD, turn).astype(np.int64)
 
 
 class ExplorationHold:

@@ -10,6 +10,11 @@ DQN run can stall below the planner:
 - the clone gets near the planner: the network and its inputs can hold a policy that good,
   and what is missing is in the learning (data, targets, optimisation);
 - the clone stalls too: the window of observations, or the network reading it, is the limit.
+
+It also measures the dodges: decisions where the planner does not do what the go-to-target
+baseline (blind to obstacles, `sim.evaluate.go_to_target`) would. They are what separates the
+planner from that baseline, and they are rare, so a copy can agree on most decisions and still
+miss them; `dodge_weight` weighs them more in the copy's loss.
 """
 
 from __future__ import annotations
@@ -24,10 +29,11 @@ from numpy.typing import NDArray
 from torch.nn import functional
 from tqdm import tqdm
 
+from contracts.observation import TARGET_FEATURES
 from contracts.policy_file import CONV_CHANNELS, CONV_STRIDE
 from contracts.settings import check_range
 from sim.config import WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, evaluate
+from sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
 from sim.oracle import OracleDriver
 from sim.task import Outcome
 from training.collect import collect_round
@@ -37,6 +43,8 @@ from training.run import cpu_has_bf16, policy_agent
 
 _DEMONSTRATION_LAYOUT_SEED = 555_555
 """Layouts of the demonstrations: neither the training runs', the validation's nor the test's."""
+_ALIGNED_COS = 0.97
+"""The go-to-target baseline's heading tolerance (`sim.evaluate.GoToTargetAgent`'s default)."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +81,9 @@ class ImitationSettings:
     """Windows per step."""
     learning_rate: float = 5e-4
     """Adam's learning rate."""
+    dodge_weight: float = 1.0
+    """Weight of the loss on dodges (decisions where the planner's action is not the go-to-target
+    baseline's) against 1 on every other decision."""
     parallel_worlds: int = 32
     """Planner episodes collected at once."""
     max_episode_steps: int = 200
@@ -92,6 +103,7 @@ class ImitationSettings:
         check_range(self, "conv_stride", self.conv_stride, 1, 6)
         check_range(self, "dagger_rounds", self.dagger_rounds, 0, 1000)
         check_range(self, "dagger_episodes", self.dagger_episodes, 1, 10**7)
+        check_range(self, "dodge_weight", self.dodge_weight, 1e-3, 1e3)
 
 
 @dataclass(frozen=True)
@@ -106,6 +118,13 @@ class ImitationResult:
     """Share of 4096 copied windows on which the clone picks the planner's action."""
     held_out_agreement: float
     """The same on windows of the held-out planner episodes."""
+    dodge_share: float
+    """Share of the held-out decisions that are dodges (the planner's action is not the
+    go-to-target baseline's)."""
+    dodge_agreement: float
+    """Share of those dodges on which the clone picks the planner's action."""
+    dodge_as_baseline: float
+    """Share of those dodges on which the clone picks the baseline's action instead."""
     test: EvalResult
     """The clone under the test protocol (greedy, 200 episodes of up to 500 steps)."""
     dagger: list[dict[str, float]]
@@ -168,6 +187,11 @@ def _replay_of(
     return replay
 
 
+def baseline_actions(frames: NDArray[Any]) -> NDArray[np.int64]:
+    """The go-to-target baseline's action on each window (N, k, F), from its last frame."""
+    return go_to_target(frames[:, -1, -TARGET_FEATURES:], _ALIGNED_COS)
+
+
 def _clone(
     network: QNetwork,
     optimizer: torch.optim.Optimizer,
@@ -177,14 +201,18 @@ def _clone(
     settings: ImitationSettings,
     rng: np.random.Generator,
 ) -> None:
-    """`settings.iterations` cross-entropy steps on random rows of (frames, actions)."""
+    """`settings.iterations` cross-entropy steps on random rows of (frames, actions), dodges
+    weighted by `settings.dodge_weight`."""
     bf16 = cpu_has_bf16()
+    weights = np.where(actions != baseline_actions(frames), settings.dodge_weight, 1.0)
     network.train()
     for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
         rows = rng.integers(0, actions.size, settings.batch_size)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             logits = network(torch.from_numpy(frames[rows])).float()
-        loss = functional.cross_entropy(logits, torch.from_numpy(actions[rows]))
+        losses = functional.cross_entropy(logits, torch.from_numpy(actions[rows]), reduction="none")
+        weight = torch.from_numpy(weights[rows]).float()
+        loss = (losses * weight).sum() / weight.sum()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()  # type: ignore[no-untyped-call]
         optimizer.step()
@@ -202,10 +230,18 @@ def _test(
     )
 
 
-def _agreement(network: QNetwork, frames: NDArray[Any], actions: NDArray[Any]) -> float:
+def _choices(network: QNetwork, frames: NDArray[Any]) -> NDArray[np.int64]:
     with torch.no_grad():
-        chosen = network(torch.from_numpy(frames)).argmax(dim=1).numpy()
-    return float(np.mean(chosen == actions))
+        return network(torch.from_numpy(frames)).argmax(dim=1).numpy()  # type: ignore[no-any-return]
+
+
+def _share(flags: NDArray[np.bool_]) -> float:
+    """The share of true flags (0 of none)."""
+    return float(np.mean(flags)) if flags.size else 0.0
+
+
+def _agreement(network: QNetwork, frames: NDArray[Any], actions: NDArray[Any]) -> float:
+    return float(np.mean(_choices(network, frames) == actions))
 
 
 def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> ImitationResult:
@@ -259,11 +295,17 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
         dagger.append(
             {"round": round_index + 1, "windows": actions.size, "test_success": test.success}
         )
+    chosen = _choices(network, held_frames)
+    baseline = baseline_actions(held_frames)
+    dodges = held_actions != baseline
     return ImitationResult(
         planner_success=float(np.mean([e.outcome == Outcome.SUCCESS for e in copied])),
         windows=int(copied_windows),
         train_agreement=train_agreement,
-        held_out_agreement=_agreement(network, held_frames, held_actions),
+        held_out_agreement=float(np.mean(chosen == held_actions)),
+        dodge_share=float(np.mean(dodges)),
+        dodge_agreement=_share(chosen[dodges] == held_actions[dodges]),
+        dodge_as_baseline=_share(chosen[dodges] == baseline[dodges]),
         test=test,
         dagger=dagger,
         minutes=round((time.perf_counter() - started) / 60, 1),

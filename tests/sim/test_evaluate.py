@@ -1,7 +1,9 @@
+import numpy as np
 import pytest
 
+from contracts.actions import Action
 from sim.config import scenario
-from sim.evaluate import EvalSettings, RandomAgent, evaluate
+from sim.evaluate import EvalSettings, RandomAgent, evaluate, go_to_target
 
 
 def test_results_do_not_depend_on_the_batch_size() -> None:
@@ -27,3 +29,9 @@ def test_turning_to_the_target_and_driving_always_succeeds_without_obstacles(nam
 
     result = evaluate(scenario(name), GoToTargetAgent(), EvalSettings(episodes=100))
     assert result.success == 1.0
+
+
+def test_go_to_target_drives_when_facing_and_turns_towards_the_target_otherwise() -> None:
+    features = np.array([[1.0, 0.0, 1.0], [1.0, 0.5, 0.8], [1.0, -0.5, 0.8], [1.0, 0.0, -1.0]])
+    chosen = go_to_target(features, aligned_cos=0.97)
+    assert chosen.tolist() == [Action.FORWARD, Action.LEFT, Action.RIGHT, Action.RIGHT]

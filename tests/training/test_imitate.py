@@ -8,6 +8,7 @@ COMMAND = [
     sys.executable, "-m", "qnav", "imitate", "--scenario", "walls-increment",
     "--episodes", "48", "--held-out-episodes", "16", "--iterations", "150",
     "--test-episodes", "8", "--dagger-rounds", "1", "--dagger-episodes", "8",
+    "--dodge-weight", "3",
     "--threads", "1", "--json",
 ]  # fmt: skip
 
@@ -22,6 +23,10 @@ def test_imitate_clones_the_planner_and_prints_json() -> None:
     # Copying works: most of the planner's decisions, seen or not, are the clone's too.
     assert result["train_agreement"] > 0.8
     assert result["held_out_agreement"] > 0.7
+    # Even without obstacles the planner turns where go-to-target would not (it plans the
+    # turns' timing), so there are dodges, and the clone's choices on them are counted.
+    assert 0.0 < result["dodge_share"] < 0.5
+    assert 0.0 <= result["dodge_as_baseline"] <= 1.0 - result["dodge_agreement"]
     # DAgger: the first copy, then one round that added the copy's own states, labelled.
     first, second = result["dagger"]
     assert (first["round"], second["round"]) == (0, 1)
