@@ -263,13 +263,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     imitate.add_argument("--dagger-rounds", type=int, default=0, help="DAgger rounds (0)")
     imitate.add_argument(
+        "--dagger-episodes", type=int, default=1000, help="episodes per DAgger round (1000)"
+    )
+    imitate.add_argument(
         "--dodge-weight",
         type=float,
         default=1.0,
         help="loss weight of decisions where the planner does not go to the target (1)",
-    )
-    imitate.add_argument(
-        "--dagger-episodes", type=int, default=1000, help="episodes per DAgger round (1000)"
     )
     imitate.add_argument(
         "--test-episodes", type=int, default=200, help="test protocol episodes (200)"
