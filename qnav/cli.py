@@ -244,6 +244,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"stride of each lidar convolution (paper: {CONV_STRIDE})",
     )
     imitate.add_argument(
+        "--privileged",
+        action="store_true",
+        help="copy with a network given the obstacles' exact positions and velocities instead",
+    )
+    imitate.add_argument(
         "--scan-difference",
         action="store_true",
         help="give the lidar encoder each scan's change since the previous one as a 2nd channel",

@@ -219,15 +219,24 @@ def imitate(args: argparse.Namespace) -> int:
         seed=args.seed,
         threads=args.threads,
     )
-    result = measure(world, settings, args.window)
+    if args.privileged:
+        from training.privileged import imitate_privileged
+
+        result = imitate_privileged(world, settings)
+    else:
+        result = measure(world, settings, args.window)
     if args.json:
         print(json.dumps(result.to_dict()))
         return 0
     test = result.test
     print(
-        f"{world.name}, {settings.model}, {settings.conv_channels} lidar channels of stride "
-        f"{settings.conv_stride}"
-        + (", scan differences" if settings.scan_difference else "")
+        f"{world.name}, "
+        + (
+            "a network given the world's state"
+            if args.privileged
+            else f"{settings.model}, {settings.conv_channels} lidar channels of stride "
+            f"{settings.conv_stride}" + (", scan differences" if settings.scan_difference else "")
+        )
         + ": planner "
         f"success {result.planner_success:.3f} on the "
         f"{settings.episodes} copied episodes ({result.windows} decisions)\n"

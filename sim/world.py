@@ -267,3 +267,9 @@ def scatter(whole: Rows, index: NDArray[np.intp], part: Rows) -> Rows:
         merged[index] = rows
         fields.append(merged)
     return type(whole)(*fields)
+
+
+def take_rows(whole: Rows, index: NDArray[np.intp]) -> Rows:
+    """The rows `index` of `whole` (arrays with one row per world), in that order."""
+    fields: list[Any] = [None if array is None else array[index] for array in whole]
+    return type(whole)(*fields)

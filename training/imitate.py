@@ -41,9 +41,9 @@ from training.networks import ModelKind, QNetwork
 from training.replay import Episode, EpisodeReplay
 from training.run import cpu_has_bf16, policy_agent
 
-_DEMONSTRATION_LAYOUT_SEED = 555_555
+DEMONSTRATION_LAYOUT_SEED = 555_555
 """Layouts of the demonstrations: neither the training runs', the validation's nor the test's."""
-_ALIGNED_COS = 0.97
+ALIGNED_COS = 0.97
 """The go-to-target baseline's heading tolerance (`sim.evaluate.GoToTargetAgent`'s default)."""
 
 
@@ -154,7 +154,7 @@ def collect_labelled(
     or, for DAgger, by `copy` (reading windows of `window` frames)."""
     world = replace(world, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(world, seed=settings.seed + first_episode)
-    layout_seed = _DEMONSTRATION_LAYOUT_SEED + settings.seed
+    layout_seed = DEMONSTRATION_LAYOUT_SEED + settings.seed
     episodes: list[Episode] = []
     desc = "planner episodes" if copy is None else "DAgger episodes"
     with tqdm(total=count, unit="ep", desc=desc, leave=False) as bar:
@@ -189,7 +189,7 @@ def _replay_of(
 
 def baseline_actions(frames: NDArray[Any]) -> NDArray[np.int64]:
     """The go-to-target baseline's action on each window (N, k, F), from its last frame."""
-    return go_to_target(frames[:, -1, -TARGET_FEATURES:], _ALIGNED_COS)
+    return go_to_target(frames[:, -1, -TARGET_FEATURES:], ALIGNED_COS)
 
 
 def _clone(
@@ -238,6 +238,20 @@ def _choices(network: QNetwork, frames: NDArray[Any]) -> NDArray[np.int64]:
 def _share(flags: NDArray[np.bool_]) -> float:
     """The share of true flags (0 of none)."""
     return float(np.mean(flags)) if flags.size else 0.0
+
+
+def held_out_counts(
+    chosen: NDArray[np.int64], planner: NDArray[np.int64], baseline: NDArray[np.int64]
+) -> dict[str, float]:
+    """`ImitationResult`'s held-out agreement and dodge counts from the clone's, the planner's
+    and the go-to-target baseline's actions on the held-out decisions."""
+    dodges = planner != baseline
+    return {
+        "held_out_agreement": _share(chosen == planner),
+        "dodge_share": _share(dodges),
+        "dodge_agreement": _share(chosen[dodges] == planner[dodges]),
+        "dodge_as_baseline": _share(chosen[dodges] == baseline[dodges]),
+    }
 
 
 def _agreement(network: QNetwork, frames: NDArray[Any], actions: NDArray[Any]) -> float:
@@ -295,17 +309,13 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
         dagger.append(
             {"round": round_index + 1, "windows": actions.size, "test_success": test.success}
         )
-    chosen = _choices(network, held_frames)
-    baseline = baseline_actions(held_frames)
-    dodges = held_actions != baseline
     return ImitationResult(
         planner_success=float(np.mean([e.outcome == Outcome.SUCCESS for e in copied])),
         windows=int(copied_windows),
         train_agreement=train_agreement,
-        held_out_agreement=float(np.mean(chosen == held_actions)),
-        dodge_share=float(np.mean(dodges)),
-        dodge_agreement=_share(chosen[dodges] == held_actions[dodges]),
-        dodge_as_baseline=_share(chosen[dodges] == baseline[dodges]),
+        **held_out_counts(
+            _choices(network, held_frames), held_actions, baseline_actions(held_frames)
+        ),
         test=test,
         dagger=dagger,
         minutes=round((time.perf_counter() - started) / 60, 1),

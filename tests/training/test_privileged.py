@@ -1,0 +1,79 @@
+"""The copy given the world's state: its features, its episode runner, its command."""
+
+import json
+import math
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+from sim.config import scenario
+from sim.evaluate import EvalSettings, GoToTargetAgent, evaluate
+from sim.task import Outcome
+from sim.world import WorldState, observe, reset
+from training.imitate import ALIGNED_COS
+from training.privileged import SECTORS, drive, privileged_features
+
+
+def test_obstacles_are_seen_in_the_robots_frame_nearest_first() -> None:
+    config = scenario("obstacles-increment")
+    state = reset(config, np.array([0]), np.array([0]))
+    m = state.obstacle_xy.shape[1]
+    # Robot at (5, 5) facing +y; obstacle 0 is 3 m away to its left (-x), moving towards it
+    # (+x); obstacle 1 is 1 m ahead (+y), still; the others far.
+    obstacle_xy = np.full((1, m, 2), 9.0)
+    obstacle_xy[0, 0], obstacle_xy[0, 1] = (2.0, 5.0), (5.0, 6.0)
+    velocity = np.zeros((1, m, 2))
+    velocity[0, 0] = (1.0, 0.0)
+    state = state._replace(
+        pose=np.array([[5.0, 5.0, math.pi / 2]]),
+        obstacle_xy=obstacle_xy,
+        obstacle_velocity=velocity,
+    )
+    features = privileged_features(config, state, observe(config, state))[0]
+    first = 3 + 2 + SECTORS
+    positions = features[first : first + 2 * m].reshape(m, 2) * 10.0
+    velocities = features[first + 2 * m :].reshape(m, 2) * 1.5
+    np.testing.assert_allclose(positions[0], (1.0, 0.0), atol=1e-6)  # the nearest: ahead
+    np.testing.assert_allclose(positions[1], (0.0, 3.0), atol=1e-6)  # then: on the left
+    np.testing.assert_allclose(velocities[1], (0.0, -1.0), atol=1e-6)  # coming from the left
+    assert features.size == first + 4 * m
+
+
+def test_drive_gives_the_test_protocols_outcomes() -> None:
+    config = scenario("obstacles-increment")
+    protocol = EvalSettings(episodes=40, max_episode_steps=500)
+    expected = evaluate(config, GoToTargetAgent(ALIGNED_COS), protocol)
+    world = replace(config, max_episode_steps=500)
+    agent = GoToTargetAgent(ALIGNED_COS)
+    outcomes = drive(world, protocol.seed, np.arange(40), lambda _, obs: agent.act(obs))
+    assert np.mean(outcomes == Outcome.SUCCESS) == expected.success
+    assert np.mean(outcomes == Outcome.COLLISION) == expected.collision
+
+
+def test_drive_records_only_the_running_worlds() -> None:
+    config = scenario("walls-increment")
+    agent = GoToTargetAgent(ALIGNED_COS)
+    seen: list[int] = []
+
+    def record(state: WorldState, _: object, action: np.ndarray) -> None:
+        assert state.pose.shape[0] == action.size
+        seen.append(action.size)
+
+    drive(config, 7, np.arange(6), lambda _, obs: agent.act(obs), record)
+    assert seen[0] == 6 and seen[-1] >= 1 and seen == sorted(seen, reverse=True)
+
+
+def test_privileged_imitation_runs_as_a_user_runs_it() -> None:
+    command = [
+        sys.executable, "-m", "qnav", "imitate", "--privileged", "--scenario", "walls-increment",
+        "--episodes", "32", "--held-out-episodes", "8", "--iterations", "100",
+        "--test-episodes", "8", "--threads", "1", "--json",
+    ]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["planner_success"] == 1.0
+    assert result["train_agreement"] > 0.7
+    assert result["test"]["episodes"] == 8

@@ -1,0 +1,209 @@
+"""A copy of the oracle planner that is given the world's state instead of reading it from scans.
+
+`qnav imitate --privileged` asks where the copies of `training.imitate` lose the planner: in
+reading the obstacles' positions and motion from five scans, or in the policy itself. Its copy
+sees, at every step, the target features, the robot's velocity, the scan's nearest return in
+each of 72 sectors (the walls) and, for every obstacle, its exact position and velocity in the
+robot's frame, nearest first: everything the planner needs to foresee the obstacles, whose
+future follows from their positions and velocities alone. A small network (two hidden layers
+of 512) learns the planner's action from that, and drives the test protocol's layouts.
+
+Near the planner: reading the scans is what the paper's network cannot do. Stalled with the
+other copies: a reactive policy, even with perfect state, does not learn the planner's dodges
+from its decisions. Diagnostics only: no policy file holds this network.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from torch import nn
+from torch.nn import functional
+from tqdm import tqdm
+
+from contracts.actions import NUM_ACTIONS
+from contracts.observation import TARGET_FEATURES
+from sim.config import WorldConfig
+from sim.evaluate import EvalResult, EvalSettings, go_to_target
+from sim.oracle import OracleDriver
+from sim.task import Outcome
+from sim.world import Observation, WorldState, observe, reset, step, take_rows
+from training.imitate import (
+    ALIGNED_COS,
+    DEMONSTRATION_LAYOUT_SEED,
+    ImitationResult,
+    ImitationSettings,
+    held_out_counts,
+)
+from training.run import cpu_has_bf16
+
+SECTORS = 72
+"""Sectors of the scan the copy sees (nearest return in each, 5 degrees wide)."""
+_POSITION_SCALE_M = 10.0
+_SPEED_SCALE_M_S = 1.5
+
+Act = Callable[[WorldState, Observation], NDArray[np.int64]]
+
+
+def privileged_features(
+    config: WorldConfig, state: WorldState, observation: Observation
+) -> NDArray[np.float32]:
+    """(N, F) what the privileged copy sees (module docstring), each part scaled to about
+    [-1, 1]; the first `TARGET_FEATURES` are the target's (distance, sin, cos of its bearing)."""
+    n = state.pose.shape[0]
+    target = observation.target_features()
+    target = np.column_stack([target[:, 0] / _POSITION_SCALE_M, target[:, 1:]])
+    parts = [target, state.velocity]
+    if observation.scan_m is not None and config.lidar is not None:
+        beams = observation.scan_m.shape[1]
+        nearest = observation.scan_m.reshape(n, SECTORS, beams // SECTORS).min(axis=2)
+        parts.append(np.minimum(nearest / config.lidar.max_range_m, 1.0))
+    heading = state.pose[:, 2:3]
+    cos, sin = np.cos(heading), np.sin(heading)
+    offset = state.obstacle_xy - state.pose[:, None, :2]
+    order = np.argsort(np.linalg.norm(offset, axis=2), axis=1)
+    offset = np.take_along_axis(offset, order[..., None], axis=1)
+    velocity = np.take_along_axis(state.obstacle_velocity, order[..., None], axis=1)
+
+    def robot_frame(xy: NDArray[np.float64]) -> NDArray[np.float64]:
+        x, y = xy[..., 0], xy[..., 1]
+        return np.stack([cos * x + sin * y, -sin * x + cos * y], axis=-1)
+
+    parts += [
+        (robot_frame(offset) / _POSITION_SCALE_M).reshape(n, -1),
+        (robot_frame(velocity) / _SPEED_SCALE_M_S).reshape(n, -1),
+    ]
+    return np.concatenate(parts, axis=1).astype(np.float32)
+
+
+def drive(
+    config: WorldConfig,
+    seed: int,
+    episodes: NDArray[np.int64],
+    act: Act,
+    record: Callable[[WorldState, Observation, NDArray[np.int64]], None] | None = None,
+) -> NDArray[np.int8]:
+    """Run the episodes (seed, e) for e in `episodes` together to their ends, `act` choosing
+    every action, `record` shown each step's (state, observation, action) of the running
+    worlds; each episode's outcome (RUNNING: cut at `config.max_episode_steps`)."""
+    state = reset(config, np.full(episodes.size, seed), episodes)
+    observation = observe(config, state)
+    running = np.arange(episodes.size)
+    outcomes = np.full(episodes.size, Outcome.RUNNING, dtype=np.int8)
+    while running.size:
+        action = act(state, observation)
+        if record is not None:
+            record(state, observation, action)
+        state, observation, transition = step(config, state, action)
+        ended = transition.terminated | transition.truncated
+        outcomes[running[ended]] = transition.outcome[ended]
+        going = np.flatnonzero(~ended)
+        running = running[going]
+        state, observation = take_rows(state, going), take_rows(observation, going)
+    return outcomes
+
+
+def _collect(
+    config: WorldConfig, settings: ImitationSettings, first: int, count: int
+) -> tuple[NDArray[np.float32], NDArray[np.int64], float]:
+    """The planner's features and actions on `count` training layouts from episode `first`,
+    and its success there."""
+    config = replace(config, max_episode_steps=settings.max_episode_steps)
+    driver = OracleDriver(config, seed=settings.seed + first)
+    features: list[NDArray[np.float32]] = []
+    actions: list[NDArray[np.int64]] = []
+
+    def record(state: WorldState, observation: Observation, action: NDArray[np.int64]) -> None:
+        features.append(privileged_features(config, state, observation))
+        actions.append(action)
+
+    outcomes = []
+    with tqdm(total=count, unit="ep", desc="planner episodes", leave=False) as bar:
+        for start in range(first, first + count, settings.parallel_worlds):
+            ids = np.arange(start, min(start + settings.parallel_worlds, first + count))
+            outcomes.append(
+                drive(
+                    config,
+                    DEMONSTRATION_LAYOUT_SEED + settings.seed,
+                    ids,
+                    lambda state, _: driver.act(state),
+                    record,
+                )
+            )
+            bar.update(ids.size)
+    success = float(np.mean(np.concatenate(outcomes) == Outcome.SUCCESS))
+    return np.concatenate(features), np.concatenate(actions), success
+
+
+def _network(inputs: int) -> nn.Module:
+    return nn.Sequential(
+        nn.Linear(inputs, 512),
+        nn.ReLU(),
+        nn.Linear(512, 512),
+        nn.ReLU(),
+        nn.Linear(512, NUM_ACTIONS),
+    )
+
+
+def _choices(network: nn.Module, features: NDArray[np.float32]) -> NDArray[np.int64]:
+    with torch.no_grad():
+        return network(torch.from_numpy(features)).argmax(dim=1).numpy()  # type: ignore[no-any-return]
+
+
+def imitate_privileged(world: WorldConfig, settings: ImitationSettings) -> ImitationResult:
+    """Collect, clone, test (module docstring); no DAgger."""
+    started = time.perf_counter()
+    torch.set_num_threads(settings.threads)
+    torch.manual_seed(settings.seed)
+    features, actions, planner_success = _collect(world, settings, 0, settings.episodes)
+    held_features, held_actions, _ = _collect(
+        world, settings, settings.episodes, settings.held_out_episodes
+    )
+    network = _network(features.shape[1])
+    optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
+    rng = np.random.default_rng(settings.seed)
+    bf16 = cpu_has_bf16()
+    for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
+        rows = rng.integers(0, actions.size, settings.batch_size)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            logits = network(torch.from_numpy(features[rows])).float()
+        loss = functional.cross_entropy(logits, torch.from_numpy(actions[rows]))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()  # type: ignore[no-untyped-call]
+        optimizer.step()
+    network.eval()
+    probe = rng.integers(0, actions.size, 4096)
+    protocol = EvalSettings(episodes=settings.test_episodes)
+    test_world = replace(world, max_episode_steps=protocol.max_episode_steps)
+    outcomes = drive(
+        test_world,
+        protocol.seed,
+        np.arange(settings.test_episodes),
+        lambda state, observation: _choices(
+            network, privileged_features(test_world, state, observation)
+        ),
+    )
+    return ImitationResult(
+        planner_success=planner_success,
+        windows=int(actions.size),
+        train_agreement=float(np.mean(_choices(network, features[probe]) == actions[probe])),
+        **held_out_counts(
+            _choices(network, held_features),
+            held_actions,
+            go_to_target(held_features[:, :TARGET_FEATURES], ALIGNED_COS),
+        ),
+        test=EvalResult(
+            success=float(np.mean(outcomes == Outcome.SUCCESS)),
+            collision=float(np.mean(outcomes == Outcome.COLLISION)),
+            unfinished=float(np.mean(outcomes == Outcome.RUNNING)),
+            episodes=settings.test_episodes,
+            mean_steps=0.0,
+        ),
+        dagger=[],
+        minutes=round((time.perf_counter() - started) / 60, 1),
+    )
