@@ -6,12 +6,16 @@ import argparse
 import json
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from contracts.errors import ConfigError
 from contracts.settings import load_toml, parse_assignments, with_overrides
 from sim.config import WorldConfig, load_world
 from sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
 from sim.evaluate import evaluate as run_evaluation
+
+if TYPE_CHECKING:
+    from training.imitate import ImitationResult, ImitationSettings
 
 
 def evaluate(args: argparse.Namespace) -> int:
@@ -228,33 +232,44 @@ def imitate(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.to_dict()))
         return 0
+    print(_imitation_report(world.name, settings, result, privileged=args.privileged))
+    return 0
+
+
+def _imitation_report(
+    world: str, settings: ImitationSettings, result: ImitationResult, *, privileged: bool
+) -> str:
+    copy = (
+        "a network given the world's state"
+        if privileged
+        else f"{settings.model}, {settings.conv_channels} lidar channels of stride "
+        f"{settings.conv_stride}" + (", scan differences" if settings.scan_difference else "")
+    )
     test = result.test
-    print(
-        f"{world.name}, "
-        + (
-            "a network given the world's state"
-            if args.privileged
-            else f"{settings.model}, {settings.conv_channels} lidar channels of stride "
-            f"{settings.conv_stride}" + (", scan differences" if settings.scan_difference else "")
-        )
-        + ": planner "
-        f"success {result.planner_success:.3f} on the "
-        f"{settings.episodes} copied episodes ({result.windows} decisions)\n"
+    lines = [
+        f"{world}, {copy}: planner success {result.planner_success:.3f} on the "
+        f"{settings.episodes} copied episodes ({result.windows} decisions)",
         f"clone agrees with the planner on {result.train_agreement:.1%} of copied decisions, "
-        f"{result.held_out_agreement:.1%} of held-out ones\n"
+        f"{result.held_out_agreement:.1%} of held-out ones",
+    ]
+    if result.planner_self_agreement is not None:
+        lines.append(
+            "the planner, asked again on the held-out states, picks the same action on "
+            f"{result.planner_self_agreement:.1%} of them"
+        )
+    lines += [
         f"dodges (the planner's action is not go-to-target's): {result.dodge_share:.1%} of "
         f"held-out decisions; the clone copies {result.dodge_agreement:.1%} of them and goes to "
-        f"the target instead on {result.dodge_as_baseline:.1%}\n"
+        f"the target instead on {result.dodge_as_baseline:.1%}",
         f"clone, test protocol ({test.episodes} episodes of up to 500 steps): success "
-        f"{test.success:.3f}, collision {test.collision:.3f}, unfinished {test.unfinished:.3f}"
-        + "".join(
-            f"\nDAgger round {r['round']}: {r['windows']} decisions, test success "
-            f"{r['test_success']:.3f}"
-            for r in result.dagger
-        )
-        + f"\n{result.minutes} minutes"
-    )
-    return 0
+        f"{test.success:.3f}, collision {test.collision:.3f}, unfinished {test.unfinished:.3f}",
+    ]
+    lines += [
+        f"DAgger round {r['round']}: {r['windows']} decisions, test success {r['test_success']:.3f}"
+        for r in result.dagger
+    ]
+    lines.append(f"{result.minutes} minutes")
+    return "\n".join(lines)
 
 
 def export(args: argparse.Namespace) -> int:

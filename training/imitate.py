@@ -132,6 +132,10 @@ class ImitationResult:
     success after the round (empty without DAgger rounds)."""
     minutes: float
     """Wall time of the whole measurement."""
+    planner_self_agreement: float | None = None
+    """Share of the held-out states on which the planner, asked again with other random
+    sequences, picks the action it took: how far its choice is a function of the state
+    (measured by `--privileged` only)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As JSON-ready values."""

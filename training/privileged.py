@@ -18,6 +18,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -108,19 +109,41 @@ def drive(
     return outcomes
 
 
+_SECOND_OPINION_SEED = 1_000_003
+"""Offset of the seed of the planner asked again on the held-out states."""
+
+
+class _Collected(NamedTuple):
+    features: NDArray[np.float32]
+    actions: NDArray[np.int64]
+    success: float
+    """The planner's success in these episodes."""
+    self_agreement: float
+    """Share of the states on which the planner, asked again with other random sequences,
+    picks the same action (0 unless asked)."""
+
+
 def _collect(
-    config: WorldConfig, settings: ImitationSettings, first: int, count: int
-) -> tuple[NDArray[np.float32], NDArray[np.int64], float]:
-    """The planner's features and actions on `count` training layouts from episode `first`,
-    and its success there."""
+    config: WorldConfig,
+    settings: ImitationSettings,
+    first: int,
+    count: int,
+    *,
+    second_opinion: bool = False,
+) -> _Collected:
+    """The planner's features and actions on `count` training layouts from episode `first`."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(config, seed=settings.seed + first)
+    again = OracleDriver(config, seed=settings.seed + first + _SECOND_OPINION_SEED)
     features: list[NDArray[np.float32]] = []
     actions: list[NDArray[np.int64]] = []
+    same: list[NDArray[np.bool_]] = []
 
     def record(state: WorldState, observation: Observation, action: NDArray[np.int64]) -> None:
         features.append(privileged_features(config, state, observation))
         actions.append(action)
+        if second_opinion:
+            same.append(again.act(state) == action)
 
     outcomes = []
     with tqdm(total=count, unit="ep", desc="planner episodes", leave=False) as bar:
@@ -136,8 +159,12 @@ def _collect(
                 )
             )
             bar.update(ids.size)
-    success = float(np.mean(np.concatenate(outcomes) == Outcome.SUCCESS))
-    return np.concatenate(features), np.concatenate(actions), success
+    return _Collected(
+        np.concatenate(features),
+        np.concatenate(actions),
+        float(np.mean(np.concatenate(outcomes) == Outcome.SUCCESS)),
+        float(np.mean(np.concatenate(same))) if same else 0.0,
+    )
 
 
 def _network(inputs: int) -> nn.Module:
@@ -160,10 +187,11 @@ def imitate_privileged(world: WorldConfig, settings: ImitationSettings) -> Imita
     started = time.perf_counter()
     torch.set_num_threads(settings.threads)
     torch.manual_seed(settings.seed)
-    features, actions, planner_success = _collect(world, settings, 0, settings.episodes)
-    held_features, held_actions, _ = _collect(
-        world, settings, settings.episodes, settings.held_out_episodes
+    features, actions, planner_success, _ = _collect(world, settings, 0, settings.episodes)
+    held = _collect(
+        world, settings, settings.episodes, settings.held_out_episodes, second_opinion=True
     )
+    held_features, held_actions = held.features, held.actions
     network = _network(features.shape[1])
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)
@@ -205,5 +233,6 @@ def imitate_privileged(world: WorldConfig, settings: ImitationSettings) -> Imita
             mean_steps=0.0,
         ),
         dagger=[],
+        planner_self_agreement=held.self_agreement,
         minutes=round((time.perf_counter() - started) / 60, 1),
     )

@@ -77,3 +77,5 @@ def test_privileged_imitation_runs_as_a_user_runs_it() -> None:
     assert result["planner_success"] == 1.0
     assert result["train_agreement"] > 0.7
     assert result["test"]["episodes"] == 8
+    # Without obstacles the planner's sequences rarely tie: asked again, it mostly agrees.
+    assert 0.8 < result["planner_self_agreement"] <= 1.0
