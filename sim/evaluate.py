@@ -7,6 +7,7 @@ the batch runs it, so results do not depend on the batch size.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Protocol
 
@@ -19,7 +20,7 @@ from contracts.settings import check_range
 from sim import rng
 from sim.config import WorldConfig
 from sim.task import Outcome
-from sim.world import Observation, observe, reset, scatter, step
+from sim.world import Observation, WorldState, observe, reset, scatter, step, take_rows
 
 TEST_EPISODE_STEPS = 500
 """Longest test episode of the paper's protocol."""
@@ -230,3 +231,35 @@ def evaluate(
         episodes=total,
         mean_steps=float(lengths.mean()),
     )
+
+
+StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]
+"""An action per world from the worlds' whole state (for agents that are not the robot's own:
+the oracle planner, or a copy of it given the state)."""
+
+
+def drive(
+    config: WorldConfig,
+    seed: int,
+    episodes: NDArray[np.int64],
+    act: StateAct,
+    record: Callable[[WorldState, Observation, NDArray[np.int64]], None] | None = None,
+) -> NDArray[np.int8]:
+    """Run the episodes (seed, e) for e in `episodes` together to their ends, `act` choosing
+    every action, `record` shown each step's (state, observation, action) of the running
+    worlds; each episode's outcome (RUNNING: cut at `config.max_episode_steps`)."""
+    state = reset(config, np.full(episodes.size, seed), episodes)
+    observation = observe(config, state)
+    running = np.arange(episodes.size)
+    outcomes = np.full(episodes.size, Outcome.RUNNING, dtype=np.int8)
+    while running.size:
+        action = act(state, observation)
+        if record is not None:
+            record(state, observation, action)
+        state, observation, transition = step(config, state, action)
+        ended = transition.terminated | transition.truncated
+        outcomes[running[ended]] = transition.outcome[ended]
+        going = np.flatnonzero(~ended)
+        running = running[going]
+        state, observation = take_rows(state, going), take_rows(observation, going)
+    return outcomes

@@ -16,7 +16,6 @@ from its decisions. Diagnostics only: no policy file holds this network.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import replace
 from typing import NamedTuple
 
@@ -30,10 +29,10 @@ from tqdm import tqdm
 from contracts.actions import NUM_ACTIONS
 from contracts.observation import TARGET_FEATURES
 from sim.config import WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, go_to_target
+from sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
 from sim.oracle import OracleDriver
 from sim.task import Outcome
-from sim.world import Observation, WorldState, observe, reset, step, take_rows
+from sim.world import Observation, WorldState
 from training.imitate import (
     ALIGNED_COS,
     DEMONSTRATION_LAYOUT_SEED,
@@ -47,8 +46,6 @@ SECTORS = 72
 """Sectors of the scan the copy sees (nearest return in each, 5 degrees wide)."""
 _POSITION_SCALE_M = 10.0
 _SPEED_SCALE_M_S = 1.5
-
-Act = Callable[[WorldState, Observation], NDArray[np.int64]]
 
 
 def privileged_features(
@@ -80,33 +77,6 @@ def privileged_features(
         (robot_frame(velocity) / _SPEED_SCALE_M_S).reshape(n, -1),
     ]
     return np.concatenate(parts, axis=1).astype(np.float32)
-
-
-def drive(
-    config: WorldConfig,
-    seed: int,
-    episodes: NDArray[np.int64],
-    act: Act,
-    record: Callable[[WorldState, Observation, NDArray[np.int64]], None] | None = None,
-) -> NDArray[np.int8]:
-    """Run the episodes (seed, e) for e in `episodes` together to their ends, `act` choosing
-    every action, `record` shown each step's (state, observation, action) of the running
-    worlds; each episode's outcome (RUNNING: cut at `config.max_episode_steps`)."""
-    state = reset(config, np.full(episodes.size, seed), episodes)
-    observation = observe(config, state)
-    running = np.arange(episodes.size)
-    outcomes = np.full(episodes.size, Outcome.RUNNING, dtype=np.int8)
-    while running.size:
-        action = act(state, observation)
-        if record is not None:
-            record(state, observation, action)
-        state, observation, transition = step(config, state, action)
-        ended = transition.terminated | transition.truncated
-        outcomes[running[ended]] = transition.outcome[ended]
-        going = np.flatnonzero(~ended)
-        running = running[going]
-        state, observation = take_rows(state, going), take_rows(observation, going)
-    return outcomes
 
 
 _SECOND_OPINION_SEED = 1_000_003

@@ -1,9 +1,20 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from contracts.actions import Action
 from sim.config import scenario
-from sim.evaluate import EvalSettings, RandomAgent, evaluate, go_to_target
+from sim.evaluate import (
+    EvalSettings,
+    GoToTargetAgent,
+    RandomAgent,
+    drive,
+    evaluate,
+    go_to_target,
+)
+from sim.task import Outcome
+from sim.world import WorldState
 
 
 def test_results_do_not_depend_on_the_batch_size() -> None:
@@ -35,3 +46,27 @@ def test_go_to_target_drives_when_facing_and_turns_towards_the_target_otherwise(
     features = np.array([[1.0, 0.0, 1.0], [1.0, 0.5, 0.8], [1.0, -0.5, 0.8], [1.0, 0.0, -1.0]])
     chosen = go_to_target(features, aligned_cos=0.97)
     assert chosen.tolist() == [Action.FORWARD, Action.LEFT, Action.RIGHT, Action.RIGHT]
+
+
+def test_drive_gives_the_test_protocols_outcomes() -> None:
+    config = scenario("obstacles-increment")
+    protocol = EvalSettings(episodes=40, max_episode_steps=500)
+    expected = evaluate(config, GoToTargetAgent(0.97), protocol)
+    world = replace(config, max_episode_steps=500)
+    agent = GoToTargetAgent(0.97)
+    outcomes = drive(world, protocol.seed, np.arange(40), lambda _, obs: agent.act(obs))
+    assert np.mean(outcomes == Outcome.SUCCESS) == expected.success
+    assert np.mean(outcomes == Outcome.COLLISION) == expected.collision
+
+
+def test_drive_records_only_the_running_worlds() -> None:
+    config = scenario("walls-increment")
+    agent = GoToTargetAgent(0.97)
+    seen: list[int] = []
+
+    def record(state: WorldState, _: object, action: np.ndarray) -> None:
+        assert state.pose.shape[0] == action.size
+        seen.append(action.size)
+
+    drive(config, 7, np.arange(6), lambda _, obs: agent.act(obs), record)
+    assert seen[0] == 6 and seen[-1] >= 1 and seen == sorted(seen, reverse=True)

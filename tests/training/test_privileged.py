@@ -4,16 +4,12 @@ import json
 import math
 import subprocess
 import sys
-from dataclasses import replace
 
 import numpy as np
 
 from sim.config import scenario
-from sim.evaluate import EvalSettings, GoToTargetAgent, evaluate
-from sim.task import Outcome
-from sim.world import WorldState, observe, reset
-from training.imitate import ALIGNED_COS
-from training.privileged import SECTORS, drive, privileged_features
+from sim.world import observe, reset
+from training.privileged import SECTORS, privileged_features
 
 
 def test_obstacles_are_seen_in_the_robots_frame_nearest_first() -> None:
@@ -39,30 +35,6 @@ def test_obstacles_are_seen_in_the_robots_frame_nearest_first() -> None:
     np.testing.assert_allclose(positions[1], (0.0, 3.0), atol=1e-6)  # then: on the left
     np.testing.assert_allclose(velocities[1], (0.0, -1.0), atol=1e-6)  # coming from the left
     assert features.size == first + 4 * m
-
-
-def test_drive_gives_the_test_protocols_outcomes() -> None:
-    config = scenario("obstacles-increment")
-    protocol = EvalSettings(episodes=40, max_episode_steps=500)
-    expected = evaluate(config, GoToTargetAgent(ALIGNED_COS), protocol)
-    world = replace(config, max_episode_steps=500)
-    agent = GoToTargetAgent(ALIGNED_COS)
-    outcomes = drive(world, protocol.seed, np.arange(40), lambda _, obs: agent.act(obs))
-    assert np.mean(outcomes == Outcome.SUCCESS) == expected.success
-    assert np.mean(outcomes == Outcome.COLLISION) == expected.collision
-
-
-def test_drive_records_only_the_running_worlds() -> None:
-    config = scenario("walls-increment")
-    agent = GoToTargetAgent(ALIGNED_COS)
-    seen: list[int] = []
-
-    def record(state: WorldState, _: object, action: np.ndarray) -> None:
-        assert state.pose.shape[0] == action.size
-        seen.append(action.size)
-
-    drive(config, 7, np.arange(6), lambda _, obs: agent.act(obs), record)
-    assert seen[0] == 6 and seen[-1] >= 1 and seen == sorted(seen, reverse=True)
 
 
 def test_privileged_imitation_runs_as_a_user_runs_it() -> None:
