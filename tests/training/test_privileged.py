@@ -1,4 +1,4 @@
-"""The copy given the world's state: its features, its episode runner, its command."""
+"""The copy given the world's state: its features and its command."""
 
 import json
 import math
