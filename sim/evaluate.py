@@ -59,6 +59,10 @@ class RandomAgent:
         return np.minimum((draw * NUM_ACTIONS).astype(np.int64), NUM_ACTIONS - 1)
 
 
+GO_TO_TARGET_ALIGNED_COS = 0.97
+"""`GoToTargetAgent` drives forward when the cosine of the target's bearing is at least this."""
+
+
 class GoToTargetAgent:
     """A hand-written baseline: turn towards the target, drive when facing it; blind to obstacles.
 
@@ -66,7 +70,7 @@ class GoToTargetAgent:
     against it.
     """
 
-    def __init__(self, aligned_cos: float = 0.97) -> None:
+    def __init__(self, aligned_cos: float = GO_TO_TARGET_ALIGNED_COS) -> None:
         self.aligned_cos = aligned_cos
 
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
@@ -76,7 +80,9 @@ class GoToTargetAgent:
         return go_to_target(observation.target_features(), self.aligned_cos)
 
 
-def go_to_target(target_features: NDArray[np.floating], aligned_cos: float) -> NDArray[np.int64]:
+def go_to_target(
+    target_features: NDArray[np.floating], aligned_cos: float = GO_TO_TARGET_ALIGNED_COS
+) -> NDArray[np.int64]:
     """`GoToTargetAgent`'s choice from (..., 3) target features (d_g, sin phi, cos phi): forward
     when cos phi >= aligned_cos, else a turn towards the target."""
     left, ahead = target_features[..., 1], target_features[..., 2]
@@ -180,6 +186,18 @@ class EvalResult:
     mean_steps: float
     """Mean episode length in steps."""
 
+    @classmethod
+    def of_outcomes(cls, outcomes: NDArray[np.integer], steps: NDArray[np.integer]) -> EvalResult:
+        """The fractions of each episode's `Outcome` (RUNNING: unfinished) and the mean of its
+        steps."""
+        return cls(
+            success=float(np.mean(outcomes == Outcome.SUCCESS)),
+            collision=float(np.mean(outcomes == Outcome.COLLISION)),
+            unfinished=float(np.mean(outcomes == Outcome.RUNNING)),
+            episodes=int(outcomes.size),
+            mean_steps=float(np.mean(steps)),
+        )
+
     def standard_error(self, fraction: float) -> float:
         """Binomial sampling error of one of the fractions."""
         return math.sqrt(max(fraction * (1 - fraction), 1e-12) / self.episodes)
@@ -223,14 +241,7 @@ def evaluate(
                 state = scatter(state, index, fresh)
                 observation = scatter(observation, index, observe(config, fresh))
                 agent.start(index, episode[index])
-    total = settings.episodes
-    return EvalResult(
-        success=float(np.mean(outcomes == Outcome.SUCCESS)),
-        collision=float(np.mean(outcomes == Outcome.COLLISION)),
-        unfinished=float(np.mean(outcomes == Outcome.RUNNING)),
-        episodes=total,
-        mean_steps=float(lengths.mean()),
-    )
+    return EvalResult.of_outcomes(outcomes, lengths)
 
 
 StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]
@@ -244,14 +255,15 @@ def drive(
     episodes: NDArray[np.int64],
     act: StateAct,
     record: Callable[[WorldState, Observation, NDArray[np.int64]], None] | None = None,
-) -> NDArray[np.int8]:
+) -> tuple[NDArray[np.int8], NDArray[np.int64]]:
     """Run the episodes (seed, e) for e in `episodes` together to their ends, `act` choosing
     every action, `record` shown each step's (state, observation, action) of the running
-    worlds; each episode's outcome (RUNNING: cut at `config.max_episode_steps`)."""
+    worlds; each episode's outcome (RUNNING: cut at `config.max_episode_steps`) and steps."""
     state = reset(config, np.full(episodes.size, seed), episodes)
     observation = observe(config, state)
     running = np.arange(episodes.size)
     outcomes = np.full(episodes.size, Outcome.RUNNING, dtype=np.int8)
+    steps = np.zeros(episodes.size, dtype=np.int64)
     while running.size:
         action = act(state, observation)
         if record is not None:
@@ -259,7 +271,8 @@ def drive(
         state, observation, transition = step(config, state, action)
         ended = transition.terminated | transition.truncated
         outcomes[running[ended]] = transition.outcome[ended]
+        steps[running[ended]] = state.steps[ended]
         going = np.flatnonzero(~ended)
         running = running[going]
         state, observation = take_rows(state, going), take_rows(observation, going)
-    return outcomes
+    return outcomes, steps

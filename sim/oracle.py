@@ -22,10 +22,9 @@ from tqdm import tqdm
 from contracts.actions import NUM_ACTIONS
 from sim.config import IncrementDynamics, WorldConfig
 from sim.dynamics import move_obstacles, step_increment, step_inertia
-from sim.evaluate import EvalResult, EvalSettings
+from sim.evaluate import EvalResult, EvalSettings, drive
 from sim.geometry import clearance
-from sim.task import Outcome
-from sim.world import WorldState, reset, step
+from sim.world import WorldState
 
 _HOLDS = (1, 3, 6, 10)
 
@@ -115,22 +114,12 @@ def run_oracle(
     """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(config, settings.seed, horizon=horizon, random_sequences=random_sequences)
-    outcomes, lengths = [], []
-    for episode in tqdm(range(settings.episodes), desc="oracle", unit="ep", disable=not progress):
-        state = reset(config, np.array([settings.seed]), np.array([episode]))
-        result = Outcome.RUNNING
-        while True:
-            state, _, transition = step(config, state, driver.act(state))
-            if transition.terminated[0] or transition.truncated[0]:
-                result = Outcome(int(transition.outcome[0]))
-                break
-        outcomes.append(result)
-        lengths.append(int(state.steps[0]))
-    found = np.array(outcomes)
-    return EvalResult(
-        success=float(np.mean(found == Outcome.SUCCESS)),
-        collision=float(np.mean(found == Outcome.COLLISION)),
-        unfinished=float(np.mean(found == Outcome.RUNNING)),
-        episodes=settings.episodes,
-        mean_steps=float(np.mean(lengths)),
-    )
+    # One episode at a time: the planner's random draws then follow the episode, not the batch.
+    results = [
+        drive(config, settings.seed, np.array([episode]), lambda state, _: driver.act(state))
+        for episode in tqdm(
+            range(settings.episodes), desc="oracle", unit="ep", disable=not progress
+        )
+    ]
+    outcomes, steps = (np.concatenate(parts) for parts in zip(*results, strict=True))
+    return EvalResult.of_outcomes(outcomes, steps)

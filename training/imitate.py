@@ -13,8 +13,9 @@ DQN run can stall below the planner:
 
 It also measures the dodges: decisions where the planner does not do what the go-to-target
 baseline (blind to obstacles, `sim.evaluate.go_to_target`) would. They are what separates the
-planner from that baseline, and they are rare, so a copy can agree on most decisions and still
-miss them; `dodge_weight` weighs them more in the copy's loss.
+planner from that baseline (about a third of its decisions with moving obstacles), and a copy
+can agree on most decisions and still miss them; `dodge_weight` weighs them more in the copy's
+loss.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from torch import nn
 from torch.nn import functional
 from tqdm import tqdm
 
@@ -43,8 +45,8 @@ from training.run import cpu_has_bf16, policy_agent
 
 DEMONSTRATION_LAYOUT_SEED = 555_555
 """Layouts of the demonstrations: neither the training runs', the validation's nor the test's."""
-ALIGNED_COS = 0.97
-"""The go-to-target baseline's heading tolerance (`sim.evaluate.GoToTargetAgent`'s default)."""
+AGREEMENT_PROBE = 4096
+"""Copied decisions drawn at random to measure the clone's agreement on them."""
 
 
 @dataclass(frozen=True)
@@ -115,7 +117,8 @@ class ImitationResult:
     windows: int
     """Windows (decisions) of the planner's episodes copied (DAgger's come on top)."""
     train_agreement: float
-    """Share of 4096 copied windows on which the clone picks the planner's action."""
+    """Share of `AGREEMENT_PROBE` copied windows on which the clone picks the planner's
+    action."""
     held_out_agreement: float
     """The same on windows of the held-out planner episodes."""
     dodge_share: float
@@ -193,27 +196,28 @@ def _replay_of(
 
 def baseline_actions(frames: NDArray[Any]) -> NDArray[np.int64]:
     """The go-to-target baseline's action on each window (N, k, F), from its last frame."""
-    return go_to_target(frames[:, -1, -TARGET_FEATURES:], ALIGNED_COS)
+    return go_to_target(frames[:, -1, -TARGET_FEATURES:])
 
 
-def _clone(
-    network: QNetwork,
+def clone(
+    network: nn.Module,
     optimizer: torch.optim.Optimizer,
     *,
-    frames: NDArray[Any],
+    inputs: NDArray[Any],
     actions: NDArray[Any],
+    baseline: NDArray[np.int64],
     settings: ImitationSettings,
     rng: np.random.Generator,
 ) -> None:
-    """`settings.iterations` cross-entropy steps on random rows of (frames, actions), dodges
-    weighted by `settings.dodge_weight`."""
+    """`settings.iterations` cross-entropy steps on random rows of (inputs, actions), dodges
+    (where `actions` are not the go-to-target `baseline`'s) weighted by `settings.dodge_weight`."""
     bf16 = cpu_has_bf16()
-    weights = np.where(actions != baseline_actions(frames), settings.dodge_weight, 1.0)
+    weights = np.where(actions != baseline, settings.dodge_weight, 1.0)
     network.train()
     for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
         rows = rng.integers(0, actions.size, settings.batch_size)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            logits = network(torch.from_numpy(frames[rows])).float()
+            logits = network(torch.from_numpy(inputs[rows])).float()
         losses = functional.cross_entropy(logits, torch.from_numpy(actions[rows]), reduction="none")
         weight = torch.from_numpy(weights[rows]).float()
         loss = (losses * weight).sum() / weight.sum()
@@ -234,12 +238,13 @@ def _test(
     )
 
 
-def _choices(network: QNetwork, frames: NDArray[Any]) -> NDArray[np.int64]:
+def greedy_choices(network: nn.Module, inputs: NDArray[Any]) -> NDArray[np.int64]:
+    """The network's highest-scoring action on each row of `inputs`."""
     with torch.no_grad():
-        return network(torch.from_numpy(frames)).argmax(dim=1).numpy()  # type: ignore[no-any-return]
+        return network(torch.from_numpy(inputs)).argmax(dim=1).numpy()  # type: ignore[no-any-return]
 
 
-def _share(flags: NDArray[np.bool_]) -> float:
+def fraction_true(flags: NDArray[np.bool_]) -> float:
     """The share of true flags (0 of none)."""
     return float(np.mean(flags)) if flags.size else 0.0
 
@@ -251,15 +256,11 @@ def held_out_counts(
     and the go-to-target baseline's actions on the held-out decisions."""
     dodges = planner != baseline
     return {
-        "held_out_agreement": _share(chosen == planner),
-        "dodge_share": _share(dodges),
-        "dodge_agreement": _share(chosen[dodges] == planner[dodges]),
-        "dodge_as_baseline": _share(chosen[dodges] == baseline[dodges]),
+        "held_out_agreement": fraction_true(chosen == planner),
+        "dodge_share": fraction_true(dodges),
+        "dodge_agreement": fraction_true(chosen[dodges] == planner[dodges]),
+        "dodge_as_baseline": fraction_true(chosen[dodges] == baseline[dodges]),
     }
-
-
-def _agreement(network: QNetwork, frames: NDArray[Any], actions: NDArray[Any]) -> float:
-    return float(np.mean(_choices(network, frames) == actions))
 
 
 def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> ImitationResult:
@@ -286,9 +287,17 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     )
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)
-    _clone(network, optimizer, frames=frames, actions=actions, settings=settings, rng=rng)
-    probe = rng.integers(0, actions.size, 4096)
-    train_agreement = _agreement(network, frames[probe], actions[probe])
+    clone(
+        network,
+        optimizer,
+        inputs=frames,
+        actions=actions,
+        baseline=baseline_actions(frames),
+        settings=settings,
+        rng=rng,
+    )
+    probe = rng.integers(0, actions.size, AGREEMENT_PROBE)
+    train_agreement = fraction_true(greedy_choices(network, frames[probe]) == actions[probe])
     copied_windows = actions.size
     test = _test(world, network, settings, window)
     dagger: list[dict[str, float]] = []
@@ -308,7 +317,15 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
         more_frames, more_actions = _windows(_replay_of(world, corrected, settings, window))
         frames = np.concatenate([frames, more_frames])
         actions = np.concatenate([actions, more_actions])
-        _clone(network, optimizer, frames=frames, actions=actions, settings=settings, rng=rng)
+        clone(
+            network,
+            optimizer,
+            inputs=frames,
+            actions=actions,
+            baseline=baseline_actions(frames),
+            settings=settings,
+            rng=rng,
+        )
         test = _test(world, network, settings, window)
         dagger.append(
             {"round": round_index + 1, "windows": actions.size, "test_success": test.success}
@@ -318,7 +335,7 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
         windows=int(copied_windows),
         train_agreement=train_agreement,
         **held_out_counts(
-            _choices(network, held_frames), held_actions, baseline_actions(held_frames)
+            greedy_choices(network, held_frames), held_actions, baseline_actions(held_frames)
         ),
         test=test,
         dagger=dagger,

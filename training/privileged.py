@@ -23,7 +23,6 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 from torch import nn
-from torch.nn import functional
 from tqdm import tqdm
 
 from contracts.actions import NUM_ACTIONS
@@ -34,13 +33,15 @@ from sim.oracle import OracleDriver
 from sim.task import Outcome
 from sim.world import Observation, WorldState
 from training.imitate import (
-    ALIGNED_COS,
+    AGREEMENT_PROBE,
     DEMONSTRATION_LAYOUT_SEED,
     ImitationResult,
     ImitationSettings,
+    clone,
+    fraction_true,
+    greedy_choices,
     held_out_counts,
 )
-from training.run import cpu_has_bf16
 
 SECTORS = 72
 """Sectors of the scan the copy sees (nearest return in each, 5 degrees wide)."""
@@ -104,7 +105,11 @@ def _collect(
     """The planner's features and actions on `count` training layouts from episode `first`."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(config, seed=settings.seed + first)
-    again = OracleDriver(config, seed=settings.seed + first + _SECOND_OPINION_SEED)
+    again = (
+        OracleDriver(config, seed=settings.seed + first + _SECOND_OPINION_SEED)
+        if second_opinion
+        else None
+    )
     features: list[NDArray[np.float32]] = []
     actions: list[NDArray[np.int64]] = []
     same: list[NDArray[np.bool_]] = []
@@ -112,28 +117,27 @@ def _collect(
     def record(state: WorldState, observation: Observation, action: NDArray[np.int64]) -> None:
         features.append(privileged_features(config, state, observation))
         actions.append(action)
-        if second_opinion:
+        if again is not None:
             same.append(again.act(state) == action)
 
     outcomes = []
     with tqdm(total=count, unit="ep", desc="planner episodes", leave=False) as bar:
         for start in range(first, first + count, settings.parallel_worlds):
             ids = np.arange(start, min(start + settings.parallel_worlds, first + count))
-            outcomes.append(
-                drive(
-                    config,
-                    DEMONSTRATION_LAYOUT_SEED + settings.seed,
-                    ids,
-                    lambda state, _: driver.act(state),
-                    record,
-                )
+            ended, _ = drive(
+                config,
+                DEMONSTRATION_LAYOUT_SEED + settings.seed,
+                ids,
+                lambda state, _: driver.act(state),
+                record,
             )
+            outcomes.append(ended)
             bar.update(ids.size)
     return _Collected(
         np.concatenate(features),
         np.concatenate(actions),
         float(np.mean(np.concatenate(outcomes) == Outcome.SUCCESS)),
-        float(np.mean(np.concatenate(same))) if same else 0.0,
+        fraction_true(np.concatenate(same)) if same else 0.0,
     )
 
 
@@ -147,13 +151,14 @@ def _network(inputs: int) -> nn.Module:
     )
 
 
-def _choices(network: nn.Module, features: NDArray[np.float32]) -> NDArray[np.int64]:
-    with torch.no_grad():
-        return network(torch.from_numpy(features)).argmax(dim=1).numpy()  # type: ignore[no-any-return]
+def _baseline(features: NDArray[np.float32]) -> NDArray[np.int64]:
+    """The go-to-target baseline's action from `privileged_features` rows."""
+    return go_to_target(features[:, :TARGET_FEATURES])
 
 
 def imitate_privileged(world: WorldConfig, settings: ImitationSettings) -> ImitationResult:
-    """Collect, clone, test (module docstring); no DAgger."""
+    """Collect, clone (dodges weighted as `imitate` weighs them), test (module docstring); no
+    DAgger."""
     started = time.perf_counter()
     torch.set_num_threads(settings.threads)
     torch.manual_seed(settings.seed)
@@ -165,43 +170,34 @@ def imitate_privileged(world: WorldConfig, settings: ImitationSettings) -> Imita
     network = _network(features.shape[1])
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)
-    bf16 = cpu_has_bf16()
-    for _ in tqdm(range(settings.iterations), unit="it", desc="cloning", leave=False):
-        rows = rng.integers(0, actions.size, settings.batch_size)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            logits = network(torch.from_numpy(features[rows])).float()
-        loss = functional.cross_entropy(logits, torch.from_numpy(actions[rows]))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()  # type: ignore[no-untyped-call]
-        optimizer.step()
-    network.eval()
-    probe = rng.integers(0, actions.size, 4096)
+    clone(
+        network,
+        optimizer,
+        inputs=features,
+        actions=actions,
+        baseline=_baseline(features),
+        settings=settings,
+        rng=rng,
+    )
+    probe = rng.integers(0, actions.size, AGREEMENT_PROBE)
     protocol = EvalSettings(episodes=settings.test_episodes)
     test_world = replace(world, max_episode_steps=protocol.max_episode_steps)
-    outcomes = drive(
+    outcomes, steps = drive(
         test_world,
         protocol.seed,
         np.arange(settings.test_episodes),
-        lambda state, observation: _choices(
+        lambda state, observation: greedy_choices(
             network, privileged_features(test_world, state, observation)
         ),
     )
     return ImitationResult(
         planner_success=planner_success,
         windows=int(actions.size),
-        train_agreement=float(np.mean(_choices(network, features[probe]) == actions[probe])),
+        train_agreement=fraction_true(greedy_choices(network, features[probe]) == actions[probe]),
         **held_out_counts(
-            _choices(network, held_features),
-            held_actions,
-            go_to_target(held_features[:, :TARGET_FEATURES], ALIGNED_COS),
+            greedy_choices(network, held_features), held_actions, _baseline(held_features)
         ),
-        test=EvalResult(
-            success=float(np.mean(outcomes == Outcome.SUCCESS)),
-            collision=float(np.mean(outcomes == Outcome.COLLISION)),
-            unfinished=float(np.mean(outcomes == Outcome.RUNNING)),
-            episodes=settings.test_episodes,
-            mean_steps=0.0,
-        ),
+        test=EvalResult.of_outcomes(outcomes, steps),
         dagger=[],
         planner_self_agreement=held.self_agreement,
         minutes=round((time.perf_counter() - started) / 60, 1),

@@ -6,6 +6,7 @@ import pytest
 from contracts.actions import Action
 from sim.config import scenario
 from sim.evaluate import (
+    EvalResult,
     EvalSettings,
     GoToTargetAgent,
     RandomAgent,
@@ -51,17 +52,18 @@ def test_go_to_target_drives_when_facing_and_turns_towards_the_target_otherwise(
 def test_drive_gives_the_test_protocols_outcomes() -> None:
     config = scenario("obstacles-increment")
     protocol = EvalSettings(episodes=40, max_episode_steps=500)
-    expected = evaluate(config, GoToTargetAgent(0.97), protocol)
+    expected = evaluate(config, GoToTargetAgent(), protocol)
     world = replace(config, max_episode_steps=500)
-    agent = GoToTargetAgent(0.97)
-    outcomes = drive(world, protocol.seed, np.arange(40), lambda _, obs: agent.act(obs))
+    agent = GoToTargetAgent()
+    outcomes, steps = drive(world, protocol.seed, np.arange(40), lambda _, obs: agent.act(obs))
     assert np.mean(outcomes == Outcome.SUCCESS) == expected.success
     assert np.mean(outcomes == Outcome.COLLISION) == expected.collision
+    assert EvalResult.of_outcomes(outcomes, steps) == expected  # steps too
 
 
 def test_drive_records_only_the_running_worlds() -> None:
     config = scenario("walls-increment")
-    agent = GoToTargetAgent(0.97)
+    agent = GoToTargetAgent()
     seen: list[int] = []
 
     def record(state: WorldState, _: object, action: np.ndarray) -> None:
