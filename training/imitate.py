@@ -287,36 +287,24 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     )
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)
-    clone(
-        network,
-        optimizer,
-        inputs=frames,
-        actions=actions,
-        baseline=baseline_actions(frames),
-        settings=settings,
-        rng=rng,
-    )
-    probe = rng.integers(0, actions.size, AGREEMENT_PROBE)
-    train_agreement = fraction_true(greedy_choices(network, frames[probe]) == actions[probe])
     copied_windows = actions.size
-    test = _test(world, network, settings, window)
+    train_agreement = 0.0
     dagger: list[dict[str, float]] = []
-    if settings.dagger_rounds:
-        dagger.append({"round": 0, "windows": actions.size, "test_success": test.success})
     first = settings.episodes + settings.held_out_episodes
-    for round_index in range(settings.dagger_rounds):
-        corrected = collect_labelled(
-            world,
-            count=settings.dagger_episodes,
-            first_episode=first,
-            settings=settings,
-            copy=network,
-            window=window,
-        )
-        first += settings.dagger_episodes
-        more_frames, more_actions = _windows(_replay_of(world, corrected, settings, window))
-        frames = np.concatenate([frames, more_frames])
-        actions = np.concatenate([actions, more_actions])
+    for round_index in range(settings.dagger_rounds + 1):  # round 0: the copy of the planner
+        if round_index:
+            corrected = collect_labelled(
+                world,
+                count=settings.dagger_episodes,
+                first_episode=first,
+                settings=settings,
+                copy=network,
+                window=window,
+            )
+            first += settings.dagger_episodes
+            more_frames, more_actions = _windows(_replay_of(world, corrected, settings, window))
+            frames = np.concatenate([frames, more_frames])
+            actions = np.concatenate([actions, more_actions])
         clone(
             network,
             optimizer,
@@ -326,10 +314,16 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
             settings=settings,
             rng=rng,
         )
+        if not round_index:
+            probe = rng.integers(0, actions.size, AGREEMENT_PROBE)
+            train_agreement = fraction_true(
+                greedy_choices(network, frames[probe]) == actions[probe]
+            )
         test = _test(world, network, settings, window)
-        dagger.append(
-            {"round": round_index + 1, "windows": actions.size, "test_success": test.success}
-        )
+        if settings.dagger_rounds:
+            dagger.append(
+                {"round": round_index, "windows": actions.size, "test_success": test.success}
+            )
     return ImitationResult(
         planner_success=float(np.mean([e.outcome == Outcome.SUCCESS for e in copied])),
         windows=int(copied_windows),
