@@ -8,30 +8,45 @@ close to the target and clear of surfaces), and takes the best sequence's first 
 (model-predictive control by random shooting). A learned policy sees only its lidar window, so
 it cannot be expected to beat this planner by much: where the planner fails, the world is hard.
 
-`qnav eval --agent oracle --scenario obstacles-inertia` runs it under the test protocol.
+The same simulation says which first actions are *doomed*: every continuation the planner
+knows collides within a few seconds. A state where some action is doomed and another is not is
+a *decisive* state (`doomed_actions`); `sim.decisive` builds the gauge of how often a policy
+picks a safe action there.
+
+`qnav eval --agent oracle --scenario obstacles-inertia` runs it under the test protocol. Its
+random sequences are drawn from (seed, episode, step), so an episode's plan does not depend on
+which other episodes run beside it.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.actions import NUM_ACTIONS
+from sim import rng
 from sim.config import IncrementDynamics, WorldConfig
 from sim.dynamics import move_obstacles, step_increment, step_inertia
 from sim.evaluate import EvalResult, EvalSettings, drive
 from sim.geometry import clearance
+from sim.task import Outcome, outcome
 from sim.world import WorldState
 
 _HOLDS = (1, 3, 6, 10)
+_SEQUENCE_STREAM = 211
+_RANDOM_HOLD_STEPS = 3
+
+DOOM_HORIZON_S = 4.0
+"""How far ahead `doomed_actions` looks: an action is doomed when every continuation collides
+within this time."""
 
 
-def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) -> NDArray[np.int64]:
-    """(S, horizon) candidate sequences: a held then b held, for every a, b and hold, plus
-    `random_count` random sequences of actions held three steps each."""
+def structured_sequences(horizon: int) -> NDArray[np.int64]:
+    """(S, horizon) sequences: action a held, then action b, for every a, b and hold."""
     structured = [
         [a] * hold + [b] * (horizon - hold)
         for a in range(NUM_ACTIONS)
@@ -39,24 +54,67 @@ def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) ->
         for b in range(NUM_ACTIONS)
         if hold <= horizon
     ]
-    blocks = -(-horizon // 3)
-    random = rng.integers(0, NUM_ACTIONS, size=(random_count, blocks)).repeat(3, axis=1)
-    return np.concatenate([np.array(structured)[:, :horizon], random[:, :horizon]])
+    return np.array(structured, dtype=np.int64)[:, :horizon]
 
 
-def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> NDArray[np.int64]:
-    """(N,) the first action of the best of the (S, horizon) sequences for each world in
-    `state` (all S are simulated for every world at once)."""
-    candidates, horizon = sequences.shape
+def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) -> NDArray[np.int64]:
+    """(S, horizon) candidate sequences: the structured ones plus `random_count` random
+    sequences of actions held three steps each."""
+    blocks = -(-horizon // _RANDOM_HOLD_STEPS)
+    random = rng.integers(0, NUM_ACTIONS, size=(random_count, blocks))
+    return np.concatenate([structured_sequences(horizon), _held(random, horizon)])
+
+
+def keyed_sequences(
+    state: WorldState, horizon: int, random_count: int, salt: int = 0
+) -> NDArray[np.int64]:
+    """(N, S, horizon): `held_sequences` for each world, the random ones drawn from that world's
+    (seed, episode, step) and `salt`, so a world's candidates do not depend on its batch."""
+    keys = rng.episode_keys(
+        rng.episode_keys(state.seed, state.episode) ^ np.uint64(salt), state.steps
+    )
+    blocks = -(-horizon // _RANDOM_HOLD_STEPS)
+    draw = rng.uniform(keys, _SEQUENCE_STREAM, (random_count, blocks))
+    random = np.minimum((draw * NUM_ACTIONS).astype(np.int64), NUM_ACTIONS - 1)
+    structured = np.broadcast_to(
+        structured_sequences(horizon), (state.pose.shape[0], *structured_sequences(horizon).shape)
+    )
+    return np.concatenate([structured, _held(random, horizon)], axis=1)
+
+
+def _held(blocks: NDArray[np.int64], horizon: int) -> NDArray[np.int64]:
+    return blocks.repeat(_RANDOM_HOLD_STEPS, axis=-1)[..., :horizon]
+
+
+class Rollouts(NamedTuple):
+    """How each candidate sequence of each world played out."""
+
+    outcome: NDArray[np.int8]
+    """(N, S) SUCCESS, COLLISION, or RUNNING (neither within the horizon)."""
+    end_step: NDArray[np.int64]
+    """(N, S) the step (1-based) at which the sequence reached the target or collided; the
+    horizon where it did neither."""
+    score: NDArray[np.float64]
+    """(N, S) the planner's score: early success best, late collision better than early,
+    otherwise close to the target and clear of surfaces."""
+
+
+def simulate(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> Rollouts:
+    """Play every candidate sequence, (S, H) shared by all worlds or (N, S, H) per world, from
+    each world of `state`, knowing the obstacles' future exactly."""
     worlds = state.pose.shape[0]
-    count = worlds * candidates
-    actions = np.tile(sequences, (worlds, 1))  # (N * S, horizon), world-major like the states
+    if sequences.ndim == 2:
+        sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
+    candidates, horizon = sequences.shape[1:]
+    actions = sequences.reshape(worlds * candidates, horizon)  # world-major like the states
     pose = np.repeat(state.pose, candidates, axis=0)
     velocity = np.repeat(state.velocity, candidates, axis=0)
     obstacles = np.repeat(state.obstacle_xy, candidates, axis=0)
     obstacle_velocity = np.repeat(state.obstacle_velocity, candidates, axis=0)
     target = np.repeat(state.target_xy, candidates, axis=0)
-    radius = config.robot_radius_m
+    count = worlds * candidates
+    result = np.full(count, Outcome.RUNNING, dtype=np.int8)
+    end_step = np.full(count, horizon, dtype=np.int64)
     score = np.zeros(count)
     alive = np.ones(count, dtype=bool)
     distance = gap = np.zeros(count)
@@ -76,30 +134,78 @@ def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -
         )
         distance = np.linalg.norm(target - pose[:, :2], axis=1)
         gap = clearance(pose[:, :2], config.arena, obstacles, config.obstacles.radius_m)
-        reached = alive & (distance < radius)
-        hit = alive & ~reached & (gap < radius)
-        score[reached] = 1000.0 - h
-        score[hit] = -1000.0 + h
-        alive &= ~(reached | hit)
+        now = outcome(distance, gap, config.robot_radius_m)
+        ended = alive & (now != Outcome.RUNNING)
+        result[ended] = now[ended]
+        end_step[ended] = h + 1
+        score[ended & (now == Outcome.SUCCESS)] = 1000.0 - h
+        score[ended & (now == Outcome.COLLISION)] = -1000.0 + h
+        alive &= ~ended
     score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], 1.0)
-    best = np.argmax(score.reshape(worlds, candidates), axis=1)
-    return np.asarray(sequences[best, 0], dtype=np.int64)
+    shape = (worlds, candidates)
+    return Rollouts(result.reshape(shape), end_step.reshape(shape), score.reshape(shape))
+
+
+def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(N,) the first action of the best of the candidate sequences, (S, H) shared or (N, S, H)
+    per world, for each world in `state`."""
+    worlds = state.pose.shape[0]
+    if sequences.ndim == 2:
+        sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
+    best = np.argmax(simulate(config, state, sequences).score, axis=1)
+    return np.asarray(sequences[np.arange(worlds), best, 0], dtype=np.int64)
+
+
+def doom_horizon_steps(config: WorldConfig, horizon_s: float = DOOM_HORIZON_S) -> int:
+    """`horizon_s` in control periods (at least one)."""
+    return max(1, round(horizon_s / config.control_period_s))
+
+
+def doomed_actions(
+    config: WorldConfig,
+    state: WorldState,
+    *,
+    horizon_s: float = DOOM_HORIZON_S,
+    random_sequences: int = 64,
+    salt: int = 0,
+) -> NDArray[np.bool_]:
+    """(N, A): True where every continuation the planner knows, after taking that action first,
+    collides within `horizon_s`. The same continuations (structured and random, drawn per
+    world) follow every first action, so actions are judged alike. A non-doomed action is truly
+    safe for that long; a doomed one might be saved by a sequence the planner does not try."""
+    horizon = doom_horizon_steps(config, horizon_s)
+    tails = keyed_sequences(state, horizon, random_sequences, salt)[:, :, : horizon - 1]
+    worlds, tail_count = tails.shape[:2]
+    first = np.repeat(np.arange(NUM_ACTIONS), tail_count)
+    sequences = np.concatenate(
+        [
+            np.broadcast_to(first[None, :, None], (worlds, first.size, 1)),
+            np.tile(tails, (1, NUM_ACTIONS, 1)),
+        ],
+        axis=2,
+    )
+    collided = simulate(config, state, sequences).outcome == Outcome.COLLISION
+    return collided.reshape(worlds, NUM_ACTIONS, tail_count).all(axis=2)
 
 
 class OracleDriver:
-    """The planner driving N worlds at once, for collecting demonstrations: `act(state)`."""
+    """The planner driving N worlds at once: `act(state)` gives each world's action.
+
+    Its random candidates are drawn from each world's (seed, episode, step) and the driver's
+    `seed`, so a world's plan is the same alone or in any batch.
+    """
 
     def __init__(
         self, config: WorldConfig, seed: int, *, horizon: int = 20, random_sequences: int = 128
     ) -> None:
         self.config = config
+        self.seed = seed
         self.horizon = horizon
         self.random_sequences = random_sequences
-        self.rng = np.random.default_rng(seed)
 
     def act(self, state: WorldState) -> NDArray[np.int64]:
         """(N,) the planner's action in each world."""
-        sequences = held_sequences(self.horizon, self.random_sequences, self.rng)
+        sequences = keyed_sequences(state, self.horizon, self.random_sequences, self.seed)
         return plan(self.config, state, sequences)
 
 
@@ -111,15 +217,16 @@ def run_oracle(
     random_sequences: int = 128,
     progress: bool = False,
 ) -> EvalResult:
-    """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner."""
+    """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner,
+    `settings.num_worlds` episodes at a time."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(config, settings.seed, horizon=horizon, random_sequences=random_sequences)
-    # One episode at a time: the planner's random draws then follow the episode, not the batch.
+    batches = np.array_split(
+        np.arange(settings.episodes), -(-settings.episodes // settings.num_worlds)
+    )
     results = [
-        drive(config, settings.seed, np.array([episode]), lambda state, _: driver.act(state))
-        for episode in tqdm(
-            range(settings.episodes), desc="oracle", unit="ep", disable=not progress
-        )
+        drive(config, settings.seed, batch, lambda state, _: driver.act(state))
+        for batch in tqdm(batches, desc="oracle", unit="batch", disable=not progress)
     ]
     outcomes, steps = (np.concatenate(parts) for parts in zip(*results, strict=True))
     return EvalResult.of_outcomes(outcomes, steps)

@@ -66,3 +66,19 @@ FEEDFORWARD_RANDOM_ACTIONS: tuple[Fractions, Fractions] = (
     Fractions(0.096, 0.085, 0.012),
 )
 """Feedforward, walls-increment, with a 10% chance of a random action at each test step."""
+
+RECURRENT_BEST: dict[str, Fractions] = {
+    "obstacles-inertia": Fractions(0.895, 0.105, 0.0),
+    "walls-inertia": Fractions(1.0, 0.0, 0.0),
+    "walls-increment": Fractions(1.0, 0.0, 0.0),
+    "obstacles-increment": Fractions(0.78, 0.22, 0.0),
+}
+"""Recurrent agent: the best of the five seeds."""
+
+FEEDFORWARD_BEST: dict[str, Fractions] = {
+    "obstacles-inertia": Fractions(0.575, 0.34, 0.085),
+    "walls-inertia": Fractions(0.9, 0.025, 0.075),
+    "walls-increment": Fractions(0.99, 0.0, 0.01),
+    "obstacles-increment": Fractions(0.54, 0.28, 0.18),
+}
+"""Feedforward agent: the best of the five seeds."""

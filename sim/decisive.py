@@ -1,0 +1,181 @@
+"""The decisive-state gauge: does a policy pick a safe action where the choice matters?
+
+Most decisions in an obstacle world do not matter: every action is safe, or none is. A state
+is *decisive* when some first action is doomed (every continuation the oracle planner knows
+collides within `sim.oracle.DOOM_HORIZON_S`) and another is not. A policy that only seeks the
+target passes the ordinary states and fails exactly these, so test success over a few hundred
+episodes hears about them only through noise; the share of a fixed set of decisive states where
+a policy's greedy action is safe measures them directly, in seconds.
+
+The set is collected once from seeded episodes driven by the planner (states a good policy
+visits) and by the blind go-to-target controller (states where target seeking runs into
+obstacles, as today's learners do), each kept with the window of encoded frames the policy
+would have seen there. `qnav gauge` builds and caches it; `qnav diagnose RUN` and training
+progress report it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from contracts.settings import check_range
+from sim.config import WorldConfig
+from sim.evaluate import go_to_target
+from sim.oracle import OracleDriver, doomed_actions
+from sim.world import Observation, WorldState, observe, reset, step, take_rows
+
+StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]
+
+
+@dataclass(frozen=True)
+class GaugeSettings:
+    """Which episodes the decisive states are collected from."""
+
+    SECTION = "gauge"
+
+    episodes_per_driver: int = 400
+    """Episodes driven by each of the planner and the go-to-target controller."""
+    max_episode_steps: int = 200
+    """Steps of each collecting episode at most (the training episodes' length)."""
+    num_worlds: int = 100
+    """Episodes driven together."""
+    seed: int = 31_337
+    """Seed of the layouts (apart from training's, validation's and the test's)."""
+    window: int = 5
+    """Frames per window (the paper's k)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "episodes_per_driver", self.episodes_per_driver, 1, 10**7)
+        check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
+        check_range(self, "num_worlds", self.num_worlds, 1, 100_000)
+        check_range(self, "window", self.window, 1, 1000)
+
+
+DRIVERS = ("planner", "go-to-target")
+"""Who drove the episodes a state comes from, by `DecisiveStates.driver` index."""
+
+
+class DecisiveStates(NamedTuple):
+    """States where some action is doomed and another is not, with what a policy sees there."""
+
+    windows: NDArray[np.float32]
+    """(K, k, F) the last k encoded frames (scan and target features), oldest first."""
+    doomed: NDArray[np.bool_]
+    """(K, A) the actions that are doomed there."""
+    driver: NDArray[np.int8]
+    """(K,) index into `DRIVERS` of who drove to this state."""
+    visited: NDArray[np.int64]
+    """(len(DRIVERS),) states visited by each driver, decisive or not."""
+
+    def save(self, path: Path) -> None:
+        """Write to an .npz file (atomically)."""
+        partial = path.with_suffix(".partial.npz")
+        np.savez_compressed(partial, **self._asdict())
+        partial.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> DecisiveStates:
+        """Read what `save` wrote."""
+        with np.load(path) as data:
+            return cls(**{name: data[name] for name in cls._fields})
+
+
+def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False) -> DecisiveStates:
+    """Drive the settings' episodes with the planner and with go-to-target, keeping every
+    decisive state visited and its window."""
+    planner = OracleDriver(config, seed=settings.seed)
+    drivers: list[StateAct] = [
+        lambda state, _: planner.act(state),
+        lambda _, observation: go_to_target(observation.target_features()),
+    ]
+    parts = []
+    visited = []
+    for index, act in enumerate(drivers):
+        found, seen = _drive_and_keep(config, settings, act, index, progress)
+        parts.append(found)
+        visited.append(seen)
+    windows, doomed, driver = (np.concatenate(column) for column in zip(*parts, strict=True))
+    return DecisiveStates(windows, doomed, driver, np.array(visited, dtype=np.int64))
+
+
+def _drive_and_keep(
+    config: WorldConfig, settings: GaugeSettings, act: StateAct, index: int, progress: bool
+) -> tuple[tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.int8]], int]:
+    max_range_m = distance_scale_m(config.lidar)
+    windows, doomed = [], []
+    visited = 0
+    episodes = np.arange(settings.episodes_per_driver, dtype=np.int64)
+    batches = np.array_split(episodes, -(-episodes.size // settings.num_worlds))
+    for batch in tqdm(batches, desc=f"gauge {DRIVERS[index]}", disable=not progress):
+        state = reset(config, np.full(batch.size, settings.seed), batch)
+        observation = observe(config, state)
+        window = FrameWindow(batch.size, _frame_size(config), settings.window)
+        running = np.arange(batch.size)
+        for _ in range(settings.max_episode_steps):
+            frames = window.advance(
+                encode_frame(observation.scan_m, observation.target_features(), max_range_m)
+            )
+            doom = doomed_actions(config, state)
+            decisive = doom.any(axis=1) & ~doom.all(axis=1)
+            windows.append(frames[decisive].copy())
+            doomed.append(doom[decisive])
+            visited += running.size
+            state, observation, transition = step(config, state, act(state, observation))
+            going = np.flatnonzero(~(transition.terminated | transition.truncated))
+            if going.size == 0:
+                break
+            running = running[going]
+            state, observation = take_rows(state, going), take_rows(observation, going)
+            window.frames = window.frames[going]
+            window.fresh = window.fresh[going]
+    count = sum(len(w) for w in windows)
+    return (
+        np.concatenate(windows),
+        np.concatenate(doomed),
+        np.full(count, index, dtype=np.int8),
+    ), visited
+
+
+def _frame_size(config: WorldConfig) -> int:
+    beams = config.lidar.num_beams if config.lidar is not None else 0
+    return beams + 3
+
+
+class GaugeResult(NamedTuple):
+    """How often a policy picks a safe action in decisive states."""
+
+    safe: float
+    """Share of all decisive states where the chosen action is not doomed."""
+    by_driver: dict[str, float]
+    """The same share over the states each driver visited."""
+    states: int
+    """Decisive states judged."""
+
+
+def score(states: DecisiveStates, actions: NDArray[np.integer]) -> GaugeResult:
+    """Judge one action per decisive state (a policy's greedy choices on `states.windows`)."""
+    safe = ~states.doomed[np.arange(actions.size), actions]
+    by_driver = {
+        name: float(safe[states.driver == i].mean())
+        for i, name in enumerate(DRIVERS)
+        if np.any(states.driver == i)
+    }
+    return GaugeResult(float(safe.mean()), by_driver, int(actions.size))
+
+
+def choose_in_batches(
+    windows: NDArray[np.float32],
+    q_values: Callable[[NDArray[np.float32]], NDArray[np.floating]],
+    batch: int = 512,
+) -> NDArray[np.int64]:
+    """Greedy actions of a Q function over many windows, a batch at a time."""
+    parts = [q_values(windows[i : i + batch]).argmax(axis=1) for i in range(0, len(windows), batch)]
+    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
