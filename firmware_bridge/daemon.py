@@ -15,14 +15,14 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from types import FrameType, TracebackType
+from types import TracebackType
 from typing import Any
 
+from contracts.daemon import RateLimitedLog, open_session_until, stop_on_signals
 from contracts.errors import ConfigError
 from contracts.health import Heartbeat
 from contracts.mavlink import (
@@ -45,7 +45,7 @@ from contracts.mavlink import (
     ned_to_enu,
 )
 from contracts.settings import parse_assignments, to_toml, with_overrides
-from contracts.transport import open_session
+from contracts.transport import zenoh_config
 from contracts.wire import (
     COMMAND,
     POSE,
@@ -73,31 +73,11 @@ REQUEST_RETRY_S = 0.5
 """An arm or mode request not yet seen in the vehicle's heartbeat is sent again this often."""
 REQUEST_ATTEMPTS = 10
 """... this many times, then the bridge gives up and says so."""
-EXIT_ACK_WAIT_S = 0.3
-"""On shutdown, how long to wait for the disarm to be acknowledged before sending it again."""
-
-
-class RateLimitedLog:
-    """Warnings that may repeat fast (malformed payloads), at most one per key and period."""
-
-    def __init__(self, logger: logging.Logger, period_s: float = 5.0) -> None:
-        self._logger = logger
-        self._period_s = period_s
-        self._last_s: dict[str, float] = {}
-        self._suppressed: Counter[str] = Counter()
-        self._lock = threading.Lock()
-
-    def warning(self, what: str, message: str, *args: object) -> None:
-        """Log `message` unless `what` was logged within the period (then count it)."""
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last_s.get(what, -math.inf) < self._period_s:
-                self._suppressed[what] += 1
-                return
-            self._last_s[what] = now
-            suppressed, self._suppressed[what] = self._suppressed[what], 0
-        suffix = f" ({suppressed} more since the last report)" if suppressed else ""
-        self._logger.warning(message + suffix, *args)
+EXIT_ACK_WAIT_S = 0.15
+"""On shutdown, how long to wait for the disarm to be acknowledged before sending it again
+(three tries at most: the whole shutdown stays well within a second)."""
+ZENOH_RETRY_S = 2.0
+"""When zenoh refuses to open a session, the bridge tries again this often (output neutral)."""
 
 
 class Bridge:
@@ -153,46 +133,73 @@ class Bridge:
         self._state_publisher: Any = None
         self._subscribers: list[Any] = []
         self._thread: threading.Thread | None = None
+        self._zenoh_thread: threading.Thread | None = None
         self._stopping = threading.Event()
+        self.zenoh_up = threading.Event()
+        """Set once the zenoh session is open and subscribed (commands can arrive)."""
         self._heartbeat = Heartbeat.from_env("bridge")
 
     # -- life cycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Open the MAVLink port and the zenoh session, subscribe, start the bridge thread."""
+        """Open the MAVLink port, start the vehicle side, then join zenoh in the background.
+
+        The vehicle side (heartbeats, neutral output, link watch, requests) runs from here on
+        whether or not zenoh is reachable: until a session is up there is no command, so the
+        failsafe sends neutral.
+        """
+        zenoh_config(self.settings.zenoh)  # a bad zenoh setting fails now, by its name
         try:
             self.link.open()
         except OSError as error:
             raise ConfigError(
                 f"mavlink.connection {self.settings.mavlink.connection!r} cannot be opened: {error}"
             ) from None
-        namespace = self.settings.zenoh.namespace
-        try:
-            self._session = open_session(self.settings.zenoh)
-        except ConfigError:
-            self.link.close()
-            raise
-        self._state_publisher = self._session.declare_publisher(key(VEHICLE_STATE, namespace))
-        self._subscribers.append(
-            self._session.declare_subscriber(key(COMMAND, namespace), self._on_command)
-        )
-        self._subscribers.append(
-            self._session.declare_subscriber(key(VEHICLE_REQUEST, namespace), self._on_request)
-        )
-        if self._guided and self.settings.vision.forward_pose:
-            self._subscribers.append(
-                self._session.declare_subscriber(key(POSE, namespace), self._on_pose)
-            )
         self._thread = threading.Thread(target=self._loop, name="bridge", daemon=True)
         self._thread.start()
+        self._zenoh_thread = threading.Thread(target=self._join_zenoh, name="bridge-zenoh")
+        self._zenoh_thread.start()
         log.info(
             "bridge up: zenoh %s -> MAVLink %s (%s output%s), command timeout %.3f s",
-            key(COMMAND, namespace),
+            key(COMMAND, self.settings.zenoh.namespace),
             self.settings.mavlink.connection,
             self.settings.output.mode,
             ", signed" if self.link.signing else "",
             self.settings.failsafe.command_timeout_s,
         )
+
+    def _join_zenoh(self) -> None:
+        """Open the session (retrying while zenoh refuses), then publish and subscribe."""
+        namespace = self.settings.zenoh.namespace
+        while not self._stopping.is_set():
+            try:
+                session = open_session_until(self.settings.zenoh, self._stopping, log)
+            except ConfigError as error:
+                self._rate_log.warning("zenoh", "%s; retrying (output stays neutral)", error)
+                self._stopping.wait(ZENOH_RETRY_S)
+                continue
+            if session is None:
+                return
+            with self._lock:
+                if self._stopping.is_set():
+                    session.close()
+                    return
+                self._session = session
+                self._state_publisher = session.declare_publisher(key(VEHICLE_STATE, namespace))
+                self._subscribers.append(
+                    session.declare_subscriber(key(COMMAND, namespace), self._on_command)
+                )
+                self._subscribers.append(
+                    session.declare_subscriber(key(VEHICLE_REQUEST, namespace), self._on_request)
+                )
+                if self._guided and self.settings.vision.forward_pose:
+                    self._subscribers.append(
+                        session.declare_subscriber(key(POSE, namespace), self._on_pose)
+                    )
+                self._state_dirty = True
+            self.zenoh_up.set()
+            log.info("zenoh session open: taking commands on %s", key(COMMAND, namespace))
+            return
 
     def close(self) -> None:
         """Refuse further commands, send stop, then disarm (if configured), and close."""
@@ -200,10 +207,10 @@ class Bridge:
             return
         with self._lock:
             self._gate.close()
-        for subscriber in self._subscribers:
+            self._stopping.set()  # under the lock: the zenoh thread declares nothing after it
+            subscribers, self._subscribers = self._subscribers, []
+        for subscriber in subscribers:
             subscriber.undeclare()
-        self._subscribers.clear()
-        self._stopping.set()
         self._thread.join()
         self._thread = None
         failsafe = self.settings.failsafe
@@ -212,8 +219,12 @@ class Bridge:
         log.info("sent stop %d times on exit", failsafe.stop_repeats_on_exit)
         if failsafe.disarm_on_exit:
             self._disarm_on_exit()
+        if self._zenoh_thread is not None:
+            self._zenoh_thread.join()  # returns at once: its wait for zenoh ends on _stopping
+            self._zenoh_thread = None
         self._publish_state(self._clock(), bridge="stopped")
-        self._session.close()
+        if self._session is not None:
+            self._session.close()
         self.link.close()
         self._heartbeat.close()
         log.info("bridge closed")
@@ -580,6 +591,8 @@ class Bridge:
     def _publish_state(self, now: float, bridge: str = "running") -> None:
         self._state_dirty = False
         self._next_state_s = now + self.settings.vehicle.state_period_s
+        if self._state_publisher is None:
+            return  # no zenoh yet: nobody to tell
         try:
             self._state_publisher.put(encode_json_msg(self.state(now, bridge)))
         except Exception as error:  # zenoh errors must not stop the failsafe loop
@@ -587,6 +600,11 @@ class Bridge:
 
     def _disarm_on_exit(self) -> None:
         """Send disarm until acknowledged (or a few tries), reading replies here."""
+        if not self._link_up:  # nobody answers: send it (UDP may drop one), do not wait
+            for _ in range(3):
+                self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
+            log.warning("disarm on exit: sent without a vehicle link")
+            return
         for _ in range(3):
             self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
             deadline = self._clock() + EXIT_ACK_WAIT_S
@@ -636,18 +654,7 @@ def run(args: argparse.Namespace) -> int:
         level=getattr(logging, args.log_level.upper()),
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
-    stop = threading.Event()
-
-    def on_signal(number: int, frame: FrameType | None) -> None:
-        log.info("%s: stopping", signal.Signals(number).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        with Bridge(settings):
-            while not stop.wait(0.5):
-                pass
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_on_signals(log) as stop, Bridge(settings):
+        while not stop.wait(0.5):
+            pass
     return 0
