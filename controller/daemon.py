@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import gc
 import logging
-import signal
 import sys
 import textwrap
 import threading
@@ -30,13 +29,12 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from contracts import wire
+from contracts.daemon import open_session_until, stop_on_signals
 from contracts.health import Heartbeat
 from contracts.settings import to_toml
-from contracts.transport import open_session
 from contracts.wire import Twist2D
 from controller.config import DaemonConfig, load_config
 from controller.decision import Controller, Input, Output, Reason
@@ -146,7 +144,10 @@ class Daemon:
         self.controller.warm_up()
         wire.decode_twist_msg(wire.encode_twist_msg(wire.STOP))
         wire.decode_json_msg(wire.encode_json_msg({}))
-        session = open_session(self.config.zenoh)
+        session = open_session_until(self.config.zenoh, self.stopping, log)
+        if session is None:  # stopped before zenoh was reachable: no link to send a stop on
+            self.heartbeat.close()
+            return
         try:
             self._command = session.declare_publisher(
                 self.command_key,
@@ -283,16 +284,8 @@ def build(config: DaemonConfig) -> Daemon:
 def serve(daemon: Daemon) -> None:
     """Run `daemon` in this (main) thread until SIGINT or SIGTERM."""
 
-    def on_signal(number: int, frame: FrameType | None) -> None:
-        log.info("%s: stopping", signal.Signals(number).name)
-        daemon.request_stop()
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_on_signals(log, daemon.stopping):
         daemon.run()
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -22,9 +22,10 @@ from functools import cache
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
+from contracts.daemon import open_session_until
 from contracts.errors import ConfigError
 from contracts.health import Heartbeat
-from contracts.transport import ZenohSettings, open_session
+from contracts.transport import ZenohSettings
 from contracts.wire import TOPICS, Topic, key
 
 log = logging.getLogger(__name__)
@@ -246,7 +247,11 @@ def record(
 
         return on_sample
 
-    with open_session(settings.zenoh) as session:
+    session = open_session_until(settings.zenoh, stop, log)
+    if session is None:  # stopped before zenoh was reachable: an empty recording
+        writer.close()
+        return writer
+    with session:
         subscribers = [
             session.declare_subscriber(key(t, settings.zenoh.namespace), subscriber(t))
             for t in topics
@@ -283,7 +288,10 @@ def play(
     if not messages:
         return 0
     published = 0
-    with open_session(settings) as session:
+    session = open_session_until(settings, stop, log)
+    if session is None:
+        return 0
+    with session:
         names = dict.fromkeys(m.topic.lstrip("/") for m in messages)
         publishers = {
             name: session.declare_publisher(key(name, settings.namespace)) for name in names
