@@ -52,12 +52,15 @@ from contracts.wire import (
     STOP,
     VEHICLE_REQUEST,
     VEHICLE_STATE,
+    Pose2D,
     Twist2D,
     WireError,
     decode_json_msg,
     decode_pose_msg,
     decode_twist_msg,
     encode_json_msg,
+    encode_pose_msg,
+    encode_twist_msg,
     key,
 )
 from firmware_bridge import mapping
@@ -103,7 +106,8 @@ class Bridge:
         self._lock = threading.Lock()
         self._rate_log = RateLimitedLog(log)
         self.counters: Counter[str] = Counter()
-        """commands, stops, dropped (arrived while the link was down), malformed, rejected
+        """commands, stops, dropped (arrived while the link was down), malformed (implausible
+        commands among them, also counted as implausible), rejected
         (unsigned or badly signed MAVLink), bad_data, poses, reconnects, requests."""
         self._guided = settings.output.mode == "guided"
         self._stop_message = self._command_message(STOP)
@@ -171,6 +175,10 @@ class Bridge:
     def _join_zenoh(self) -> None:
         """Open the session (retrying while zenoh refuses), then publish and subscribe."""
         namespace = self.settings.zenoh.namespace
+        # First decodes build the ROS type store (a few hundred ms): not on the first command.
+        decode_twist_msg(encode_twist_msg(STOP))
+        decode_pose_msg(encode_pose_msg(Pose2D(0.0, "map", 0.0, 0.0, 0.0)))
+        decode_json_msg(encode_json_msg({}))
         while not self._stopping.is_set():
             try:
                 session = open_session_until(self.settings.zenoh, self._stopping, log)
@@ -331,6 +339,13 @@ class Bridge:
         except WireError as error:
             self._malformed("command", error)
             return
+        problem = mapping.implausible(twist, self.settings.output)
+        if problem is not None:  # a broken sender, not an overshoot: neutral, never clipped
+            with self._lock:
+                self.counters["implausible"] += 1
+            self._malformed("command", ValueError(problem))
+            self._send_stop(now)
+            return
         message = self._command_message(twist)
         with self._lock:
             if not self._gate.accept_command(now):
@@ -344,6 +359,10 @@ class Bridge:
             pose = decode_pose_msg(sample.payload.to_bytes())
         except WireError as error:
             self._malformed("pose", error)
+            return
+        problem = mapping.pose_problem(pose, self.settings.vision.max_position_m)
+        if problem is not None:
+            self._malformed("pose", ValueError(problem))
             return
         if not self._link_up:
             return

@@ -107,6 +107,10 @@ class OutputSettings:
     """guided mode: forward speed targets are clipped to this magnitude."""
     guided_max_turn_rate_radps: float = 1.0
     """guided mode: yaw-rate targets are clipped to this magnitude."""
+    implausible_factor: float = 10.0
+    """A Twist beyond this many times the limits above (full-throttle speed and full-steering
+    turn rate, or the guided maxima) is refused as malformed (counted, neutral sent); smaller
+    overshoot is clipped."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("manual", "guided"):
@@ -120,6 +124,7 @@ class OutputSettings:
             check_range(self, name, getattr(self, name), 0.0, 100.0, exclusive_low=True)
         for name in ("guided_max_speed_mps", "guided_max_turn_rate_radps"):
             check_range(self, name, getattr(self, name), 0.0, 100.0)
+        check_range(self, "implausible_factor", self.implausible_factor, 1.0, 1e6)
         for channel in ("steering", "throttle"):
             low = getattr(self, f"{channel}_pwm_min_us")
             trim = getattr(self, f"{channel}_pwm_trim_us")
@@ -195,11 +200,15 @@ class VisionSettings:
     """Longitude of the EKF origin."""
     origin_alt_m: float = 584.0
     """Altitude of the EKF origin above mean sea level."""
+    max_position_m: float = 10_000.0
+    """A pose farther than this from the origin on either axis (or with a yaw beyond 1000 rad)
+    is refused as malformed and not forwarded: no motion-capture volume is that big."""
 
     def __post_init__(self) -> None:
         check_range(self, "origin_lat_deg", self.origin_lat_deg, -90.0, 90.0)
         check_range(self, "origin_lon_deg", self.origin_lon_deg, -180.0, 180.0)
         check_range(self, "origin_alt_m", self.origin_alt_m, -1000.0, 10000.0)
+        check_range(self, "max_position_m", self.max_position_m, 1.0, 1e7)
 
 
 @dataclass(frozen=True)

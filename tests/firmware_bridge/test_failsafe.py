@@ -84,3 +84,12 @@ def test_closed_gate_refuses_every_command() -> None:
     gate.close()
     assert not gate.accept_command(1.0)
     assert gate.stop_due(1.0)
+
+
+def test_closing_ends_driving_on_a_fresh_command_and_stops_are_due_at_once() -> None:
+    gate = _gate()
+    assert gate.accept_command(1.0)
+    assert gate.driving(1.01)
+    gate.close()
+    assert not gate.driving(1.01), "a closed gate still reports the fresh command as driving"
+    assert gate.stop_due(1.01)
