@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import socket
 import threading
@@ -11,8 +12,17 @@ from contextlib import ExitStack
 
 import pytest
 
-from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
-from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, key
+from contracts.mavlink import (
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_INVALID,
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_SET_MODE,
+    MAV_STATE_ACTIVE,
+    MAV_TYPE_GROUND_ROVER,
+    mavutil,
+)
+from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Pose2D, encode_pose_msg, key
+from firmware_bridge import daemon
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from sim.mavlink_vehicle import MavlinkVehicle
@@ -308,3 +318,95 @@ def test_bridge_heartbeats_as_companion_computer_and_as_ground_station(
     )
     # Companion: the vehicle's id, component 191, MAV_TYPE_ONBOARD_CONTROLLER, autopilot invalid.
     assert heartbeats == {(1, 191, 18, 8), (255, 191, 6, 8)}
+
+
+class _RawAutopilot:
+    """A bare UDP socket that answers the bridge with heartbeats of a chosen origin."""
+
+    def __init__(self) -> None:
+        self.socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.socket.bind(("127.0.0.1", 0))
+        self.socket.settimeout(0.05)
+        self.port = int(self.socket.getsockname()[1])
+        self.peer: tuple[str, int] | None = None
+
+    def heartbeat(self, system: int, component: int, autopilot: int) -> None:
+        """Send one Rover heartbeat (disarmed, MANUAL) once the bridge has been heard."""
+        while self.peer is None:
+            with contextlib.suppress(TimeoutError):
+                _, self.peer = self.socket.recvfrom(2048)
+        mav = mavutil().mavlink.MAVLink(None, srcSystem=system, srcComponent=component)
+        message = mav.heartbeat_encode(MAV_TYPE_GROUND_ROVER, autopilot, 0, 0, MAV_STATE_ACTIVE)
+        self.socket.sendto(message.pack(mav), self.peer)
+
+
+@pytest.mark.parametrize(
+    "component, autopilot",
+    [(2, MAV_AUTOPILOT_ARDUPILOTMEGA), (1, MAV_AUTOPILOT_INVALID)],
+    ids=["wrong-component", "invalid-autopilot"],
+)
+def test_heartbeats_from_another_component_or_no_autopilot_leave_the_link_down(
+    component: int, autopilot: int
+) -> None:
+    with ExitStack() as stack:
+        rig = start_rig(stack, start_bridge=False)
+        vehicle = _RawAutopilot()
+        stack.callback(vehicle.socket.close)
+        bridge = stack.enter_context(Bridge(bridge_settings(rig.zenoh_port, vehicle.port)))
+        for _ in range(10):  # the vehicle's own system id, but not its autopilot
+            vehicle.heartbeat(1, component, autopilot)
+            time.sleep(0.02)
+        assert bridge.state()["link_up"] is False
+        vehicle.heartbeat(1, 1, MAV_AUTOPILOT_ARDUPILOTMEGA)  # the real one does count
+        wait_until(lambda: bridge.state()["link_up"], what="link up on the autopilot's beat")
+
+
+def test_the_bridge_gives_up_a_request_the_vehicle_never_takes(
+    make_rig: MakeRig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(daemon, "REQUEST_RETRY_S", 0.02)
+    # GUIDED without any position estimate: the vehicle refuses it every time.
+    rig = make_rig(
+        bridge={"output": {"mode": "guided"}, "vision": {"forward_pose": False}},
+        vehicle={"heartbeat_period_s": 0.02},
+    )
+
+    def mode_requests() -> int:
+        return sum(
+            r.fields["command"] == MAV_CMD_DO_SET_MODE for r in rig.vehicle.received("COMMAND_LONG")
+        )
+
+    wait_until(lambda: mode_requests() >= daemon.REQUEST_ATTEMPTS, what="the attempts")
+    time.sleep(0.3)  # fifteen retry periods: had it not given up, more would have come
+    assert mode_requests() == daemon.REQUEST_ATTEMPTS
+    assert rig.vehicle.mode == "MANUAL"
+
+
+def test_implausible_commands_are_refused_with_neutral_and_counted(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    bridge = rig.bridge
+    assert bridge is not None
+    rig.ready()
+    start_s = time.monotonic()
+    for twist in ((0.0, -9.1e150), (1e308, 1e308), (10.5, 0.0)):
+        rig.command(*twist)
+    wait_until(lambda: bridge.counters["implausible"] == 3, what="three implausible counted")
+    assert bridge.counters["malformed"] == 3 and bridge.counters["commands"] == 0
+    overrides = _overrides(rig, start_s)
+    assert overrides and all(pwm == NEUTRAL for _, pwm in overrides)
+    rig.drive(2.0, 0.0, 0.3)  # overshoot below the factor is clipped and drives
+    assert (1500, 1900) in [pwm for _, pwm in _overrides(rig, start_s)]
+
+
+def test_absurd_poses_are_not_forwarded_as_vision_estimates(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"output": {"mode": "guided"}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.publish_pose()
+    wait_until(lambda: rig.vehicle.received("VISION_POSITION_ESTIMATE"), what="a good pose")
+    for x_m, yaw_rad in ((1e308, 0.0), (0.0, 1e308), (20_000.0, 0.0)):
+        rig.publish(key(POSE), encode_pose_msg(Pose2D(time.time(), "map", x_m, 0.0, yaw_rad)))
+    wait_until(lambda: rig.counters().get("malformed") == 3, what="absurd poses counted")
+    rig.publish_pose()
+    wait_until(lambda: rig.counters().get("poses") == 2, what="the next good pose")
+    estimates = rig.vehicle.received("VISION_POSITION_ESTIMATE")
+    assert len(estimates) == 2 and all(abs(e.fields["y"]) < 100 for e in estimates)
