@@ -107,7 +107,8 @@ class Bridge:
         self._rate_log = RateLimitedLog(log)
         self.counters: Counter[str] = Counter()
         """commands, stops, dropped (arrived while the link was down), malformed (implausible
-        commands among them, also counted as implausible), rejected
+        commands among them, also counted as implausible), requests_refused (arm requests
+        while vehicle.remote_arming is off), rejected
         (unsigned or badly signed MAVLink), bad_data, poses, reconnects, requests."""
         self._guided = settings.output.mode == "guided"
         self._stop_message = self._command_message(STOP)
@@ -382,6 +383,15 @@ class Bridge:
             arm, mode = _parse_request(request)
         except (WireError, ValueError) as error:
             self._malformed("request", error)
+            return
+        if arm and not self.settings.vehicle.remote_arming:
+            with self._lock:
+                self.counters["requests_refused"] += 1
+            self._rate_log.warning(
+                "remote arming",
+                "refused a request to arm: vehicle.remote_arming is off (%s)",
+                request,
+            )
             return
         log.info("request: %s", request)
         with self._lock:

@@ -176,7 +176,12 @@ class VehicleSettings:
     SECTION = "vehicle"
 
     arm_on_connect: bool = False
-    """Arm when the link first comes up (later arming: a request on qnav/vehicle_request)."""
+    """Arm when the link first comes up (later arming: a request on qnav/vehicle_request, if
+    `remote_arming` is on)."""
+    remote_arming: bool = False
+    """Take {"arm": true} from qnav/vehicle_request. Off: such requests are refused (counted
+    as requests_refused), since any zenoh peer that can publish there could arm the car;
+    disarm and mode requests are always taken."""
     set_mode_on_connect: bool = True
     """Switch to the output mode's Rover mode (MANUAL or GUIDED) when the link first comes up."""
     state_period_s: float = 0.2

@@ -159,7 +159,7 @@ def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeR
 
 
 def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
-    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False, "remote_arming": True}})
     wait_until(lambda: rig.state().get("link_up"), what="link up")
     assert not rig.vehicle.armed
     rig.request({"arm": True})
@@ -280,7 +280,10 @@ def test_tcp_link_drives_and_recovers_after_the_vehicle_restarts() -> None:
         serve = {"connection": f"tcpin:127.0.0.1:{port}"}
         vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
         settings = bridge_settings(
-            rig.zenoh_port, 0, mavlink={"connection": f"tcp:127.0.0.1:{port}"}
+            rig.zenoh_port,
+            0,
+            mavlink={"connection": f"tcp:127.0.0.1:{port}"},
+            vehicle={"remote_arming": True},
         )
         bridge = stack.enter_context(Bridge(settings))
         rig.vehicle, rig.bridge = vehicle, bridge
@@ -411,3 +414,20 @@ def test_absurd_poses_are_not_forwarded_as_vision_estimates(make_rig: MakeRig) -
     estimates = rig.vehicle.received("VISION_POSITION_ESTIMATE")
     assert len(estimates) == 2
     assert all(abs(e.fields["x"]) < 100 and abs(e.fields["y"]) < 100 for e in estimates)
+
+
+def test_remote_arming_is_off_unless_a_setting_turns_it_on(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"arm": True})
+    rig.request({"arm": True, "mode": "HOLD"})
+    wait_until(lambda: rig.counters().get("requests_refused") == 2, what="arm refused twice")
+    rig.request({"mode": "HOLD"})  # not arming: taken
+    wait_until(lambda: rig.vehicle.mode == "HOLD", what="HOLD")
+    assert not rig.vehicle.armed
+    arms = [
+        r
+        for r in rig.vehicle.received("COMMAND_LONG")
+        if r.fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM and r.fields["param1"] == 1.0
+    ]
+    assert not arms
