@@ -12,6 +12,7 @@ from contextlib import ExitStack
 
 import pytest
 
+from contracts.errors import ConfigError
 from contracts.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_INVALID,
@@ -21,11 +22,13 @@ from contracts.mavlink import (
     MAV_TYPE_GROUND_ROVER,
     mavutil,
 )
+from contracts.settings import with_overrides
 from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Pose2D, encode_pose_msg, key
 from firmware_bridge import daemon
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
-from sim.mavlink_vehicle import MavlinkVehicle
+from firmware_bridge.settings import BridgeSettings
+from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from tests.firmware_bridge.rig import (
     Rig,
     bridge_settings,
@@ -431,3 +434,22 @@ def test_remote_arming_is_off_unless_a_setting_turns_it_on(make_rig: MakeRig) ->
         if r.fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM and r.fields["param1"] == 1.0
     ]
     assert not arms
+
+
+def test_bridge_and_fake_vehicle_pair_with_their_defaults() -> None:
+    defaults = BridgeSettings()
+    # Only zenoh is pointed away (at a closed port: the vehicle side runs without it).
+    closed = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+    settings = with_overrides(defaults, {"zenoh": {"connect": [closed]}})
+    assert settings.mavlink == defaults.mavlink
+    with ExitStack() as stack:
+        try:
+            bridge = stack.enter_context(Bridge(settings))
+        except ConfigError as error:  # another program holds the well-known port
+            pytest.skip(f"UDP 14550 is in use on this machine: {error}")
+        vehicle = stack.enter_context(MavlinkVehicle(MavlinkVehicleSettings()))
+        wait_until(lambda: bridge.state()["link_up"], what="the pair to find each other")
+        wait_until(
+            lambda: any(r.src_component == 191 for r in vehicle.received("HEARTBEAT")),
+            what="the bridge's heartbeat at the vehicle",
+        )
