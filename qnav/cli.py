@@ -223,6 +223,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     diagnose.set_defaults(handler=_lazy("qnav.commands:diagnose"))
 
+    gauge = verbs.add_parser(
+        "gauge",
+        help="decisive-state gauge: how often a policy avoids a doomed action where it matters",
+    )
+    _world_options(gauge, "obstacles-inertia")
+    gauge.add_argument(
+        "runs", nargs="*", type=Path, help="training run folders to score (each in its own world)"
+    )
+    gauge.add_argument(
+        "--episodes", type=int, default=400, help="episodes per driver behind the state set (400)"
+    )
+    gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
+    gauge.set_defaults(handler=_lazy("qnav.commands:gauge"))
+
     imitate = verbs.add_parser(
         "imitate",
         help="behaviour-cloning ceiling: train the network to copy the oracle planner, test it",
