@@ -189,9 +189,18 @@ def build_parser() -> argparse.ArgumentParser:
     export.set_defaults(handler=_lazy("qnav.commands:export"))
 
     calibrate = verbs.add_parser(
-        "calibrate", help="random agent in each of the paper's scenarios, beside the paper's rows"
+        "calibrate",
+        help="random, go-to-target and oracle agents in the paper's scenarios, beside its rows",
     )
-    calibrate.add_argument("--episodes", type=int, default=2000, help="episodes per scenario")
+    calibrate.add_argument(
+        "--episodes", type=int, default=2000, help="random and go-to-target episodes (2000)"
+    )
+    calibrate.add_argument(
+        "--oracle-episodes",
+        type=int,
+        default=1000,
+        help="oracle episodes per obstacle scenario (1000; about 4 CPU-minutes each)",
+    )
     calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
     calibrate.add_argument("--json", action="store_true", help="print one JSON object")
     calibrate.set_defaults(handler=_lazy("sim.cli:calibrate"))

@@ -20,7 +20,7 @@ import hashlib
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -126,6 +126,8 @@ def cached(
 ) -> DecisiveStates:
     """The decisive states of this world, collected once and then read from the cache (about
     a minute of CPU for the default 800 episodes; a changed setting makes a new set)."""
+    # The world's own episode length plays no part: the settings' governs collection.
+    config = replace(config, max_episode_steps=settings.max_episode_steps)
     key = hashlib.sha256((to_toml(config) + to_toml(settings)).encode()).hexdigest()[:16]
     path = (directory or cache_dir()) / "decisive" / f"{config.name}-{key}.npz"
     if path.exists():

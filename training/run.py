@@ -222,21 +222,24 @@ def train(
                 settings.gamma,
                 mirror_probability=settings.mirror_probability,
                 obstacles=settings.obstacle_redraw(),
+                priority_exponent=settings.priority_exponent,
+                priority_correction=settings.priority_correction(state.iterations),
             )
-            losses.append(
-                td_update(
-                    online,
-                    target,
-                    optimizer,
-                    batch,
-                    window=settings.window,
-                    loss_kind=settings.loss,
-                    grad_clip_norm=settings.grad_clip_norm,
-                    bf16=bf16,
-                    next_scan=next_scan,
-                    demonstration=demonstration,
-                )
+            update = td_update(
+                online,
+                target,
+                optimizer,
+                batch,
+                window=settings.window,
+                loss_kind=settings.loss,
+                grad_clip_norm=settings.grad_clip_norm,
+                bf16=bf16,
+                next_scan=next_scan,
+                demonstration=demonstration,
             )
+            losses.append(update.loss)
+            if settings.priority_exponent > 0.0 and batch.stored is not None:
+                replay.reprioritise(batch.stored, update.td_error)
             state.iterations += 1
             if settings.target_smoothing:
                 soft_update(target, online, settings.target_smoothing)
