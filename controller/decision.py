@@ -259,6 +259,9 @@ class Controller:
                 return self._take_release(wire.decode_bool_msg(payload), now)
         except Exception as error:  # whatever a payload does, it is only ever refused
             self.counters.malformed[source.value] += 1
+            if source is Input.ESTOP:
+                # Someone tried to press the stop: a garbled press is still a press.
+                self._take_estop(True, now)
             return (
                 str(error) if isinstance(error, WireError) else f"{type(error).__name__}: {error}"
             )

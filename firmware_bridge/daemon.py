@@ -320,6 +320,15 @@ class Bridge:
         except WireError as error:
             self._malformed("command", error)
             return
+        absurd = mapping.implausible(
+            twist, self.settings.output, self.settings.failsafe.implausible_factor
+        )
+        if absurd is not None:
+            # Nobody meant this: count it, and stop rather than keep the last command.
+            self._malformed("command", ValueError(absurd))
+            with self._lock:
+                self.link.send(self._stop_message, as_gcs=self._as_gcs)
+            return
         message = self._command_message(twist)
         with self._lock:
             if not self._gate.accept_command(now):

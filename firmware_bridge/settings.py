@@ -157,8 +157,13 @@ class FailsafeSettings:
     """On SIGINT or SIGTERM, stop is sent this many times (UDP may drop one)."""
     disarm_on_exit: bool = True
     """On SIGINT or SIGTERM, disarm after sending stop."""
+    implausible_factor: float = 10.0
+    """A command beyond this many times the output's full scale (speed or turn rate) is not
+    one anyone meant: it is refused as malformed and the car is stopped; closer overshoot is
+    clipped."""
 
     def __post_init__(self) -> None:
+        check_range(self, "implausible_factor", self.implausible_factor, 1.0, 1e6)
         check_range(self, "command_timeout_s", self.command_timeout_s, 0.01, 10.0)
         check_range(self, "stop_period_s", self.stop_period_s, 0.005, 2.0)
         check_range(self, "stop_repeats_on_exit", self.stop_repeats_on_exit, 1, 100)

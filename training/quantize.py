@@ -9,8 +9,8 @@ and runs integer products. The weights use 7 of the 8 bits (`reduce_range`): on 
 without VNNI, onnxruntime multiplies uint8 by int8 with an instruction (VPMADDUBSW) whose
 16-bit sums of pairs saturate at full range; measured on an AVX2 machine with onnxruntime 1.32,
 full-range weights moved the Q values by up to 0.026 and changed 14 % of greedy choices, 7-bit
-ones by 0.008 (`tests/training/test_quantize.py`). The lidar convolutions (8 KB) and the output layer (the Q values
-themselves) stay float32.
+ones by 0.008 (`tests/training/test_quantize.py`). The lidar convolutions (8 KB) and the output
+layer (the Q values themselves) stay float32.
 
 The graph as exported feeds each LSTM matrix through a Transpose, which the quantiser does not
 look through, so those are first folded into initializers named `P_Transposed`

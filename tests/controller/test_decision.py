@@ -150,7 +150,6 @@ def test_the_car_stops_at_the_target_until_a_different_target_arrives(policy: Pa
             Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", math.nan, 1.0)), id="target-nan"
         ),
         pytest.param(Input.TARGET, scan_payload()[:30], id="target-garbage"),
-        pytest.param(Input.ESTOP, b"\xff", id="estop-garbage"),
         pytest.param(Input.ESTOP_RELEASE, b"", id="release-empty"),
     ],
 )
@@ -168,6 +167,53 @@ def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
     # The age is still that of the last good input (arrived at 0.0; estop never).
     good_age = None if source in (Input.ESTOP, Input.ESTOP_RELEASE) else 0.1
     assert status.ages_s[source.value] == good_age
+
+
+@pytest.mark.parametrize(
+    "payload", [b"\xff", b"", bytes.fromhex("0001000002"), bytes.fromhex("0001ffff00")]
+)
+def test_a_malformed_stop_message_presses_the_stop(policy: Path, payload: bytes) -> None:
+    c = ready(policy)
+    assert c.receive(Input.ESTOP, payload, 0.01)
+    assert c.counters.malformed["estop"] == 1
+    status = c.decide(0.02).status
+    assert (status.estop_latched, status.estop_pressed) == (True, True)
+    assert status.reason is not None and status.reason.name.startswith("ESTOP")
+
+
+RELEASE_LOOKALIKES = [
+    "0001000002",  # value byte 2
+    "00010000ff",
+    "0001000080000000",
+    "0001000001deadbe",  # garbage after the value
+    "0001ffff01",  # non-zero options
+    "0000000001",  # big-endian header
+    "000100000100000000",  # more than alignment padding
+    "00010000",  # no value
+]
+
+
+def test_no_malformed_payload_releases_a_latched_stop(policy: Path) -> None:
+    rng = np.random.default_rng(11)
+    payloads = [bytes.fromhex(h) for h in RELEASE_LOOKALIKES]
+    for _ in range(3000):
+        size = int(rng.integers(0, 12))
+        body = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        payloads.append(b"\x00\x01\x00\x00" + body if rng.random() < 0.7 else body)
+    canonical = {wire.encode_bool_msg(True), wire.encode_bool_msg(True) + bytes(3)}
+    canonical |= {wire.encode_bool_msg(True) + bytes(n) for n in (1, 2)}
+    c = ready(policy)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.0)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.0)
+    for i, payload in enumerate(payloads):
+        if payload in canonical:
+            continue
+        c.receive(Input.ESTOP_RELEASE, payload, 0.001 * i)
+        output = c.decide(0.001 * i)
+        assert output.command == STOP and output.status.estop_latched, payload.hex()
+    # ... and the canonical release still works afterwards.
+    c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 10.0)
+    assert not c.decide(10.0).status.estop_latched
 
 
 def test_payloads_in_the_wrong_frame_are_malformed_when_a_frame_is_configured(

@@ -12,7 +12,7 @@ from contextlib import ExitStack
 import pytest
 
 from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
-from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, key
+from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Twist2D, encode_twist_msg, key
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from sim.mavlink_vehicle import MavlinkVehicle
@@ -136,6 +136,21 @@ def test_malformed_command_is_counted_and_never_moves_the_car(make_rig: MakeRig)
     assert all(pwm == NEUTRAL for _, pwm in _overrides(rig, start_s))
     rig.drive(0.8, 0.0, 0.3)  # the daemon lives on
     assert rig.vehicle.pose()[0] > 0.01
+
+
+def test_an_absurd_command_is_refused_and_stops_a_moving_car(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    bridge = rig.bridge
+    assert bridge is not None
+    rig.ready()
+    rig.drive(0.8, 0.0, 0.3)
+    time.sleep(0.1)  # the last forward command has arrived; it stands until the timeout
+    start_s = time.monotonic()
+    for linear, angular in ((0.0, -9.1e150), (1e308, 1e308), (20.0, 0.0)):
+        rig.publish(key(COMMAND), encode_twist_msg(Twist2D(linear, angular)))
+    wait_until(lambda: bridge.counters["malformed"] == 3, what="three absurd commands counted")
+    wait_until(lambda: len(_overrides(rig, start_s)) >= 3, what="stops after them")
+    assert all(pwm == NEUTRAL for _, pwm in _overrides(rig, start_s))
 
 
 def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeRig) -> None:
