@@ -24,7 +24,7 @@ from typing import IO, Any, NamedTuple
 
 from contracts.errors import ConfigError
 from contracts.health import Heartbeat
-from contracts.transport import ZenohSettings, open_session
+from contracts.transport import StoppedError, ZenohSettings, open_session
 from contracts.wire import TOPICS, Topic, key
 
 log = logging.getLogger(__name__)
@@ -246,7 +246,13 @@ def record(
 
         return on_sample
 
-    with open_session(settings.zenoh) as session:
+    try:
+        opened = open_session(settings.zenoh, stop)
+    except StoppedError:
+        log.info("stopped before zenoh connected: nothing recorded")
+        writer.close()
+        return writer
+    with opened as session:
         subscribers = [
             session.declare_subscriber(key(t, settings.zenoh.namespace), subscriber(t))
             for t in topics
