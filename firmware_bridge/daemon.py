@@ -390,6 +390,13 @@ class Bridge:
         except (WireError, ValueError) as error:
             self._malformed("request", error)
             return
+        if arm is True and not self.settings.vehicle.remote_arming:
+            with self._lock:
+                self.counters["refused"] += 1
+            self._rate_log.warning(
+                "remote arming", "refused an arm request: vehicle.remote_arming is off"
+            )
+            return
         log.info("request: %s", request)
         with self._lock:
             if arm is not None:

@@ -179,6 +179,10 @@ class VehicleSettings:
     """Arm when the link first comes up (later arming: a request on qnav/vehicle_request)."""
     set_mode_on_connect: bool = True
     """Switch to the output mode's Rover mode (MANUAL or GUIDED) when the link first comes up."""
+    remote_arming: bool = False
+    """Take arm requests from zenoh (qnav/vehicle_request); off, anyone on the network could
+    arm the car, so only arm_on_connect, the RC or a ground station arm it (disarm and mode
+    requests are always taken)."""
     state_period_s: float = 0.2
     """Period of the vehicle state message on zenoh (also sent at once on any change)."""
 

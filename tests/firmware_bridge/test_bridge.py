@@ -163,8 +163,17 @@ def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeR
     assert any(r.fields["z"] == 500 and r.fields["y"] == 0 for r in sent)
 
 
-def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
+def test_an_arm_request_is_refused_unless_remote_arming_is_on(make_rig: MakeRig) -> None:
     rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"arm": True})
+    wait_until(lambda: rig.counters().get("refused") == 1, what="arm request refused")
+    time.sleep(0.2)
+    assert not rig.vehicle.armed
+
+
+def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False, "remote_arming": True}})
     wait_until(lambda: rig.state().get("link_up"), what="link up")
     assert not rig.vehicle.armed
     rig.request({"arm": True})
@@ -285,7 +294,10 @@ def test_tcp_link_drives_and_recovers_after_the_vehicle_restarts() -> None:
         serve = {"connection": f"tcpin:127.0.0.1:{port}"}
         vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
         settings = bridge_settings(
-            rig.zenoh_port, 0, mavlink={"connection": f"tcp:127.0.0.1:{port}"}
+            rig.zenoh_port,
+            0,
+            mavlink={"connection": f"tcp:127.0.0.1:{port}"},
+            vehicle={"remote_arming": True},
         )
         bridge = stack.enter_context(Bridge(settings))
         rig.vehicle, rig.bridge = vehicle, bridge
