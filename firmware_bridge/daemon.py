@@ -73,7 +73,7 @@ REQUEST_RETRY_S = 0.5
 """An arm or mode request not yet seen in the vehicle's heartbeat is sent again this often."""
 REQUEST_ATTEMPTS = 10
 """... this many times, then the bridge gives up and says so."""
-EXIT_ACK_WAIT_S = 0.3
+EXIT_ACK_WAIT_S = 0.2
 """On shutdown, how long to wait for the disarm to be acknowledged before sending it again."""
 
 

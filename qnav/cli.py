@@ -445,8 +445,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim_car.add_argument("--seed", type=int, default=12345, help="layout seed (the test seed)")
     sim_car.add_argument(
         "--vehicle",
-        default="udpin:127.0.0.1:14550",
-        help="MAVLink connection the simulated autopilot serves (udpin:127.0.0.1:14550)",
+        default="udpout:127.0.0.1:14550",
+        help="MAVLink connection of the simulated autopilot (udpout:127.0.0.1:14550, where "
+        "`qnav bridge` listens by default)",
     )
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
@@ -588,7 +589,8 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--config", type=Path, metavar="FILE", help="TOML file of vehicle settings"
     )
     vehicle.add_argument(
-        "--connection", help="MAVLink connection string it serves (udpin:127.0.0.1:14550)"
+        "--connection",
+        help="MAVLink connection string (default udpout:127.0.0.1:14550, to the bridge)",
     )
     vehicle.add_argument(
         "--signing-key-file", metavar="FILE", help="sign, and accept only signed messages"
