@@ -243,6 +243,10 @@ def encode_pose_msg(pose: Pose2D) -> bytes:
     return serialize(message, POSE.ros_type)
 
 
+QUATERNION_NORM_TOLERANCE = 0.1
+"""How far from 1 an orientation's norm may be (drivers round; a zero or garbled quaternion is
+far off)."""
+
 _POSE_FLOATS = struct.Struct("<7d")
 """geometry_msgs/msg/Pose: position x, y, z and orientation x, y, z, w."""
 
@@ -262,8 +266,8 @@ def decode_pose_msg(payload: bytes) -> Pose2D:
     if not all(math.isfinite(v) for v in (x, y, qx, qy, qz, qw)):
         raise WireError("PoseStamped has NaN or infinite values")
     norm = math.sqrt(qx**2 + qy**2 + qz**2 + qw**2)
-    if norm < 1e-6:
-        raise WireError("PoseStamped has a zero quaternion")
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise WireError(f"PoseStamped's quaternion has norm {norm:.6g}, not 1")
     yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy**2 + qz**2))
     return Pose2D(stamp_s, frame_id, x, y, yaw)
 

@@ -32,6 +32,26 @@ def target_payload(x: float = 8.0, y: float = 8.0, frame: str = "map") -> bytes:
     return wire.encode_pose_msg(Pose2D(0.0, frame, x, y))
 
 
+def odd_scan_payload(range_min: float, range_max: float, count: int = 1080) -> bytes:
+    ranges = np.full(count, 3.0, dtype=np.float32)
+    return wire.encode_scan_msg(
+        Scan(0.0, "laser", -math.pi, 2 * math.pi / count, range_min, range_max, ranges)
+    )
+
+
+def quaternion_payload(w: float) -> bytes:
+    """A PoseStamped whose orientation is (0, 0, 0, w)."""
+    types = wire._typestore().types
+    message = types[wire.POSE.ros_type](
+        header=wire._header(0.0, "map"),
+        pose=types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=1.0, y=1.0, z=0.0),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=w),
+        ),
+    )
+    return wire.serialize(message, wire.POSE.ros_type)
+
+
 @pytest.fixture
 def policy(make_policy: PolicyFactory) -> Path:
     return make_policy("walls-inertia")
@@ -146,6 +166,16 @@ def test_the_car_stops_at_the_target_until_a_different_target_arrives(policy: Pa
             Input.POSE, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, math.inf)), id="pose-inf"
         ),
         pytest.param(Input.POSE, b"\x00\x01", id="pose-truncated"),
+        pytest.param(Input.POSE, pose_payload(x=1e308), id="pose-absurd"),
+        pytest.param(Input.POSE, pose_payload(y=-1001.0), id="pose-beyond-max-position"),
+        pytest.param(Input.POSE, quaternion_payload(2.0), id="pose-quaternion-norm-2"),
+        pytest.param(Input.POSE, quaternion_payload(0.0), id="pose-zero-quaternion"),
+        pytest.param(Input.TARGET, target_payload(x=-1e308), id="target-absurd"),
+        pytest.param(Input.SCAN, odd_scan_payload(math.nan, 30.0), id="scan-range-min-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, math.nan), id="scan-range-max-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(5.0, 1.0), id="scan-range-min-above-max"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=1), id="scan-one-reading"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=49), id="scan-49-readings"),
         pytest.param(
             Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", math.nan, 1.0)), id="target-nan"
         ),
@@ -364,7 +394,7 @@ def test_the_status_is_one_json_object_with_the_decision_and_its_reasons(policy:
 
 @pytest.mark.parametrize(
     ("count", "increment"),
-    [(200_000, 1e-5), (10, 4.0), (1000, 0.1), (5, -1e30)],
+    [(200_000, 1e-5), (60, 4.0), (1000, 0.1), (60, -1e30)],
 )
 def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     policy: Path, count: int, increment: float
