@@ -395,6 +395,15 @@ def build_parser() -> argparse.ArgumentParser:
     _zenoh_options(record)
     record.set_defaults(handler=_lazy("qnav.recording:record_verb"))
 
+    recover = verbs.add_parser(
+        "recover",
+        help="make a killed recording whole: every complete message, indexed, with metadata.yaml",
+    )
+    recover.add_argument(
+        "paths", nargs="+", type=Path, help="recording folders or .mcap files (cut or not)"
+    )
+    recover.set_defaults(handler=_lazy("qnav.recording:recover_verb"))
+
     playback = verbs.add_parser(
         "playback",
         help="publish MCAP recordings back onto zenoh at their recorded timing, or feed them "
