@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from contracts import wire
+from contracts.errors import PolicyInputError
 from contracts.wire import STOP, Pose2D, Scan, Twist2D
 from controller.config import LidarSettings, SafetySettings
 from controller.decision import Controller, Input, Output, Reason
@@ -404,3 +405,45 @@ def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     payload = wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, 0.1, 30, ranges))
     assert "not a planar scan" in (c.receive(Input.SCAN, payload, 0.1) or "")
     assert c.counters.malformed["scan"] == 1
+
+
+def test_a_target_that_only_changes_frame_is_a_new_target(policy: Path) -> None:
+    c = ready(policy)
+    c.receive(Input.TARGET, target_payload(x=1.2, y=1.0), 0.01)  # within the tolerance
+    assert_stop(c.decide(0.02), Reason.TARGET_REACHED)
+    assert c.target_reached
+    c.receive(Input.TARGET, target_payload(x=1.2, y=1.0, frame="odom"), 0.03)
+    assert not c.target_reached
+
+
+def test_an_empty_frame_id_never_counts_as_a_frame_mismatch(policy: Path) -> None:
+    c = controller(policy)
+    c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
+    c.receive(Input.SCAN, scan_payload(0.0), 0.0)
+    c.receive(Input.POSE, pose_payload(frame=""), 0.0)
+    assert c.decide(0.01).status.reason is Reason.POLICY
+    c.receive(Input.POSE, pose_payload(frame="map"), 0.02)
+    assert_stop(c.decide(0.03), Reason.FRAME_MISMATCH)
+
+
+class _RefusingRuntime(PolicyRuntime):
+    """A real policy runtime that refuses every observation, as it would refuse one of the
+    wrong shape: the controller's rule for that case is what is under test."""
+
+    def step(self, *args: object, **kwargs: object) -> object:  # type: ignore[override]
+        raise PolicyInputError("refused")
+
+
+def test_a_policy_that_refuses_its_input_stops_the_car(policy: Path) -> None:
+    c = Controller(_RefusingRuntime(policy), SafetySettings())
+    c.receive(Input.TARGET, target_payload(), 0.0)
+    feed(c, 0.0)
+    assert_stop(c.decide(0.01), Reason.POLICY_INPUT_ERROR)
+
+
+def test_the_periodic_check_stops_the_car_when_the_scans_stop(policy: Path) -> None:
+    c = ready(policy)
+    assert c.check(0.1) is None  # fresh inputs: nothing to stop for, the policy decides on scans
+    output = c.check(5.0)
+    assert output is not None
+    assert_stop(output, Reason.SCAN_STALE)
