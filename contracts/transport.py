@@ -44,7 +44,9 @@ class ZenohSettings:
     namespace: str = ""
     """Prefix of every key, as zenoh-bridge-ros2dds's namespace (e.g. car1)."""
     config_file: str = ""
-    """A zenoh JSON5 configuration file used as is (mode, endpoints, scouting come from it)."""
+    """A zenoh JSON5 configuration file (TLS, access control...; `qnav certs` writes them) used
+    for all it sets; listening and multicast scouting it leaves unset come from the settings
+    above, not zenoh's defaults."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Further zenoh settings by path, e.g. {"transport/unicast/lowlatency" = true}."""
 
