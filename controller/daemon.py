@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import gc
 import logging
+import signal
 import sys
 import textwrap
 import threading
@@ -29,12 +30,13 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from contracts import wire
-from contracts.daemon import open_session_until, stop_on_signals
 from contracts.health import Heartbeat
 from contracts.settings import to_toml
+from contracts.transport import StoppedError, open_session
 from contracts.wire import Twist2D
 from controller.config import DaemonConfig, load_config
 from controller.decision import Controller, Input, Output, Reason
@@ -144,8 +146,10 @@ class Daemon:
         self.controller.warm_up()
         wire.decode_twist_msg(wire.encode_twist_msg(wire.STOP))
         wire.decode_json_msg(wire.encode_json_msg({}))
-        session = open_session_until(self.config.zenoh, self.stopping, log)
-        if session is None:  # stopped before zenoh was reachable: no link to send a stop on
+        try:
+            session = open_session(self.config.zenoh, self.stopping)
+        except StoppedError:
+            log.info("stopped before zenoh connected: no command was ever published")
             self.heartbeat.close()
             return
         try:
@@ -284,8 +288,16 @@ def build(config: DaemonConfig) -> Daemon:
 def serve(daemon: Daemon) -> None:
     """Run `daemon` in this (main) thread until SIGINT or SIGTERM."""
 
-    with stop_on_signals(log, daemon.stopping):
+    def on_signal(number: int, frame: FrameType | None) -> None:
+        log.info("%s: stopping", signal.Signals(number).name)
+        daemon.request_stop()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
         daemon.run()
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
 
 
 def main(args: argparse.Namespace) -> int:

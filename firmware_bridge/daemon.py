@@ -15,14 +15,14 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import signal
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from types import TracebackType
+from types import FrameType, TracebackType
 from typing import Any
 
-from contracts.daemon import RateLimitedLog, open_session_until, stop_on_signals
 from contracts.errors import ConfigError
 from contracts.health import Heartbeat
 from contracts.mavlink import (
@@ -45,22 +45,19 @@ from contracts.mavlink import (
     ned_to_enu,
 )
 from contracts.settings import parse_assignments, to_toml, with_overrides
-from contracts.transport import zenoh_config
+from contracts.transport import StoppedError, open_session
 from contracts.wire import (
     COMMAND,
     POSE,
     STOP,
     VEHICLE_REQUEST,
     VEHICLE_STATE,
-    Pose2D,
     Twist2D,
     WireError,
     decode_json_msg,
     decode_pose_msg,
     decode_twist_msg,
     encode_json_msg,
-    encode_pose_msg,
-    encode_twist_msg,
     key,
 )
 from firmware_bridge import mapping
@@ -76,11 +73,31 @@ REQUEST_RETRY_S = 0.5
 """An arm or mode request not yet seen in the vehicle's heartbeat is sent again this often."""
 REQUEST_ATTEMPTS = 10
 """... this many times, then the bridge gives up and says so."""
-EXIT_ACK_WAIT_S = 0.15
-"""On shutdown, how long to wait for the disarm to be acknowledged before sending it again
-(three tries at most: the whole shutdown stays well within a second)."""
-ZENOH_RETRY_S = 2.0
-"""When zenoh refuses to open a session, the bridge tries again this often (output neutral)."""
+EXIT_ACK_WAIT_S = 0.2
+"""On shutdown, how long to wait for the disarm to be acknowledged before sending it again."""
+
+
+class RateLimitedLog:
+    """Warnings that may repeat fast (malformed payloads), at most one per key and period."""
+
+    def __init__(self, logger: logging.Logger, period_s: float = 5.0) -> None:
+        self._logger = logger
+        self._period_s = period_s
+        self._last_s: dict[str, float] = {}
+        self._suppressed: Counter[str] = Counter()
+        self._lock = threading.Lock()
+
+    def warning(self, what: str, message: str, *args: object) -> None:
+        """Log `message` unless `what` was logged within the period (then count it)."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last_s.get(what, -math.inf) < self._period_s:
+                self._suppressed[what] += 1
+                return
+            self._last_s[what] = now
+            suppressed, self._suppressed[what] = self._suppressed[what], 0
+        suffix = f" ({suppressed} more since the last report)" if suppressed else ""
+        self._logger.warning(message + suffix, *args)
 
 
 class Bridge:
@@ -106,9 +123,7 @@ class Bridge:
         self._lock = threading.Lock()
         self._rate_log = RateLimitedLog(log)
         self.counters: Counter[str] = Counter()
-        """commands, stops, dropped (arrived while the link was down), malformed (implausible
-        commands among them, also counted as implausible), requests_refused (arm requests
-        while vehicle.remote_arming is off), rejected
+        """commands, stops, dropped (arrived while the link was down), malformed, rejected
         (unsigned or badly signed MAVLink), bad_data, poses, reconnects, requests."""
         self._guided = settings.output.mode == "guided"
         self._stop_message = self._command_message(STOP)
@@ -138,22 +153,20 @@ class Bridge:
         self._state_publisher: Any = None
         self._subscribers: list[Any] = []
         self._thread: threading.Thread | None = None
-        self._zenoh_thread: threading.Thread | None = None
         self._stopping = threading.Event()
-        self.zenoh_up = threading.Event()
-        """Set once the zenoh session is open and subscribed (commands can arrive)."""
+        self.error: ConfigError | None = None
+        """Why zenoh could not be joined (with `start(zenoh_in_background=True)`)."""
         self._heartbeat = Heartbeat.from_env("bridge")
 
     # -- life cycle ---------------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Open the MAVLink port, start the vehicle side, then join zenoh in the background.
+    def start(self, zenoh_in_background: bool = False) -> None:
+        """Open the MAVLink port, start the bridge thread (heartbeat, failsafe stops, vehicle
+        state), then join zenoh and subscribe.
 
-        The vehicle side (heartbeats, neutral output, link watch, requests) runs from here on
-        whether or not zenoh is reachable: until a session is up there is no command, so the
-        failsafe sends neutral.
-        """
-        zenoh_config(self.settings.zenoh)  # a bad zenoh setting fails now, by its name
+        With `zenoh_in_background` (the daemon) zenoh is joined by a helper thread, so the
+        vehicle side runs and stops the car whether or not zenoh is reachable: no zenoh is no
+        command. A failure to open the session is then kept in `error`."""
         try:
             self.link.open()
         except OSError as error:
@@ -162,53 +175,51 @@ class Bridge:
             ) from None
         self._thread = threading.Thread(target=self._loop, name="bridge", daemon=True)
         self._thread.start()
-        self._zenoh_thread = threading.Thread(target=self._join_zenoh, name="bridge-zenoh")
-        self._zenoh_thread.start()
         log.info(
-            "bridge up: zenoh %s -> MAVLink %s (%s output%s), command timeout %.3f s",
-            key(COMMAND, self.settings.zenoh.namespace),
+            "bridge up: MAVLink %s (%s output%s), command timeout %.3f s",
             self.settings.mavlink.connection,
             self.settings.output.mode,
             ", signed" if self.link.signing else "",
             self.settings.failsafe.command_timeout_s,
         )
-
-    def _join_zenoh(self) -> None:
-        """Open the session (retrying while zenoh refuses), then publish and subscribe."""
-        namespace = self.settings.zenoh.namespace
-        # First decodes build the ROS type store (a few hundred ms): not on the first command.
-        decode_twist_msg(encode_twist_msg(STOP))
-        decode_pose_msg(encode_pose_msg(Pose2D(0.0, "map", 0.0, 0.0, 0.0)))
-        decode_json_msg(encode_json_msg({}))
-        while not self._stopping.is_set():
-            try:
-                session = open_session_until(self.settings.zenoh, self._stopping, log)
-            except ConfigError as error:
-                self._rate_log.warning("zenoh", "%s; retrying (output stays neutral)", error)
-                self._stopping.wait(ZENOH_RETRY_S)
-                continue
-            if session is None:
-                return
-            with self._lock:
-                if self._stopping.is_set():
-                    session.close()
-                    return
-                self._session = session
-                self._state_publisher = session.declare_publisher(key(VEHICLE_STATE, namespace))
-                self._subscribers.append(
-                    session.declare_subscriber(key(COMMAND, namespace), self._on_command)
-                )
-                self._subscribers.append(
-                    session.declare_subscriber(key(VEHICLE_REQUEST, namespace), self._on_request)
-                )
-                if self._guided and self.settings.vision.forward_pose:
-                    self._subscribers.append(
-                        session.declare_subscriber(key(POSE, namespace), self._on_pose)
-                    )
-                self._state_dirty = True
-            self.zenoh_up.set()
-            log.info("zenoh session open: taking commands on %s", key(COMMAND, namespace))
+        if zenoh_in_background:
+            threading.Thread(target=self._join_zenoh, name="bridge-zenoh", daemon=True).start()
             return
+        try:
+            self._join_zenoh(raise_errors=True)
+        except ConfigError:
+            self.close()
+            raise
+
+    def _join_zenoh(self, raise_errors: bool = False) -> None:
+        namespace = self.settings.zenoh.namespace
+        try:
+            session = open_session(self.settings.zenoh, self._stopping)
+        except StoppedError:
+            return
+        except ConfigError as error:
+            if raise_errors:
+                raise
+            log.error("%s", error)
+            self.error = error
+            return
+        with self._lock:
+            if self._gate.closed:  # closed while connecting
+                session.close()
+                return
+            self._session = session
+            self._state_publisher = session.declare_publisher(key(VEHICLE_STATE, namespace))
+            self._subscribers.append(
+                session.declare_subscriber(key(COMMAND, namespace), self._on_command)
+            )
+            self._subscribers.append(
+                session.declare_subscriber(key(VEHICLE_REQUEST, namespace), self._on_request)
+            )
+            if self._guided and self.settings.vision.forward_pose:
+                self._subscribers.append(
+                    session.declare_subscriber(key(POSE, namespace), self._on_pose)
+                )
+        log.info("zenoh joined: commands from %s", key(COMMAND, namespace))
 
     def close(self) -> None:
         """Refuse further commands, send stop, then disarm (if configured), and close."""
@@ -216,10 +227,10 @@ class Bridge:
             return
         with self._lock:
             self._gate.close()
-            self._stopping.set()  # under the lock: the zenoh thread declares nothing after it
-            subscribers, self._subscribers = self._subscribers, []
-        for subscriber in subscribers:
+        for subscriber in self._subscribers:
             subscriber.undeclare()
+        self._subscribers.clear()
+        self._stopping.set()
         self._thread.join()
         self._thread = None
         failsafe = self.settings.failsafe
@@ -228,9 +239,6 @@ class Bridge:
         log.info("sent stop %d times on exit", failsafe.stop_repeats_on_exit)
         if failsafe.disarm_on_exit:
             self._disarm_on_exit()
-        if self._zenoh_thread is not None:
-            self._zenoh_thread.join()  # returns at once: its wait for zenoh ends on _stopping
-            self._zenoh_thread = None
         self._publish_state(self._clock(), bridge="stopped")
         if self._session is not None:
             self._session.close()
@@ -340,12 +348,14 @@ class Bridge:
         except WireError as error:
             self._malformed("command", error)
             return
-        problem = mapping.implausible(twist, self.settings.output)
-        if problem is not None:  # a broken sender, not an overshoot: neutral, never clipped
+        absurd = mapping.implausible(
+            twist, self.settings.output, self.settings.failsafe.implausible_factor
+        )
+        if absurd is not None:
+            # Nobody meant this: count it, and stop rather than keep the last command.
+            self._malformed("command", ValueError(absurd))
             with self._lock:
-                self.counters["implausible"] += 1
-            self._malformed("command", ValueError(problem))
-            self._send_stop(now)
+                self.link.send(self._stop_message, as_gcs=self._as_gcs)
             return
         message = self._command_message(twist)
         with self._lock:
@@ -360,10 +370,6 @@ class Bridge:
             pose = decode_pose_msg(sample.payload.to_bytes())
         except WireError as error:
             self._malformed("pose", error)
-            return
-        problem = mapping.pose_problem(pose, self.settings.vision.max_position_m)
-        if problem is not None:
-            self._malformed("pose", ValueError(problem))
             return
         if not self._link_up:
             return
@@ -384,13 +390,11 @@ class Bridge:
         except (WireError, ValueError) as error:
             self._malformed("request", error)
             return
-        if arm and not self.settings.vehicle.remote_arming:
+        if arm is True and not self.settings.vehicle.remote_arming:
             with self._lock:
-                self.counters["requests_refused"] += 1
+                self.counters["refused"] += 1
             self._rate_log.warning(
-                "remote arming",
-                "refused a request to arm: vehicle.remote_arming is off (%s)",
-                request,
+                "remote arming", "refused an arm request: vehicle.remote_arming is off"
             )
             return
         log.info("request: %s", request)
@@ -621,18 +625,18 @@ class Bridge:
         self._state_dirty = False
         self._next_state_s = now + self.settings.vehicle.state_period_s
         if self._state_publisher is None:
-            return  # no zenoh yet: nobody to tell
+            return  # zenoh not joined yet: nobody to tell
         try:
             self._state_publisher.put(encode_json_msg(self.state(now, bridge)))
         except Exception as error:  # zenoh errors must not stop the failsafe loop
             self._rate_log.warning("state", "could not publish the vehicle state: %s", error)
 
     def _disarm_on_exit(self) -> None:
-        """Send disarm until acknowledged (or a few tries), reading replies here."""
-        if not self._link_up:  # nobody answers: send it (UDP may drop one), do not wait
-            for _ in range(3):
-                self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
-            log.warning("disarm on exit: sent without a vehicle link")
+        """Send disarm until acknowledged (or a few tries), reading replies here. With the link
+        down nobody would answer: one disarm is sent, and the bridge does not wait."""
+        if not self._link_up:
+            self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
+            log.warning("disarm on exit: sent once; the vehicle's link is down")
             return
         for _ in range(3):
             self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
@@ -683,7 +687,23 @@ def run(args: argparse.Namespace) -> int:
         level=getattr(logging, args.log_level.upper()),
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
-    with stop_on_signals(log) as stop, Bridge(settings):
-        while not stop.wait(0.5):
-            pass
+    stop = threading.Event()
+
+    def on_signal(number: int, frame: FrameType | None) -> None:
+        log.info("%s: stopping", signal.Signals(number).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    bridge = Bridge(settings)
+    try:
+        bridge.start(zenoh_in_background=True)
+        try:
+            while not stop.wait(0.1):
+                if bridge.error is not None:
+                    raise bridge.error
+        finally:
+            bridge.close()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0

@@ -1,12 +1,8 @@
 """Pure mappings from a Twist (and a pose) to the numbers MAVLink messages carry.
 
-No I/O here: the link sends what these return. Every function that makes a motor output maps
-non-finite input to neutral itself (trim, zero), so a NaN or an infinity that got past the wire
-decoder can never become full travel (`min`/`max` would clip a NaN to a limit).
-
-Signs follow the conventions both ends share (`contracts.mavlink`): a Twist turns
-counter-clockwise for positive angular speed; RC steering above trim, MANUAL_CONTROL y > 0 and
-a NED yaw rate > 0 all turn right (clockwise from above).
+No I/O here: the link sends what these return. Signs follow the conventions both ends share
+(`contracts.mavlink`): a Twist turns counter-clockwise for positive angular speed; RC steering
+above trim, MANUAL_CONTROL y > 0 and a NED yaw rate > 0 all turn right (clockwise from above).
 """
 
 from __future__ import annotations
@@ -64,60 +60,34 @@ class VisionPose(NamedTuple):
     yaw_rad: float
 
 
-MAX_ABS_YAW_RAD = 1000.0
-"""A pose's yaw beyond this (rad) is no angle anyone measured: the pose is refused."""
-
-
 def _clip(value: float, limit: float) -> float:
-    """`value` within [-limit, limit]; a non-finite value is 0 (neutral), not a limit."""
+    """`value` clipped to [-limit, limit]; a non-finite value is neutral (0), never a limit."""
     if not math.isfinite(value):
         return 0.0
     return max(-limit, min(limit, value))
 
 
-def _finite(twist: Twist2D) -> bool:
-    return math.isfinite(twist.linear_mps) and math.isfinite(twist.angular_radps)
-
-
-def implausible(twist: Twist2D, output: OutputSettings) -> str | None:
-    """Why `twist` is not a command anyone meant (None when it is plausible).
-
-    Beyond `output.implausible_factor` times the output's own limits (or not finite), a value
-    is a broken sender, not an overshoot to clip: the bridge refuses it and sends neutral.
-    """
+def full_scale(output: OutputSettings) -> tuple[float, float]:
+    """The speed (m/s) and turn rate (rad/s) that the output mode maps to its limits."""
     if output.mode == "guided":
-        speed, turn = output.guided_max_speed_mps, output.guided_max_turn_rate_radps
-    else:
-        speed, turn = output.speed_at_full_throttle_mps, output.turn_rate_at_full_steering_radps
-    factor = output.implausible_factor
-    if not _finite(twist):
-        return f"non-finite twist {twist}"
-    if abs(twist.linear_mps) > factor * speed:
-        return f"linear {twist.linear_mps:g} m/s is beyond {factor:g} x {speed:g} m/s"
-    if abs(twist.angular_radps) > factor * turn:
-        return f"angular {twist.angular_radps:g} rad/s is beyond {factor:g} x {turn:g} rad/s"
-    return None
+        return output.guided_max_speed_mps, output.guided_max_turn_rate_radps
+    return output.speed_at_full_throttle_mps, output.turn_rate_at_full_steering_radps
 
 
-def pose_problem(pose: Pose2D, max_position_m: float) -> str | None:
-    """Why a motion-capture pose must not go to the autopilot (None when it may)."""
-    values = (pose.x_m, pose.y_m, pose.yaw_rad)
-    if not all(math.isfinite(v) for v in values):
-        return f"non-finite pose {values}"
-    if max(abs(pose.x_m), abs(pose.y_m)) > max_position_m:
-        return f"position ({pose.x_m:g}, {pose.y_m:g}) m is beyond {max_position_m:g} m"
-    if abs(pose.yaw_rad) > MAX_ABS_YAW_RAD:
-        return f"yaw {pose.yaw_rad:g} rad is beyond {MAX_ABS_YAW_RAD:g} rad"
+def implausible(twist: Twist2D, output: OutputSettings, factor: float) -> str | None:
+    """Why a command is too far beyond the output's full scale to be meant, or None."""
+    speed, turn_rate = full_scale(output)
+    for name, value, scale, unit in (
+        ("linear.x", twist.linear_mps, speed, "m/s"),
+        ("angular.z", twist.angular_radps, turn_rate, "rad/s"),
+    ):
+        if not math.isfinite(value) or abs(value) > factor * max(scale, 1e-9):
+            return f"{name} = {value} {unit} is beyond {factor} x the full scale {scale} {unit}"
     return None
 
 
 def sticks(twist: Twist2D, output: OutputSettings) -> Sticks:
-    """Fractions of full steering and throttle for a Twist, clipped to [-1, 1].
-
-    A Twist with any non-finite part is no command: both sticks centre.
-    """
-    if not _finite(twist):
-        return Sticks(0.0, 0.0)
+    """Fractions of full steering and throttle for a Twist, clipped to [-1, 1]."""
     steering = -twist.angular_radps / output.turn_rate_at_full_steering_radps
     throttle = twist.linear_mps / output.speed_at_full_throttle_mps
     if output.steering_reversed:
@@ -156,17 +126,12 @@ def rc_override(twist: Twist2D, output: OutputSettings) -> RcOverride:
 
 def manual_control(twist: Twist2D, output: OutputSettings) -> ManualControl:
     """MANUAL_CONTROL axes for a Twist (the autopilot applies its own RC calibration)."""
-    steering, throttle = sticks(twist, output)  # neutral for a non-finite Twist
+    steering, throttle = sticks(twist, output)
     return ManualControl(round(steering * 1000), round(throttle * 1000))
 
 
 def velocity_target(twist: Twist2D, output: OutputSettings) -> VelocityTarget:
-    """Guided velocity and yaw rate for a Twist, clipped to the configured maxima.
-
-    A Twist with any non-finite part is no command: zero velocity, zero yaw rate.
-    """
-    if not _finite(twist):
-        return VelocityTarget(0.0, 0.0)
+    """Guided velocity and yaw rate for a Twist, clipped to the configured maxima."""
     forward = _clip(twist.linear_mps, output.guided_max_speed_mps)
     yaw_rate = _clip(-twist.angular_radps, output.guided_max_turn_rate_radps)
     return VelocityTarget(forward + 0.0, yaw_rate + 0.0)

@@ -107,10 +107,6 @@ class OutputSettings:
     """guided mode: forward speed targets are clipped to this magnitude."""
     guided_max_turn_rate_radps: float = 1.0
     """guided mode: yaw-rate targets are clipped to this magnitude."""
-    implausible_factor: float = 10.0
-    """A Twist beyond this many times the limits above (full-throttle speed and full-steering
-    turn rate, or the guided maxima) is refused as malformed (counted, neutral sent); smaller
-    overshoot is clipped."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("manual", "guided"):
@@ -124,7 +120,6 @@ class OutputSettings:
             check_range(self, name, getattr(self, name), 0.0, 100.0, exclusive_low=True)
         for name in ("guided_max_speed_mps", "guided_max_turn_rate_radps"):
             check_range(self, name, getattr(self, name), 0.0, 100.0)
-        check_range(self, "implausible_factor", self.implausible_factor, 1.0, 1e6)
         for channel in ("steering", "throttle"):
             low = getattr(self, f"{channel}_pwm_min_us")
             trim = getattr(self, f"{channel}_pwm_trim_us")
@@ -162,8 +157,13 @@ class FailsafeSettings:
     """On SIGINT or SIGTERM, stop is sent this many times (UDP may drop one)."""
     disarm_on_exit: bool = True
     """On SIGINT or SIGTERM, disarm after sending stop."""
+    implausible_factor: float = 10.0
+    """A command beyond this many times the output's full scale (speed or turn rate) is not
+    one anyone meant: it is refused as malformed and the car is stopped; closer overshoot is
+    clipped."""
 
     def __post_init__(self) -> None:
+        check_range(self, "implausible_factor", self.implausible_factor, 1.0, 1e6)
         check_range(self, "command_timeout_s", self.command_timeout_s, 0.01, 10.0)
         check_range(self, "stop_period_s", self.stop_period_s, 0.005, 2.0)
         check_range(self, "stop_repeats_on_exit", self.stop_repeats_on_exit, 1, 100)
@@ -176,14 +176,13 @@ class VehicleSettings:
     SECTION = "vehicle"
 
     arm_on_connect: bool = False
-    """Arm when the link first comes up (later arming: a request on qnav/vehicle_request, if
-    `remote_arming` is on)."""
-    remote_arming: bool = False
-    """Take {"arm": true} from qnav/vehicle_request. Off: such requests are refused (counted
-    as requests_refused), since any zenoh peer that can publish there could arm the car;
-    disarm and mode requests are always taken."""
+    """Arm when the link first comes up (later arming: a request on qnav/vehicle_request)."""
     set_mode_on_connect: bool = True
     """Switch to the output mode's Rover mode (MANUAL or GUIDED) when the link first comes up."""
+    remote_arming: bool = False
+    """Take arm requests from zenoh (qnav/vehicle_request); off, anyone on the network could
+    arm the car, so only arm_on_connect, the RC or a ground station arm it (disarm and mode
+    requests are always taken)."""
     state_period_s: float = 0.2
     """Period of the vehicle state message on zenoh (also sent at once on any change)."""
 
@@ -205,15 +204,11 @@ class VisionSettings:
     """Longitude of the EKF origin."""
     origin_alt_m: float = 584.0
     """Altitude of the EKF origin above mean sea level."""
-    max_position_m: float = 10_000.0
-    """A pose farther than this from the origin on either axis (or with a yaw beyond 1000 rad)
-    is refused as malformed and not forwarded: no motion-capture volume is that big."""
 
     def __post_init__(self) -> None:
         check_range(self, "origin_lat_deg", self.origin_lat_deg, -90.0, 90.0)
         check_range(self, "origin_lon_deg", self.origin_lon_deg, -180.0, 180.0)
         check_range(self, "origin_alt_m", self.origin_alt_m, -1000.0, 10000.0)
-        check_range(self, "max_position_m", self.max_position_m, 1.0, 1e7)
 
 
 @dataclass(frozen=True)

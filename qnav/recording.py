@@ -5,16 +5,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import signal
 import threading
+from pathlib import Path
 from typing import Any
 
-from contracts.daemon import stop_on_signals
 from contracts.errors import ConfigError
 from contracts.settings import from_dict, load_toml, with_overrides
 from contracts.transport import ZenohSettings
 from controller.recording import RecordedMessage, RecorderSettings, play, read_recordings, record
-
-log = logging.getLogger("qnav.recording")
 
 
 def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -28,6 +27,13 @@ def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return overrides
 
 
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, lambda *_: stop.set())
+    return stop
+
+
 def record_verb(args: argparse.Namespace) -> int:
     """Record the project's topics to MCAP until SIGINT/SIGTERM (or --duration-s)."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -38,13 +44,34 @@ def record_verb(args: argparse.Namespace) -> int:
     )
     if args.out is not None:
         settings = dataclasses.replace(settings, output_dir=str(args.out))
-    with stop_on_signals(log) as stop:
-        if args.duration_s:
-            timer = threading.Timer(args.duration_s, stop.set)
-            timer.daemon = True  # a signal may end the recording first
-            timer.start()
-        writer = record(settings, stop, folder=args.folder)
+    stop = _stop_on_signals()
+    if args.duration_s:
+        threading.Timer(args.duration_s, stop.set).start()
+    writer = record(settings, stop, folder=args.folder)
     print(f"recorded {writer.messages} messages into {', '.join(map(str, writer.files)) or '-'}")
+    return 0
+
+
+def recover_verb(args: argparse.Namespace) -> int:
+    """Rewrite every cut MCAP file of the given folders (or files) as a complete one, and write
+    each folder's rosbag2 metadata.yaml."""
+    from controller.recording import is_complete, recover, write_rosbag_metadata
+
+    folders: dict[Path, None] = {}
+    for path in args.paths:
+        files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
+        if not files or not all(f.is_file() for f in files):
+            raise ConfigError(f"{path}: no MCAP file there")
+        for file in files:
+            if is_complete(file):
+                print(f"{file}: complete")
+            else:
+                kept = recover(file)
+                print(f"{file}: recovered {kept} messages (the cut original is {file}.cut)")
+        for file in files:
+            folders[file.parent] = None
+    for folder in folders:
+        print(f"wrote {write_rosbag_metadata(folder)}")
     return 0
 
 
@@ -61,8 +88,7 @@ def playback_verb(args: argparse.Namespace) -> int:
     if args.into_controller:
         return _into_controller(args, messages, len(files))
     settings = with_overrides(ZenohSettings(), _zenoh_overrides(args))
-    with stop_on_signals(log) as stop:
-        count = play(messages, settings, speed=args.speed, stop=stop)
+    count = play(messages, settings, speed=args.speed, stop=_stop_on_signals())
     print(f"published {count} of {len(messages)} messages from {len(files)} file(s)")
     return 0
 

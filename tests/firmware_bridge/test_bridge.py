@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
 import socket
 import threading
@@ -12,23 +11,11 @@ from contextlib import ExitStack
 
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.mavlink import (
-    MAV_AUTOPILOT_ARDUPILOTMEGA,
-    MAV_AUTOPILOT_INVALID,
-    MAV_CMD_COMPONENT_ARM_DISARM,
-    MAV_CMD_DO_SET_MODE,
-    MAV_STATE_ACTIVE,
-    MAV_TYPE_GROUND_ROVER,
-    mavutil,
-)
-from contracts.settings import with_overrides
-from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Pose2D, encode_pose_msg, key
-from firmware_bridge import daemon
+from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
+from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Twist2D, encode_twist_msg, key
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
-from firmware_bridge.settings import BridgeSettings
-from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from sim.mavlink_vehicle import MavlinkVehicle
 from tests.firmware_bridge.rig import (
     Rig,
     bridge_settings,
@@ -151,6 +138,21 @@ def test_malformed_command_is_counted_and_never_moves_the_car(make_rig: MakeRig)
     assert rig.vehicle.pose()[0] > 0.01
 
 
+def test_an_absurd_command_is_refused_and_stops_a_moving_car(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    bridge = rig.bridge
+    assert bridge is not None
+    rig.ready()
+    rig.drive(0.8, 0.0, 0.3)
+    time.sleep(0.1)  # the last forward command has arrived; it stands until the timeout
+    start_s = time.monotonic()
+    for linear, angular in ((0.0, -9.1e150), (1e308, 1e308), (20.0, 0.0)):
+        rig.publish(key(COMMAND), encode_twist_msg(Twist2D(linear, angular)))
+    wait_until(lambda: bridge.counters["malformed"] == 3, what="three absurd commands counted")
+    wait_until(lambda: len(_overrides(rig, start_s)) >= 3, what="stops after them")
+    assert all(pwm == NEUTRAL for _, pwm in _overrides(rig, start_s))
+
+
 def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeRig) -> None:
     rig = make_rig(bridge={"output": {"manual_message": "manual_control"}})
     rig.ready()
@@ -159,6 +161,15 @@ def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeR
     sent = rig.vehicle.received("MANUAL_CONTROL")
     assert sent and {r.src_system for r in sent} == {255}
     assert any(r.fields["z"] == 500 and r.fields["y"] == 0 for r in sent)
+
+
+def test_an_arm_request_is_refused_unless_remote_arming_is_on(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"arm": True})
+    wait_until(lambda: rig.counters().get("refused") == 1, what="arm request refused")
+    time.sleep(0.2)
+    assert not rig.vehicle.armed
 
 
 def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
@@ -326,130 +337,59 @@ def test_bridge_heartbeats_as_companion_computer_and_as_ground_station(
     assert heartbeats == {(1, 191, 18, 8), (255, 191, 6, 8)}
 
 
-class _RawAutopilot:
-    """A bare UDP socket that answers the bridge with heartbeats of a chosen origin."""
+def test_only_the_autopilots_own_heartbeat_brings_the_link_up() -> None:
+    from pymavlink import mavutil
 
-    def __init__(self) -> None:
-        self.socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.socket.bind(("127.0.0.1", 0))
-        self.socket.settimeout(0.05)
-        self.port = int(self.socket.getsockname()[1])
-        self.peer: tuple[str, int] | None = None
-
-    def heartbeat(self, system: int, component: int, autopilot: int) -> None:
-        """Send one Rover heartbeat (disarmed, MANUAL) once the bridge has been heard."""
-        while self.peer is None:
-            with contextlib.suppress(TimeoutError):
-                _, self.peer = self.socket.recvfrom(2048)
-        mav = mavutil().mavlink.MAVLink(None, srcSystem=system, srcComponent=component)
-        message = mav.heartbeat_encode(MAV_TYPE_GROUND_ROVER, autopilot, 0, 0, MAV_STATE_ACTIVE)
-        self.socket.sendto(message.pack(mav), self.peer)
-
-
-@pytest.mark.parametrize(
-    "component, autopilot",
-    [(2, MAV_AUTOPILOT_ARDUPILOTMEGA), (1, MAV_AUTOPILOT_INVALID)],
-    ids=["wrong-component", "invalid-autopilot"],
-)
-def test_heartbeats_from_another_component_or_no_autopilot_leave_the_link_down(
-    component: int, autopilot: int
-) -> None:
     with ExitStack() as stack:
         rig = start_rig(stack, start_bridge=False)
-        vehicle = _RawAutopilot()
-        stack.callback(vehicle.socket.close)
-        bridge = stack.enter_context(Bridge(bridge_settings(rig.zenoh_port, vehicle.port)))
-        for _ in range(10):  # the vehicle's own system id, but not its autopilot
-            vehicle.heartbeat(1, component, autopilot)
-            time.sleep(0.02)
-        assert bridge.state()["link_up"] is False
-        vehicle.heartbeat(1, 1, MAV_AUTOPILOT_ARDUPILOTMEGA)  # the real one does count
-        wait_until(lambda: bridge.state()["link_up"], what="link up on the autopilot's beat")
+        port = free_port(socket.SOCK_DGRAM)
+        settings = bridge_settings(
+            rig.zenoh_port, 0, mavlink={"connection": f"udpin:127.0.0.1:{port}"}
+        )
+        stack.enter_context(Bridge(settings))
+        impostors = [
+            (1, 190, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA),  # the vehicle's id, a camera
+            (1, 1, mavutil.mavlink.MAV_AUTOPILOT_INVALID),  # the vehicle's id, not an autopilot
+            (2, 1, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA),  # another vehicle
+        ]
+        links = []
+        for system, component, _ in [*impostors, (1, 1, 0)]:
+            link = mavutil.mavlink_connection(
+                f"udpout:127.0.0.1:{port}", source_system=system, source_component=component
+            )
+            stack.callback(link.close)
+            links.append(link)
+
+        def beat(index: int, autopilot: int) -> None:
+            links[index].mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_GROUND_ROVER, autopilot, 0, 0, 0
+            )
+
+        wait_until(lambda: rig.state().get("link_up") is False, what="a state with the link down")
+        for _ in range(10):
+            for index, (_, _, autopilot) in enumerate(impostors):
+                beat(index, autopilot)
+            time.sleep(0.05)
+        assert rig.state().get("link_up") is False
+        beat(3, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+        wait_until(lambda: rig.state().get("link_up") is True, what="the autopilot's heartbeat")
 
 
-def test_the_bridge_gives_up_a_request_the_vehicle_never_takes(
-    make_rig: MakeRig, monkeypatch: pytest.MonkeyPatch
+def test_a_request_the_vehicle_keeps_refusing_is_given_up_after_ten_tries(
+    make_rig: MakeRig,
 ) -> None:
-    monkeypatch.setattr(daemon, "REQUEST_RETRY_S", 0.02)
-    # GUIDED without any position estimate: the vehicle refuses it every time.
-    rig = make_rig(
-        bridge={"output": {"mode": "guided"}, "vision": {"forward_pose": False}},
-        vehicle={"heartbeat_period_s": 0.02},
-    )
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False, "set_mode_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"mode": "GUIDED"})  # refused: the vehicle has no position estimate
 
-    def mode_requests() -> int:
+    def set_mode_requests() -> int:
         return sum(
-            r.fields["command"] == MAV_CMD_DO_SET_MODE for r in rig.vehicle.received("COMMAND_LONG")
+            1
+            for r in rig.vehicle.received("COMMAND_LONG")
+            if r.fields["command"] == MAV_CMD_DO_SET_MODE
         )
 
-    wait_until(lambda: mode_requests() >= daemon.REQUEST_ATTEMPTS, what="the attempts")
-    time.sleep(0.3)  # fifteen retry periods: had it not given up, more would have come
-    assert mode_requests() == daemon.REQUEST_ATTEMPTS
-    assert rig.vehicle.mode == "MANUAL"
-
-
-def test_implausible_commands_are_refused_with_neutral_and_counted(make_rig: MakeRig) -> None:
-    rig = make_rig()
-    bridge = rig.bridge
-    assert bridge is not None
-    rig.ready()
-    start_s = time.monotonic()
-    for twist in ((0.0, -9.1e150), (1e308, 1e308), (10.5, 0.0)):
-        rig.command(*twist)
-    wait_until(lambda: bridge.counters["implausible"] == 3, what="three implausible counted")
-    assert bridge.counters["malformed"] == 3 and bridge.counters["commands"] == 0
-    overrides = _overrides(rig, start_s)
-    assert overrides and all(pwm == NEUTRAL for _, pwm in overrides)
-    rig.drive(2.0, 0.0, 0.3)  # overshoot below the factor is clipped and drives
-    assert (1500, 1900) in [pwm for _, pwm in _overrides(rig, start_s)]
-
-
-def test_absurd_poses_are_not_forwarded_as_vision_estimates(make_rig: MakeRig) -> None:
-    rig = make_rig(bridge={"output": {"mode": "guided"}})
-    wait_until(lambda: rig.state().get("link_up"), what="link up")
-    rig.publish_pose()
-    wait_until(lambda: rig.vehicle.received("VISION_POSITION_ESTIMATE"), what="a good pose")
-    for x_m, y_m in ((1e308, 0.0), (0.0, -1e308), (20_000.0, 0.0)):
-        rig.publish(key(POSE), encode_pose_msg(Pose2D(time.time(), "map", x_m, y_m, 0.0)))
-    wait_until(lambda: rig.counters().get("malformed") == 3, what="absurd poses counted")
-    rig.publish_pose()
-    wait_until(lambda: rig.counters().get("poses") == 2, what="the next good pose")
-    estimates = rig.vehicle.received("VISION_POSITION_ESTIMATE")
-    assert len(estimates) == 2
-    assert all(abs(e.fields["x"]) < 100 and abs(e.fields["y"]) < 100 for e in estimates)
-
-
-def test_remote_arming_is_off_unless_a_setting_turns_it_on(make_rig: MakeRig) -> None:
-    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
-    wait_until(lambda: rig.state().get("link_up"), what="link up")
-    rig.request({"arm": True})
-    rig.request({"arm": True, "mode": "HOLD"})
-    wait_until(lambda: rig.counters().get("requests_refused") == 2, what="arm refused twice")
-    rig.request({"mode": "HOLD"})  # not arming: taken
-    wait_until(lambda: rig.vehicle.mode == "HOLD", what="HOLD")
-    assert not rig.vehicle.armed
-    arms = [
-        r
-        for r in rig.vehicle.received("COMMAND_LONG")
-        if r.fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM and r.fields["param1"] == 1.0
-    ]
-    assert not arms
-
-
-def test_bridge_and_fake_vehicle_pair_with_their_defaults() -> None:
-    defaults = BridgeSettings()
-    # Only zenoh is pointed away (at a closed port: the vehicle side runs without it).
-    closed = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
-    settings = with_overrides(defaults, {"zenoh": {"connect": [closed]}})
-    assert settings.mavlink == defaults.mavlink
-    with ExitStack() as stack:
-        try:
-            bridge = stack.enter_context(Bridge(settings))
-        except ConfigError as error:  # another program holds the well-known port
-            pytest.skip(f"UDP 14550 is in use on this machine: {error}")
-        vehicle = stack.enter_context(MavlinkVehicle(MavlinkVehicleSettings()))
-        wait_until(lambda: bridge.state()["link_up"], what="the pair to find each other")
-        wait_until(
-            lambda: any(r.src_component == 191 for r in vehicle.received("HEARTBEAT")),
-            what="the bridge's heartbeat at the vehicle",
-        )
+    wait_until(lambda: set_mode_requests() >= 10, timeout_s=30, what="ten tries")
+    time.sleep(1.5)  # three more retry periods: no eleventh try
+    assert set_mode_requests() == 10
+    assert rig.vehicle.mode != "GUIDED"
