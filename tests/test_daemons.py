@@ -1,5 +1,8 @@
 """Every daemon stops within a second of SIGTERM, even before zenoh is reachable, and the bridge
-keeps the car stopped without zenoh (issue 18 part 4). Real processes, real sockets."""
+keeps the car stopped without zenoh (issue 18 part 4). Real processes, real sockets.
+
+The states: no router reachable (the endpoint is a closed port), connected through a hub, and
+after the hub was killed; SIGTERM and SIGINT. `pytest -s` prints each measured exit time."""
 
 from __future__ import annotations
 
@@ -7,12 +10,17 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from contracts import wire
+from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
+from contracts.transport import ZenohSettings, open_session
 from firmware_bridge.bench import free_port
 from sim.mavlink_vehicle import MavlinkVehicle
 from tests.firmware_bridge.rig import vehicle_settings, wait_until
@@ -110,3 +118,180 @@ def test_the_bridge_keeps_the_car_stopped_without_zenoh(
             process.kill()
     assert process.returncode == 0, log.read_text()
     assert elapsed <= EXIT_LIMIT_S
+
+
+# -- every state: waiting, connected, router lost; SIGTERM and SIGINT ---------------------------
+
+STATES = ["no-router", "connected", "router-lost"]
+ROUTER = (
+    "import sys, time\n"
+    "from contracts.transport import ZenohSettings, open_session\n"
+    "session = open_session(ZenohSettings(listen=(sys.argv[1],), connect=()))\n"
+    "print('ready', flush=True)\n"
+    "time.sleep(3600)\n"
+)
+"""A zenoh hub in a process of its own (a listening peer routes for its clients), to kill."""
+NEUTRAL = (1500, 1500)
+
+
+class _Daemon:
+    """A started daemon whose output a thread reads (so the pipe never fills)."""
+
+    def __init__(self, args: list[str]) -> None:
+        self.popen = subprocess.Popen(
+            [sys.executable, "-m", "qnav", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            self.lines.append(line)
+
+    def output(self) -> str:
+        return "".join(self.lines)
+
+    def wait_for_line(self, text: str) -> None:
+        wait_until(lambda: text in self.output() or self.popen.poll() is not None, 60, repr(text))
+        assert text in self.output(), self.output()
+
+    def stop(self, number: signal.Signals, what: str) -> float:
+        """Send the signal; seconds until the process ended (polled, 20 s at most)."""
+        assert self.popen.poll() is None, self.output()
+        sent = time.monotonic()
+        self.popen.send_signal(number)
+        deadline = sent + 20.0
+        while self.popen.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        elapsed = time.monotonic() - sent
+        print(f"{what}: {number.name} -> exit in {elapsed:.3f} s (rc {self.popen.poll()})")
+        self._reader.join(5)
+        return elapsed
+
+
+@pytest.fixture
+def started() -> Iterator[list[subprocess.Popen[Any]]]:
+    """Processes a failing test leaves behind are killed."""
+    processes: list[subprocess.Popen[Any]] = []
+    yield processes
+    for process in processes:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+def _router(state: str, started: list[subprocess.Popen[Any]]) -> tuple[str, Any]:
+    """An endpoint, and (unless no-router) a hub process listening there."""
+    endpoint = _nobody_listening()
+    if state == "no-router":
+        return endpoint, None
+    router = subprocess.Popen([sys.executable, "-c", ROUTER, endpoint], stdout=subprocess.PIPE)
+    started.append(router)
+    assert router.stdout is not None and router.stdout.readline().strip() == b"ready"
+    return endpoint, router
+
+
+def _bring_to(state: str, endpoint: str, router: Any, topic: wire.Topic | None) -> None:
+    """Wait until the daemon's `topic` comes through the hub (None: the caller has waited);
+    for router-lost, then kill the hub."""
+    if state == "no-router":
+        time.sleep(0.3)  # well inside the wait for the router
+        return
+    if topic is not None:
+        with open_session(ZenohSettings(connect=(endpoint,))) as session:
+            samples: list[bytes] = []
+            subscriber = session.declare_subscriber(
+                wire.key(topic), lambda sample: samples.append(sample.payload.to_bytes())
+            )
+            wait_until(lambda: samples, 60, f"{topic.name} through the hub")
+            subscriber.undeclare()
+    if state == "router-lost":
+        router.kill()
+        router.wait()
+        time.sleep(0.5)  # the daemon's session sees its connection close
+
+
+@pytest.mark.parametrize("state", STATES)
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_the_controller_stops_within_a_second_in_every_state(
+    state: str, number: signal.Signals, started: list[subprocess.Popen[Any]]
+) -> None:
+    endpoint, router = _router(state, started)
+    controller = _Daemon(_arguments("controller", endpoint, Path(), 0))
+    started.append(controller.popen)
+    controller.wait_for_line("waiting until something listens")
+    _bring_to(state, endpoint, router, wire.CONTROLLER_STATUS)
+    elapsed = controller.stop(number, f"controller, {state}")
+    assert controller.popen.returncode == 0, controller.output()
+    assert "Traceback" not in controller.output()
+    assert elapsed <= EXIT_LIMIT_S, controller.output()
+
+
+@pytest.mark.parametrize("state", STATES)
+def test_the_recorder_stops_within_a_second_in_every_state(
+    state: str, tmp_path: Path, started: list[subprocess.Popen[Any]]
+) -> None:
+    endpoint, router = _router(state, started)
+    recorder = _Daemon(_arguments("record", endpoint, tmp_path, 0))
+    started.append(recorder.popen)
+    recorder.wait_for_line("waiting until something listens")
+    if state != "no-router":
+        recorder.wait_for_line("recording ")  # its session is open
+    _bring_to(state, endpoint, router, None)
+    elapsed = recorder.stop(signal.SIGTERM, f"recorder, {state}")
+    assert recorder.popen.returncode == 0, recorder.output()
+    assert "Traceback" not in recorder.output()
+    assert elapsed <= EXIT_LIMIT_S, recorder.output()
+
+
+def _overrides(vehicle: MavlinkVehicle, since_s: float) -> list[tuple[int, int]]:
+    return [
+        (r.fields["chan1_raw"], r.fields["chan3_raw"])
+        for r in vehicle.received("RC_CHANNELS_OVERRIDE")
+        if r.time_s >= since_s
+    ]
+
+
+@pytest.mark.parametrize("state", STATES)
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_the_bridge_sends_neutral_and_disarms_then_stops_within_a_second_in_every_state(
+    state: str,
+    number: signal.Signals,
+    vehicle: MavlinkVehicle,
+    started: list[subprocess.Popen[Any]],
+) -> None:
+    endpoint, router = _router(state, started)
+    port = int(vehicle.settings.connection.rsplit(":", 1)[1])
+    bridge = _Daemon(
+        [
+            *_arguments("bridge", endpoint, Path(), port),
+            "--set", "vehicle.arm_on_connect=true",
+            # Periodic stops far apart, so the ones sent on the way out stand out.
+            "--set", "failsafe.stop_period_s=2.0",
+        ]
+    )  # fmt: skip
+    started.append(bridge.popen)
+    # With or without zenoh, the vehicle side runs: link up, armed, neutral only.
+    wait_until(lambda: vehicle.armed, 60, "the bridge to arm the vehicle")
+    assert set(_overrides(vehicle, -1.0)) == {NEUTRAL}
+    _bring_to(state, endpoint, router, wire.VEHICLE_STATE)
+    sent = time.monotonic()
+    elapsed = bridge.stop(number, f"bridge, {state}")
+    out = _overrides(vehicle, sent)
+    disarms = [
+        r
+        for r in vehicle.received("COMMAND_LONG")
+        if r.time_s >= sent
+        and r.fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM
+        and r.fields["param1"] == 0.0
+    ]
+    assert bridge.popen.returncode == 0, bridge.output()
+    assert "Traceback" not in bridge.output()
+    assert len(out) >= 3 and set(out) == {NEUTRAL}, out  # its stops on the way out
+    assert disarms and not vehicle.armed
+    assert elapsed <= EXIT_LIMIT_S, bridge.output()
