@@ -52,12 +52,15 @@ from contracts.wire import (
     STOP,
     VEHICLE_REQUEST,
     VEHICLE_STATE,
+    Pose2D,
     Twist2D,
     WireError,
     decode_json_msg,
     decode_pose_msg,
     decode_twist_msg,
     encode_json_msg,
+    encode_pose_msg,
+    encode_twist_msg,
     key,
 )
 from firmware_bridge import mapping
@@ -193,6 +196,11 @@ class Bridge:
 
     def _join_zenoh(self, raise_errors: bool = False) -> None:
         namespace = self.settings.zenoh.namespace
+        # The first decodes build the ROS type store (about 0.3 s): here, not on the first
+        # command, which would otherwise reach the vehicle that much late.
+        decode_twist_msg(encode_twist_msg(STOP))
+        decode_pose_msg(encode_pose_msg(Pose2D(0.0, "map", 0.0, 0.0, 0.0)))
+        decode_json_msg(encode_json_msg({}))
         try:
             session = open_session(self.settings.zenoh, self._stopping)
         except StoppedError:
@@ -370,6 +378,10 @@ class Bridge:
             pose = decode_pose_msg(sample.payload.to_bytes())
         except WireError as error:
             self._malformed("pose", error)
+            return
+        problem = mapping.pose_problem(pose, self.settings.vision.max_position_m)
+        if problem is not None:  # finite, so the decoder took it, but no place anyone measured
+            self._malformed("pose", ValueError(problem))
             return
         if not self._link_up:
             return

@@ -67,6 +67,20 @@ def _clip(value: float, limit: float) -> float:
     return max(-limit, min(limit, value))
 
 
+def _finite(twist: Twist2D) -> bool:
+    return math.isfinite(twist.linear_mps) and math.isfinite(twist.angular_radps)
+
+
+def pose_problem(pose: Pose2D, max_position_m: float) -> str | None:
+    """Why a motion-capture pose must not go to the autopilot as its position, or None."""
+    values = (pose.x_m, pose.y_m, pose.yaw_rad)
+    if not all(math.isfinite(value) for value in values):
+        return f"non-finite pose {values}"
+    if max(abs(pose.x_m), abs(pose.y_m)) > max_position_m:
+        return f"position ({pose.x_m:g}, {pose.y_m:g}) m is beyond {max_position_m:g} m"
+    return None
+
+
 def full_scale(output: OutputSettings) -> tuple[float, float]:
     """The speed (m/s) and turn rate (rad/s) that the output mode maps to its limits."""
     if output.mode == "guided":
@@ -87,7 +101,13 @@ def implausible(twist: Twist2D, output: OutputSettings, factor: float) -> str | 
 
 
 def sticks(twist: Twist2D, output: OutputSettings) -> Sticks:
-    """Fractions of full steering and throttle for a Twist, clipped to [-1, 1]."""
+    """Fractions of full steering and throttle for a Twist, clipped to [-1, 1].
+
+    A Twist with a non-finite part is no command at all: both sticks centre (the finite part
+    must not steer or drive on its own).
+    """
+    if not _finite(twist):
+        return Sticks(0.0, 0.0)
     steering = -twist.angular_radps / output.turn_rate_at_full_steering_radps
     throttle = twist.linear_mps / output.speed_at_full_throttle_mps
     if output.steering_reversed:
@@ -131,7 +151,10 @@ def manual_control(twist: Twist2D, output: OutputSettings) -> ManualControl:
 
 
 def velocity_target(twist: Twist2D, output: OutputSettings) -> VelocityTarget:
-    """Guided velocity and yaw rate for a Twist, clipped to the configured maxima."""
+    """Guided velocity and yaw rate for a Twist, clipped to the configured maxima (a Twist with
+    a non-finite part: zero for both)."""
+    if not _finite(twist):
+        return VelocityTarget(0.0, 0.0)
     forward = _clip(twist.linear_mps, output.guided_max_speed_mps)
     yaw_rate = _clip(-twist.angular_radps, output.guided_max_turn_rate_radps)
     return VelocityTarget(forward + 0.0, yaw_rate + 0.0)

@@ -204,11 +204,15 @@ class VisionSettings:
     """Longitude of the EKF origin."""
     origin_alt_m: float = 584.0
     """Altitude of the EKF origin above mean sea level."""
+    max_position_m: float = 10_000.0
+    """A pose farther than this from the origin on either axis is refused as malformed and not
+    forwarded (a finite 1e308 is still no place a motion-capture system measured)."""
 
     def __post_init__(self) -> None:
         check_range(self, "origin_lat_deg", self.origin_lat_deg, -90.0, 90.0)
         check_range(self, "origin_lon_deg", self.origin_lon_deg, -180.0, 180.0)
         check_range(self, "origin_alt_m", self.origin_alt_m, -1000.0, 10000.0)
+        check_range(self, "max_position_m", self.max_position_m, 1.0, 1e7)
 
 
 @dataclass(frozen=True)

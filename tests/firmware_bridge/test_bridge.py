@@ -12,7 +12,16 @@ from contextlib import ExitStack
 import pytest
 
 from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
-from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Twist2D, encode_twist_msg, key
+from contracts.wire import (
+    COMMAND,
+    POSE,
+    VEHICLE_REQUEST,
+    Pose2D,
+    Twist2D,
+    encode_pose_msg,
+    encode_twist_msg,
+    key,
+)
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from sim.mavlink_vehicle import MavlinkVehicle
@@ -393,3 +402,19 @@ def test_a_request_the_vehicle_keeps_refusing_is_given_up_after_ten_tries(
     time.sleep(1.5)  # three more retry periods: no eleventh try
     assert set_mode_requests() == 10
     assert rig.vehicle.mode != "GUIDED"
+
+
+def test_absurd_poses_are_not_forwarded_as_vision_estimates(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"output": {"mode": "guided"}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.publish_pose()
+    wait_until(lambda: rig.vehicle.received("VISION_POSITION_ESTIMATE"), what="a good pose")
+    # Finite, so the decoder takes them; but no motion-capture volume is that big.
+    for x_m, y_m in ((1e308, 0.0), (0.0, -1e308), (20_000.0, 0.0)):
+        rig.publish(key(POSE), encode_pose_msg(Pose2D(time.time(), "map", x_m, y_m, 0.0)))
+    wait_until(lambda: rig.counters().get("malformed") == 3, what="absurd poses counted")
+    rig.publish_pose()
+    wait_until(lambda: rig.counters().get("poses") == 2, what="the next good pose")
+    estimates = rig.vehicle.received("VISION_POSITION_ESTIMATE")
+    assert len(estimates) == 2
+    assert all(abs(e.fields["x"]) < 100 and abs(e.fields["y"]) < 100 for e in estimates)

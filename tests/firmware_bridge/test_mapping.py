@@ -94,3 +94,28 @@ def test_commands_far_beyond_full_scale_are_implausible_and_overshoot_is_not() -
         assert "beyond 10.0 x" in (mapping.implausible(twist, OUT, 10.0) or "")
     guided = OutputSettings(mode="guided", guided_max_speed_mps=0.5)
     assert mapping.implausible(Twist2D(5.5, 0.0), guided, 10.0) is not None
+
+
+@pytest.mark.parametrize(
+    "twist",
+    [Twist2D(math.nan, 0.5), Twist2D(0.5, math.inf), Twist2D(-math.inf, -0.7)],
+    ids=str,
+)
+def test_a_twist_with_one_non_finite_part_is_no_command_at_all(twist: Twist2D) -> None:
+    # The finite part alone must not steer or drive: the sender is broken.
+    assert mapping.sticks(twist, OUT) == (0.0, 0.0)
+    assert mapping.rc_override(twist, OUT) == (1500, 1500)
+    assert mapping.manual_control(twist, OUT) == (0, 0)
+    assert mapping.velocity_target(twist, OUT) == (0.0, 0.0)
+
+
+def test_a_non_finite_fraction_is_trim_not_a_limit() -> None:
+    for fraction in (math.nan, math.inf, -math.inf):
+        assert mapping.fraction_to_pwm(fraction, 1100, 1500, 1900) == 1500
+
+
+def test_absurd_poses_are_refused() -> None:
+    assert mapping.pose_problem(Pose2D(0.0, "map", 3.0, -4.0, 1.0), 100.0) is None
+    assert mapping.pose_problem(Pose2D(0.0, "map", 1e308, 0.0, 0.0), 100.0) is not None
+    assert mapping.pose_problem(Pose2D(0.0, "map", 0.0, -100.5, 0.0), 100.0) is not None
+    assert mapping.pose_problem(Pose2D(0.0, "map", math.nan, 0.0, 0.0), 100.0) is not None
