@@ -40,7 +40,7 @@ from contracts.mavlink import (
 )
 from contracts.settings import to_toml
 from contracts.transport import ZenohSettings, open_session
-from contracts.wire import COMMAND, STOP, Twist2D, encode_twist_msg, key
+from contracts.wire import COMMAND, STOP, VEHICLE_STATE, Twist2D, encode_twist_msg, key
 from firmware_bridge import mapping
 from firmware_bridge.settings import (
     BridgeSettings,
@@ -162,11 +162,14 @@ def bench(args: argparse.Namespace) -> int:
         config = Path(folder) / "bridge.toml"
         config.write_text(to_toml(settings))
         publisher = zenoh.declare_publisher(key(COMMAND))
+        joined = threading.Event()
+        states = zenoh.declare_subscriber(key(VEHICLE_STATE), lambda sample: joined.set())
         bridge = _spawn("qnav", "bridge", "--config", str(config), "--log-level", "warning")
         try:
-            latencies_ms, stops_ms = _measure(args, settings, vehicle, publisher)
+            latencies_ms, stops_ms = _measure(args, settings, vehicle, publisher, joined)
         finally:
             _terminate(bridge)
+            states.undeclare()
         floor_ms: list[float] = []
         if args.baseline:
             echo = _spawn("firmware_bridge.bench", "echo", str(zenoh_port), str(mavlink_port))
@@ -205,12 +208,22 @@ def bench(args: argparse.Namespace) -> int:
 
 
 def _measure(
-    args: argparse.Namespace, settings: BridgeSettings, vehicle: _FakeAutopilot, publisher: Any
+    args: argparse.Namespace,
+    settings: BridgeSettings,
+    vehicle: _FakeAutopilot,
+    publisher: Any,
+    joined: threading.Event,
 ) -> tuple[list[float], list[float]]:
     stop = _matcher(settings, STOP)
-    # The bridge is up, its zenoh session joined and the link established once stops flow.
+    # The vehicle side runs before zenoh is joined (stops flow without it): wait for both.
     vehicle.wait_for(lambda message: message.get_type() == "HEARTBEAT", 30.0)
     vehicle.wait_for(stop, 10.0)
+    deadline = time.monotonic() + 30.0
+    while not joined.is_set():  # its first vehicle state: the bridge's session is up
+        if time.monotonic() > deadline:
+            raise TimeoutError("the bridge did not join zenoh in time")
+        vehicle.heartbeat_if_due()
+        vehicle.receive(time.monotonic() + 0.05)
     time.sleep(0.2)  # let zenoh finish declaring the bridge's subscriber to us
     latencies_ms: list[float] = []
     warmup = 20
