@@ -11,7 +11,10 @@ from contextlib import ExitStack
 
 import pytest
 
+from contracts.errors import ConfigError
 from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
+from contracts.settings import with_overrides
+from contracts.transport import ZenohSettings, open_session
 from contracts.wire import (
     COMMAND,
     POSE,
@@ -24,7 +27,8 @@ from contracts.wire import (
 )
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
-from sim.mavlink_vehicle import MavlinkVehicle
+from firmware_bridge.settings import BridgeSettings
+from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from tests.firmware_bridge.rig import (
     Rig,
     bridge_settings,
@@ -418,3 +422,25 @@ def test_absurd_poses_are_not_forwarded_as_vision_estimates(make_rig: MakeRig) -
     estimates = rig.vehicle.received("VISION_POSITION_ESTIMATE")
     assert len(estimates) == 2
     assert all(abs(e.fields["x"]) < 100 and abs(e.fields["y"]) < 100 for e in estimates)
+
+
+def test_bridge_and_fake_vehicle_pair_with_their_defaults() -> None:
+    defaults = BridgeSettings()
+    # Only zenoh differs from the defaults: a loopback peer of the test's (the in-process
+    # Bridge waits for its session on entry).
+    zenoh_port = free_port(socket.SOCK_STREAM)
+    settings = with_overrides(defaults, {"zenoh": {"connect": [f"tcp/127.0.0.1:{zenoh_port}"]}})
+    assert settings.mavlink == defaults.mavlink
+    with ExitStack() as stack:
+        peer = ZenohSettings(listen=(f"tcp/127.0.0.1:{zenoh_port}",), connect=())
+        stack.enter_context(open_session(peer))
+        try:
+            bridge = stack.enter_context(Bridge(settings))
+        except ConfigError as error:  # another program holds the well-known port
+            pytest.skip(f"UDP 14550 is in use on this machine: {error}")
+        vehicle = stack.enter_context(MavlinkVehicle(MavlinkVehicleSettings()))
+        wait_until(lambda: bridge.state()["link_up"], what="the pair to find each other")
+        wait_until(
+            lambda: any(r.src_component == 191 for r in vehicle.received("HEARTBEAT")),
+            what="the bridge's heartbeat at the vehicle",
+        )
