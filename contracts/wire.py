@@ -267,14 +267,16 @@ def decode_point_msg(payload: bytes) -> Pose2D:
     return Pose2D(stamp_s, frame_id, x, y)
 
 
-def check_position(what: str, pose: Pose2D, max_position_m: float) -> None:
+def check_position(
+    what: str, pose: Pose2D, max_position_m: float, setting: str = "max_position_m"
+) -> None:
     """`WireError` unless the pose (or point) is finite and within `max_position_m` of the
-    origin on each axis (a position beyond it is no place the car can be)."""
+    origin on each axis (a position beyond it is no place the car can be); the error names
+    `setting`."""
     _finite(what, pose.x_m, pose.y_m, pose.yaw_rad)
     if max(abs(pose.x_m), abs(pose.y_m)) > max_position_m:
         raise WireError(
-            f"{what} at ({pose.x_m:.6g}, {pose.y_m:.6g}) m is beyond max_position_m = "
-            f"{max_position_m}"
+            f"{what} at ({pose.x_m:.6g}, {pose.y_m:.6g}) m is beyond {setting} = {max_position_m}"
         )
 
 
