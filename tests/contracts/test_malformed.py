@@ -1,0 +1,73 @@
+"""The malformed-payload generators (tests/contracts/malformed.py) against the decoders: every
+payload they make is refused, by the decoder or by the consumer's rule named with it."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from contracts import wire
+from tests.contracts.malformed import CANONICAL_BOOLS, MESSAGES, malformed, valid
+
+
+def twist_refused(payload: bytes) -> bool:
+    """A Twist consumer with limits of 1 m/s and 1 rad/s and the default factor."""
+    try:
+        wire.plausible_twist(wire.decode_twist_msg(payload), 1.0, 1.0)
+    except wire.WireError:
+        return True
+    return False
+
+
+def request_refused(payload: bytes) -> bool:
+    """A vehicle request as the bridge reads it: `arm` a boolean, `mode` a string, if present."""
+    try:
+        request = wire.decode_json_msg(payload)
+        wire.json_bool(request, "arm")
+        wire.json_string(request, "mode")
+    except wire.WireError:
+        return True
+    return False
+
+
+def bool_refused(payload: bytes) -> bool:
+    try:
+        wire.decode_bool_msg(payload)
+    except wire.WireError:
+        return True
+    return False
+
+
+def test_the_valid_payloads_decode() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        wire.decode_scan_msg(valid("scan", rng))
+        wire.decode_pose_msg(valid("pose", rng))
+        wire.decode_point_msg(valid("point", rng))
+        wire.decode_bool_msg(valid("bool", rng))
+        assert not twist_refused(valid("twist", rng))
+        assert not request_refused(valid("json", rng))
+    for payload in CANONICAL_BOOLS:
+        assert not bool_refused(payload)
+
+
+@pytest.mark.parametrize(
+    ("message", "refused"),
+    [("twist", twist_refused), ("json", request_refused), ("bool", bool_refused)],
+)
+def test_every_generated_twist_request_and_bool_is_refused(message: str, refused: object) -> None:
+    assert callable(refused)
+    kinds: Counter[str] = Counter()
+    for kind, payload in malformed(message, np.random.default_rng(11), 2000):
+        assert refused(payload), (kind, payload[:64].hex())
+        kinds[kind] += 1
+    assert len(kinds) >= 8, kinds  # every way of breaking a message is exercised
+
+
+def test_the_generators_are_seeded_and_cover_every_message() -> None:
+    for message in MESSAGES:
+        first = list(malformed(message, np.random.default_rng(5), 50, max_bytes=0))
+        again = list(malformed(message, np.random.default_rng(5), 50, max_bytes=0))
+        assert first == again and len(first) == 50
