@@ -257,3 +257,43 @@ def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_
             assert listener.commands[-1] == wire.STOP
     finally:
         listener.session.close()
+
+
+def test_the_scan_triggered_daemon_stops_the_car_when_scans_stop_coming(
+    tmp_path: Path,
+    endpoint: str,
+    make_policy: PolicyFactory,
+    processes: list[subprocess.Popen[str]],
+) -> None:
+    """With `trigger = "scan"` decisions ride on scans; when they stop, only the main loop's
+    periodic check of the safety rules can publish the stop."""
+    policy = make_policy("walls-inertia")
+    config = DaemonConfig(
+        controller=ControllerSettings(policy=str(policy), trigger="scan"),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+    )
+    daemon = start_daemon(tmp_path, config)
+    processes.append(daemon)
+    listener = Listener(endpoint)
+    try:
+        listener.wait_for(lambda s: True, timeout=30)
+        feeder = start_feeder(endpoint)
+        processes.append(feeder)
+        assert feeder.stdin is not None
+        driving = listener.wait_for(reason_is("policy"))
+        assert driving["loop"]["trigger"] == "scan"
+        feeder.stdin.write("scan off\n")
+        feeder.stdin.flush()
+        stale = listener.wait_for(reason_is("scan_stale"))
+        assert stale["command"] == {"linear_mps": 0.0, "angular_radps": 0.0}
+        assert stale["q_values"] is None
+        # It keeps publishing the stop every period while the scans stay away.
+        more = listener.mark()
+        listener.wait_for(reason_is("scan_stale"), since=more + 1)
+        with listener.lock:
+            assert listener.commands[-1] == wire.STOP
+        daemon.send_signal(signal.SIGTERM)
+        _, stderr = daemon.communicate(timeout=20)
+        assert daemon.returncode == 0, stderr
+    finally:
+        listener.session.close()

@@ -458,3 +458,36 @@ def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     payload = wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, 0.1, 30, ranges))
     assert "not a planar scan" in (c.receive(Input.SCAN, payload, 0.1) or "")
     assert c.counters.malformed["scan"] == 1
+
+
+def test_a_policy_that_refuses_the_observation_stops_the_car(policy: Path) -> None:
+    """The `policy_input_error` rule: a runtime that refuses the observation (here one built
+    for two streams, whose single-stream step refuses) stops the car instead of raising."""
+    c = Controller(PolicyRuntime(policy, num_streams=2), SafetySettings())
+    assert c.receive(Input.TARGET, target_payload(), 0.0) is None
+    feed(c, 0.0)
+    output = c.decide(0.05)
+    assert_stop(output, Reason.POLICY_INPUT_ERROR)
+    assert c.counters.policy_steps == 0 and c.counters.stops == 1
+
+
+def test_a_target_that_only_changes_frame_is_a_new_target(policy: Path) -> None:
+    c = ready(policy, target_tolerance_m=0.3)
+    c.receive(Input.TARGET, target_payload(1.2, 1.1), 0.0)
+    assert_stop(c.decide(0.01), Reason.TARGET_REACHED)
+    c.receive(Input.POSE, pose_payload(x=3.0, frame="odom"), 0.02)  # away, in the new frame
+    c.receive(Input.TARGET, target_payload(1.2, 1.1, frame="odom"), 0.02)  # same place
+    assert c.decide(0.03).status.reason is Reason.POLICY
+
+
+def test_an_empty_frame_id_on_either_side_skips_the_frame_mismatch_stop(policy: Path) -> None:
+    for pose_frame, target_frame in [("", "odom"), ("map", ""), ("", "")]:
+        c = controller(policy)
+        assert c.receive(Input.TARGET, target_payload(frame=target_frame), 0.0) is None
+        feed(c, 0.0, pose=False)
+        assert c.receive(Input.POSE, pose_payload(frame=pose_frame), 0.0) is None
+        assert c.decide(0.01).status.reason is Reason.POLICY, (pose_frame, target_frame)
+    c = controller(policy)
+    c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
+    feed(c, 0.0)
+    assert_stop(c.decide(0.01), Reason.FRAME_MISMATCH)
