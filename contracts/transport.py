@@ -9,6 +9,8 @@ then come from it, and only `extra` is applied over it.
 from __future__ import annotations
 
 import json
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -91,8 +93,17 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     return config
 
 
-def open_session(settings: ZenohSettings) -> Any:
-    """An open zenoh session (close it, or use it in a `with` block)."""
+class StoppedError(Exception):
+    """A stop was asked for before the zenoh session opened."""
+
+
+def open_session(settings: ZenohSettings, stop: threading.Event | None = None) -> Any:
+    """An open zenoh session (close it, or use it in a `with` block).
+
+    A client waits inside zenoh until something listens at its endpoint, where no Python signal
+    handler runs. With `stop` the wait happens in a helper thread instead and this one watches
+    `stop`: once it is set, `StoppedError` is raised at once (the helper is left to the
+    interpreter's exit), so a daemon stops on SIGTERM before it ever connects."""
     import logging
 
     import zenoh
@@ -102,8 +113,42 @@ def open_session(settings: ZenohSettings) -> Any:
             "zenoh: connecting to %s (waiting until something listens there)",
             ", ".join(settings.connect),
         )
+    config = zenoh_config(settings)
+    if stop is None:
+        return _opened(lambda: zenoh.open(config), settings)
+    outcome: dict[str, Any] = {}
+    lock = threading.Lock()
+    opened = threading.Event()
+
+    def opening() -> None:
+        try:
+            session = _opened(lambda: zenoh.open(config), settings)
+        except BaseException as error:
+            outcome["error"] = error
+            opened.set()
+            return
+        with lock:
+            if outcome.get("abandoned"):
+                session.close()  # opened too late: nobody will use it
+                return
+            outcome["session"] = session
+        opened.set()
+
+    threading.Thread(target=opening, name="zenoh-open", daemon=True).start()
+    while not opened.wait(0.05):
+        if stop.is_set():
+            with lock:
+                if "session" not in outcome and "error" not in outcome:
+                    outcome["abandoned"] = True
+                    raise StoppedError("stopped before the zenoh session opened")
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["session"]
+
+
+def _opened(open_: Callable[[], Any], settings: ZenohSettings) -> Any:
     try:
-        return zenoh.open(zenoh_config(settings))
+        return open_()
     except Exception as error:
         raise ConfigError(
             f"cannot open a zenoh session (listen {list(settings.listen)}, "

@@ -35,9 +35,9 @@ MAX_FRAME_ID_BYTES = 256
 MAX_JSON_BYTES = 65_536
 """Longest JSON string message taken (NUL included); a longer one is malformed."""
 
-QUATERNION_NORM_TOLERANCE = 0.01
-"""A pose's orientation quaternion must have a norm within this of 1 (a unit quaternion; float32
-rounding is far below it, a zero or unnormalised quaternion far above)."""
+QUATERNION_NORM_TOLERANCE = 0.1
+"""How far from 1 a pose's orientation quaternion's norm may be (drivers round; a zero or
+garbled quaternion is far off)."""
 
 IMPLAUSIBLE_FACTOR = 10.0
 """Default of the consumers' `implausible_factor` settings: a Twist beyond this many times the
@@ -271,10 +271,10 @@ def check_position(
     what: str, pose: Pose2D, max_position_m: float, setting: str = "max_position_m"
 ) -> None:
     """`WireError` unless the pose (or point) is finite and within `max_position_m` of the
-    origin on each axis (a position beyond it is no place the car can be); the error names
+    frame's origin (a position beyond it is no place the car can be); the error names
     `setting`."""
     _finite(what, pose.x_m, pose.y_m, pose.yaw_rad)
-    if max(abs(pose.x_m), abs(pose.y_m)) > max_position_m:
+    if math.hypot(pose.x_m, pose.y_m) > max_position_m:
         raise WireError(
             f"{what} at ({pose.x_m:.6g}, {pose.y_m:.6g}) m is beyond {setting} = {max_position_m}"
         )

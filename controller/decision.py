@@ -309,18 +309,24 @@ class Controller:
         if not self.uses_scan:
             return  # the lidar-less policy has no use for it
         count, increment = len(scan.ranges_m), abs(scan.angle_increment_rad)
+        if count < self.lidar.min_readings:
+            raise WireError(
+                f"scan of {count} readings (fewer than lidar.min_readings = "
+                f"{self.lidar.min_readings})"
+            )
+        if not (
+            math.isfinite(scan.range_min_m)
+            and math.isfinite(scan.range_max_m)
+            and 0.0 <= scan.range_min_m < scan.range_max_m
+        ):
+            raise WireError(
+                f"scan range_min {scan.range_min_m} / range_max {scan.range_max_m} are not "
+                "finite with 0 <= range_min < range_max"
+            )
         if count > MAX_SCAN_READINGS or increment > math.pi or count * increment > 4 * math.pi:
             raise WireError(
                 f"scan of {count} readings {increment:.4g} rad apart is not a planar scan of at "
                 f"most two turns and {MAX_SCAN_READINGS} readings"
-            )
-        low, high = scan.range_min_m, scan.range_max_m
-        if not (math.isfinite(low) and math.isfinite(high) and 0.0 <= low < high):
-            raise WireError(f"scan has range_min {low} and range_max {high}: not 0 <= min < max")
-        if count < self.lidar.min_readings:
-            raise WireError(
-                f"scan has {count} readings (fewer than lidar.min_readings = "
-                f"{self.lidar.min_readings})"
             )
         if count * increment < self.lidar.min_field_of_view_rad:
             raise WireError(

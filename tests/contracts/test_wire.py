@@ -104,8 +104,9 @@ def rosbags_pose(payload: bytes) -> wire.Pose2D:
     p, q = message.pose.position, message.pose.orientation
     if not all(math.isfinite(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)):
         raise wire.WireError("PoseStamped has NaN or infinite values")
-    if abs(math.sqrt(q.x**2 + q.y**2 + q.z**2 + q.w**2) - 1.0) > wire.QUATERNION_NORM_TOLERANCE:
-        raise wire.WireError("PoseStamped has a non-unit quaternion")
+    norm = math.sqrt(q.x**2 + q.y**2 + q.z**2 + q.w**2)
+    if abs(norm - 1.0) > wire.QUATERNION_NORM_TOLERANCE:
+        raise wire.WireError(f"PoseStamped's quaternion has norm {norm:.6g}, not 1")
     yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y**2 + q.z**2))
     header = message.header
     stamp_s = float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
@@ -229,7 +230,8 @@ POSES = [
     (1.0, "map", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)),
     (1.0, "map", (0.0, 0.0, math.nan), (0.0, 0.0, 0.0, 1.0)),  # z is not used, but NaN
     (1.0, "map", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0)),  # not a unit quaternion
-    (1.0, "map", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.005)),  # within the tolerance
+    (1.0, "map", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.05)),  # within the tolerance
+    (1.0, "map", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.85)),  # not
 ]
 
 
@@ -412,8 +414,8 @@ def test_a_plausible_twist_is_clipped_and_an_absurd_one_is_malformed() -> None:
 
 
 def test_a_position_beyond_the_bound_is_malformed() -> None:
-    wire.check_position("pose", wire.Pose2D(0.0, "map", 999.0, -1000.0), 1000.0)
-    for x, y in [(1000.5, 0.0), (0.0, -1e308), (math.nan, 0.0)]:
+    wire.check_position("pose", wire.Pose2D(0.0, "map", 600.0, -800.0), 1000.0)  # 1000 m away
+    for x, y in [(1000.5, 0.0), (710.0, -710.0), (0.0, -1e308), (math.nan, 0.0)]:
         with pytest.raises(wire.WireError):
             wire.check_position("pose", wire.Pose2D(0.0, "map", x, y), 1000.0)
 

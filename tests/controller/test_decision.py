@@ -15,6 +15,7 @@ from controller.config import LidarSettings, SafetySettings
 from controller.decision import Controller, Input, Output, Reason
 from controller.policy import PolicyRuntime
 from tests.conftest import PolicyFactory
+from tests.contracts.malformed import CANONICAL_TRUE
 
 PERIOD = 0.2  # the scenarios' control period
 
@@ -30,6 +31,26 @@ def pose_payload(x: float = 1.0, y: float = 1.0, yaw: float = 0.3, frame: str = 
 
 def target_payload(x: float = 8.0, y: float = 8.0, frame: str = "map") -> bytes:
     return wire.encode_pose_msg(Pose2D(0.0, frame, x, y))
+
+
+def odd_scan_payload(range_min: float, range_max: float, count: int = 1080) -> bytes:
+    ranges = np.full(count, 3.0, dtype=np.float32)
+    return wire.encode_scan_msg(
+        Scan(0.0, "laser", -math.pi, 2 * math.pi / count, range_min, range_max, ranges)
+    )
+
+
+def pose_with_quaternion(qx: float, qy: float, qz: float, qw: float) -> bytes:
+    writer = cdr.Writer()
+    writer.pack(cdr.TIME, 4, 0, 0)
+    writer.string("map")
+    writer.pack(cdr.Layout("7d"), 8, 1.0, 1.0, 0.0, qx, qy, qz, qw)
+    return writer.payload()
+
+
+def quaternion_payload(w: float) -> bytes:
+    """A PoseStamped whose orientation is (0, 0, 0, w)."""
+    return pose_with_quaternion(0.0, 0.0, 0.0, w)
 
 
 @pytest.fixture
@@ -146,15 +167,22 @@ def test_the_car_stops_at_the_target_until_a_different_target_arrives(policy: Pa
             Input.POSE, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, math.inf)), id="pose-inf"
         ),
         pytest.param(Input.POSE, b"\x00\x01", id="pose-truncated"),
+        pytest.param(Input.POSE, pose_payload(x=1e308), id="pose-absurd"),
+        pytest.param(Input.POSE, pose_payload(y=-1001.0), id="pose-beyond-max-position"),
+        pytest.param(Input.POSE, quaternion_payload(2.0), id="pose-quaternion-norm-2"),
+        pytest.param(Input.POSE, quaternion_payload(0.0), id="pose-zero-quaternion"),
+        pytest.param(Input.TARGET, target_payload(x=-1e308), id="target-absurd"),
+        pytest.param(Input.SCAN, odd_scan_payload(math.nan, 30.0), id="scan-range-min-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, math.nan), id="scan-range-max-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(5.0, 1.0), id="scan-range-min-above-max"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=1), id="scan-one-reading"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=49), id="scan-49-readings"),
         pytest.param(
             Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", math.nan, 1.0)), id="target-nan"
         ),
         pytest.param(Input.TARGET, scan_payload()[:30], id="target-garbage"),
         pytest.param(Input.ESTOP_RELEASE, b"", id="release-empty"),
         pytest.param(Input.ESTOP_RELEASE, bytes.fromhex("0001000002"), id="release-bool-2"),
-        pytest.param(
-            Input.POSE, wire.encode_pose_msg(Pose2D(0.0, "map", 1e308, 1.0)), id="pose-1e308"
-        ),
         pytest.param(
             Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, -1001.0)), id="target-far"
         ),
@@ -176,16 +204,8 @@ def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
     assert status.ages_s[source.value] == good_age
 
 
-def pose_with_quaternion(qx: float, qy: float, qz: float, qw: float) -> bytes:
-    writer = cdr.Writer()
-    writer.pack(cdr.TIME, 4, 0, 0)
-    writer.string("map")
-    writer.pack(cdr.Layout("7d"), 8, 1.0, 1.0, 0.0, qx, qy, qz, qw)
-    return writer.payload()
-
-
 @pytest.mark.parametrize(
-    "quaternion", [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0), (0.0, 0.0, 0.7, 0.6)]
+    "quaternion", [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0), (0.0, 0.0, 0.5, 0.5)]
 )
 def test_a_pose_whose_quaternion_is_not_a_unit_one_is_malformed(
     policy: Path, quaternion: tuple[float, float, float, float]
@@ -198,12 +218,12 @@ def test_a_pose_whose_quaternion_is_not_a_unit_one_is_malformed(
 
 def test_a_position_beyond_safety_max_position_m_is_malformed(policy: Path) -> None:
     c = ready(policy, max_position_m=50.0)
-    assert c.receive(Input.POSE, pose_payload(x=49.0, y=-50.0), 0.1) is None
+    assert c.receive(Input.POSE, pose_payload(x=30.0, y=-40.0), 0.1) is None
     error = c.receive(Input.POSE, pose_payload(x=50.5), 0.15)
     assert error is not None and "safety.max_position_m = 50.0" in error
     assert "safety.max_position_m" in (c.receive(Input.TARGET, target_payload(y=-51.0), 0.15) or "")
     assert c.counters.malformed["pose"] == 1 and c.counters.malformed["target"] == 1
-    assert c.decide(0.15).status.target_distance_m == pytest.approx(math.hypot(8 - 49, 8 + 50))
+    assert c.decide(0.15).status.target_distance_m == pytest.approx(math.hypot(8 - 30, 8 + 40))
 
 
 def test_a_malformed_message_on_the_estop_topic_presses_the_stop(policy: Path) -> None:
@@ -298,6 +318,52 @@ def test_the_scan_plausibility_bounds_are_settings(policy: Path) -> None:
     assert c.receive(Input.SCAN, scan_layout(count=50, increment=0.0199), 0.0)
     assert c.receive(Input.SCAN, scan_layout(count=180, increment=math.pi / 180), 0.0) is None
     assert ready(policy).receive(Input.SCAN, scan_layout(181, math.pi / 180), 0.0) is None
+
+
+@pytest.mark.parametrize(
+    "payload", [b"\xff", b"", bytes.fromhex("0001000002"), bytes.fromhex("0001ffff00")]
+)
+def test_a_malformed_stop_message_presses_the_stop(policy: Path, payload: bytes) -> None:
+    c = ready(policy)
+    assert c.receive(Input.ESTOP, payload, 0.01)
+    assert c.counters.malformed["estop"] == 1
+    status = c.decide(0.02).status
+    assert (status.estop_latched, status.estop_pressed) == (True, True)
+    assert status.reason is not None and status.reason.name.startswith("ESTOP")
+
+
+RELEASE_LOOKALIKES = [
+    "0001000002",  # value byte 2
+    "00010000ff",
+    "0001000080000000",
+    "0001000001deadbe",  # garbage after the value
+    "0001ffff01",  # non-zero options
+    "0000000002",  # big-endian, value byte 2
+    "000100000100000000",  # more than alignment padding
+    "00010000",  # no value
+]
+
+
+def test_no_malformed_payload_releases_a_latched_stop(policy: Path) -> None:
+    rng = np.random.default_rng(11)
+    payloads = [bytes.fromhex(h) for h in RELEASE_LOOKALIKES]
+    for _ in range(3000):
+        size = int(rng.integers(0, 12))
+        body = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        payloads.append(b"\x00\x01\x00\x00" + body if rng.random() < 0.7 else body)
+    canonical = CANONICAL_TRUE  # written out independently of the reader
+    c = ready(policy)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.0)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.0)
+    for i, payload in enumerate(payloads):
+        if payload in canonical:
+            continue
+        c.receive(Input.ESTOP_RELEASE, payload, 0.001 * i)
+        output = c.decide(0.001 * i)
+        assert output.command == STOP and output.status.estop_latched, payload.hex()
+    # ... and the canonical release still works afterwards.
+    c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 10.0)
+    assert not c.decide(10.0).status.estop_latched
 
 
 def test_payloads_in_the_wrong_frame_are_malformed_when_a_frame_is_configured(
@@ -448,7 +514,7 @@ def test_the_status_is_one_json_object_with_the_decision_and_its_reasons(policy:
 
 @pytest.mark.parametrize(
     ("count", "increment"),
-    [(200_000, 1e-5), (10, 4.0), (1000, 0.1), (5, -1e30)],
+    [(200_000, 1e-5), (60, 4.0), (1000, 0.1), (60, -1e30)],
 )
 def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     policy: Path, count: int, increment: float

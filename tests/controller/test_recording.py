@@ -137,6 +137,19 @@ def test_a_recorder_killed_with_sigkill_keeps_every_message_it_received(tmp_path
     # The first samples may predate the subscription; after that none is missing.
     first = next(i for i in range(sent) if _scan(i) == payloads[0])
     assert payloads == [_scan(i) for i in range(first, sent)]
+    # After `qnav recover`, other people's readers read every one of them too.
+    mended = subprocess.run(
+        [sys.executable, "-m", "qnav", "recover", str(folder)],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert mended.returncode == 0, mended.stderr
+    with files[0].open("rb") as stream:
+        theirs = [bytes(m.data) for _, _, m in make_reader(stream).iter_messages()]
+    assert theirs == payloads
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([folder]) as reader:
+        assert [bytes(raw) for _, _, raw in reader.messages()] == payloads
 
 
 def test_playback_publishes_the_recorded_bytes_in_order_at_the_recorded_pace(

@@ -12,7 +12,7 @@ from contextlib import ExitStack
 import pytest
 
 from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
-from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, key
+from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Twist2D, encode_twist_msg, key
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from sim.mavlink_vehicle import MavlinkVehicle
@@ -138,6 +138,21 @@ def test_malformed_command_is_counted_and_never_moves_the_car(make_rig: MakeRig)
     assert rig.vehicle.pose()[0] > 0.01
 
 
+def test_an_absurd_command_is_refused_and_stops_a_moving_car(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    bridge = rig.bridge
+    assert bridge is not None
+    rig.ready()
+    rig.drive(0.8, 0.0, 0.3)
+    time.sleep(0.1)  # the last forward command has arrived; it stands until the timeout
+    start_s = time.monotonic()
+    for linear, angular in ((0.0, -9.1e150), (1e308, 1e308), (20.0, 0.0)):
+        rig.publish(key(COMMAND), encode_twist_msg(Twist2D(linear, angular)))
+    wait_until(lambda: bridge.counters["malformed"] == 3, what="three absurd commands counted")
+    wait_until(lambda: len(_overrides(rig, start_s)) >= 3, what="stops after them")
+    assert all(pwm == NEUTRAL for _, pwm in _overrides(rig, start_s))
+
+
 def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeRig) -> None:
     rig = make_rig(bridge={"output": {"manual_message": "manual_control"}})
     rig.ready()
@@ -148,8 +163,17 @@ def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeR
     assert any(r.fields["z"] == 500 and r.fields["y"] == 0 for r in sent)
 
 
-def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
+def test_an_arm_request_is_refused_unless_remote_arming_is_on(make_rig: MakeRig) -> None:
     rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"arm": True})
+    wait_until(lambda: rig.counters().get("refused") == 1, what="arm request refused")
+    time.sleep(0.2)
+    assert not rig.vehicle.armed
+
+
+def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False, "remote_arming": True}})
     wait_until(lambda: rig.state().get("link_up"), what="link up")
     assert not rig.vehicle.armed
     rig.request({"arm": True})
@@ -270,7 +294,10 @@ def test_tcp_link_drives_and_recovers_after_the_vehicle_restarts() -> None:
         serve = {"connection": f"tcpin:127.0.0.1:{port}"}
         vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
         settings = bridge_settings(
-            rig.zenoh_port, 0, mavlink={"connection": f"tcp:127.0.0.1:{port}"}
+            rig.zenoh_port,
+            0,
+            mavlink={"connection": f"tcp:127.0.0.1:{port}"},
+            vehicle={"remote_arming": True},
         )
         bridge = stack.enter_context(Bridge(settings))
         rig.vehicle, rig.bridge = vehicle, bridge
