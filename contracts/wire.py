@@ -39,10 +39,6 @@ QUATERNION_NORM_TOLERANCE = 0.1
 """How far from 1 a pose's orientation quaternion's norm may be (drivers round; a zero or
 garbled quaternion is far off)."""
 
-IMPLAUSIBLE_FACTOR = 10.0
-"""Default of the consumers' `implausible_factor` settings: a Twist beyond this many times the
-configured limits is malformed, not clipped (`plausible_twist`)."""
-
 
 @dataclass(frozen=True)
 class Topic:
@@ -313,36 +309,6 @@ def decode_twist_msg(payload: bytes) -> Twist2D:
     reader.finish()
     _finite("Twist", *values)
     return Twist2D(values[0], values[5])
-
-
-def plausible_twist(
-    twist: Twist2D,
-    max_linear_mps: float,
-    max_angular_radps: float,
-    implausible_factor: float = IMPLAUSIBLE_FACTOR,
-) -> Twist2D:
-    """The command clipped to the limits, or `WireError` when it is no command anyone meant.
-
-    A speed or turn rate beyond `implausible_factor` times its limit (or not finite) is refused
-    as malformed, so that its consumer sends neutral instead of full travel; a plausible
-    overshoot is clipped to the limit.
-    """
-    linear, angular = twist.linear_mps, twist.angular_radps
-    _finite("Twist", linear, angular)
-    if abs(linear) > implausible_factor * max_linear_mps:
-        raise WireError(
-            f"Twist linear.x = {linear:.6g} m/s is beyond {implausible_factor} x the limit "
-            f"{max_linear_mps} m/s"
-        )
-    if abs(angular) > implausible_factor * max_angular_radps:
-        raise WireError(
-            f"Twist angular.z = {angular:.6g} rad/s is beyond {implausible_factor} x the limit "
-            f"{max_angular_radps} rad/s"
-        )
-    return Twist2D(
-        max(-max_linear_mps, min(max_linear_mps, linear)) + 0.0,
-        max(-max_angular_radps, min(max_angular_radps, angular)) + 0.0,
-    )
 
 
 def encode_bool_msg(value: bool) -> bytes:

@@ -9,16 +9,19 @@ import numpy as np
 import pytest
 
 from contracts import wire
+from firmware_bridge import mapping
+from firmware_bridge.settings import FailsafeSettings, OutputSettings
 from tests.contracts.malformed import CANONICAL_BOOLS, MESSAGES, malformed, valid
 
 
 def twist_refused(payload: bytes) -> bool:
-    """A Twist consumer with limits of 1 m/s and 1 rad/s and the default factor."""
+    """As the bridge takes a command: decoded, then its plausibility check with the defaults."""
     try:
-        wire.plausible_twist(wire.decode_twist_msg(payload), 1.0, 1.0)
+        twist = wire.decode_twist_msg(payload)
     except wire.WireError:
         return True
-    return False
+    factor = FailsafeSettings().implausible_factor
+    return mapping.implausible(twist, OutputSettings(), factor) is not None
 
 
 def request_refused(payload: bytes) -> bool:

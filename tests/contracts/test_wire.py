@@ -393,26 +393,6 @@ def test_a_point_with_a_non_finite_number_is_malformed() -> None:
             wire.decode_point_msg(wire.encode_point_msg(wire.Pose2D(0.0, "map", x, y)))
 
 
-def test_a_plausible_twist_is_clipped_and_an_absurd_one_is_malformed() -> None:
-    clip = wire.plausible_twist
-    assert clip(wire.Twist2D(0.5, -0.2), 1.0, 2.0) == wire.Twist2D(0.5, -0.2)
-    assert clip(wire.Twist2D(3.0, -15.0), 1.0, 2.0) == wire.Twist2D(1.0, -2.0)
-    assert clip(wire.Twist2D(10.0, 20.0), 1.0, 2.0) == wire.Twist2D(1.0, 2.0)  # exactly 10 x
-    for twist in [
-        wire.Twist2D(10.001, 0.0),
-        wire.Twist2D(0.0, -20.01),
-        wire.Twist2D(1e308, 1e308),
-        wire.Twist2D(0.0, -9.1e150),  # issue 18: full steering
-        wire.Twist2D(math.nan, 0.0),
-        wire.Twist2D(0.0, math.inf),
-    ]:
-        with pytest.raises(wire.WireError):
-            clip(twist, 1.0, 2.0)
-    assert clip(wire.Twist2D(4.0, 0.0), 1.0, 2.0, implausible_factor=5.0).linear_mps == 1.0
-    with pytest.raises(wire.WireError, match=r"5\.0 x"):
-        clip(wire.Twist2D(6.0, 0.0), 1.0, 2.0, implausible_factor=5.0)
-
-
 def test_a_position_beyond_the_bound_is_malformed() -> None:
     wire.check_position("pose", wire.Pose2D(0.0, "map", 600.0, -800.0), 1000.0)  # 1000 m away
     for x, y in [(1000.5, 0.0), (710.0, -710.0), (0.0, -1e308), (math.nan, 0.0)]:
