@@ -365,37 +365,3 @@ def decode_json_msg(payload: bytes) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise WireError("String payload is not a JSON object")
     return value
-
-
-def json_bool(value: dict[str, Any], name: str) -> bool | None:
-    """`value[name]` if it is a JSON true or false, None if absent; `WireError` for anything
-    else (1 and "true" are not booleans)."""
-    if name not in value:
-        return None
-    field = value[name]
-    if not isinstance(field, bool):
-        raise WireError(f"{name} is {type(field).__name__} {field!r}, not a boolean")
-    return field
-
-
-def json_number(value: dict[str, Any], name: str) -> float | None:
-    """`value[name]` if it is a finite JSON number, None if absent; `WireError` for anything
-    else (true is not 1, "1" is not 1)."""
-    if name not in value:
-        return None
-    field = value[name]
-    if isinstance(field, bool) or not isinstance(field, int | float):
-        raise WireError(f"{name} is {type(field).__name__} {field!r}, not a number")
-    if not math.isfinite(field):
-        raise WireError(f"{name} is {field!r}, not a finite number")
-    return float(field)
-
-
-def json_string(value: dict[str, Any], name: str) -> str | None:
-    """`value[name]` if it is a JSON string, None if absent; `WireError` for anything else."""
-    if name not in value:
-        return None
-    field = value[name]
-    if not isinstance(field, str):
-        raise WireError(f"{name} is {type(field).__name__} {field!r}, not a string")
-    return field

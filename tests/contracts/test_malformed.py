@@ -10,6 +10,7 @@ import pytest
 
 from contracts import wire
 from firmware_bridge import mapping
+from firmware_bridge.daemon import _parse_request
 from firmware_bridge.settings import FailsafeSettings, OutputSettings
 from tests.contracts.malformed import CANONICAL_BOOLS, MESSAGES, malformed, valid
 
@@ -25,14 +26,13 @@ def twist_refused(payload: bytes) -> bool:
 
 
 def request_refused(payload: bytes) -> bool:
-    """A vehicle request as the bridge reads it: `arm` a boolean, `mode` a string, if present."""
+    """A vehicle request as the bridge reads it (decode_json_msg, then its own parse): refused,
+    or asking for nothing (`{"arm": null}` reads as no request: it arms nothing)."""
     try:
-        request = wire.decode_json_msg(payload)
-        wire.json_bool(request, "arm")
-        wire.json_string(request, "mode")
-    except wire.WireError:
+        arm, mode = _parse_request(wire.decode_json_msg(payload))
+    except (wire.WireError, ValueError):
         return True
-    return False
+    return arm is None and mode is None
 
 
 def bool_refused(payload: bytes) -> bool:
