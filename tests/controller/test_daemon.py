@@ -208,6 +208,19 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         listener.put(wire.ESTOP_RELEASE, wire.encode_bool_msg(True))
         listener.wait_for(reason_is("policy"))
 
+        # A malformed stop message presses the stop; a malformed release releases nothing.
+        listener.put(wire.ESTOP, bytes.fromhex("0001000002"))
+        pressed = listener.wait_for(reason_is("estop_latched"))
+        assert pressed["counters"]["malformed"]["estop"] == 1
+        assert pressed["estop"] == {"latched": True, "pressed": True}
+        listener.put(wire.ESTOP, wire.encode_bool_msg(False))
+        listener.wait_for(lambda s: s["estop"]["pressed"] is False)
+        listener.put(wire.ESTOP_RELEASE, bytes.fromhex("0001000001deadbe"))
+        refused = listener.wait_for(lambda s: s["counters"]["malformed"]["estop_release"] == 1)
+        assert refused["reason"] == "estop_latched"
+        listener.put(wire.ESTOP_RELEASE, wire.encode_bool_msg(True))
+        listener.wait_for(reason_is("policy"))
+
         # SIGTERM while driving: a stop goes out before the process ends.
         before = listener.mark()
         daemon.send_signal(signal.SIGTERM)
