@@ -1,28 +1,143 @@
-"""Malformed payloads of every message we take, by construction, for property and fuzz tests.
+"""Malformed payloads for every message kind the daemons take: the generators behind the
+property tests and `make fuzz` (issue 18 parts 2 and 7). Two generators, both seeded:
 
-    for kind, payload in malformed("pose", np.random.default_rng(0), 500):
-        ...  # every payload is refused: by the decoder, or by the consumer's plausibility rules
-
-Each generator yields (kind, payload) pairs; `kind` names how the payload was broken (for the
-failure message and the counts a fuzz run prints). Every payload is malformed by construction,
-never by chance: truncations of minimal encodings, bytes after the message that are not zero
-padding, wrong encapsulation or option bytes, absurd length prefixes, non-finite or absurd
-numbers, other message types, random bytes behind a broken header, oversized messages, loose
-JSON. A test still checks each one is refused, so a generator that made a valid one would fail
-loudly rather than pass quietly.
-
-`MESSAGES` are the message kinds: scan (LaserScan), pose (PoseStamped), point (PointStamped),
-bool (std_msgs/Bool), twist (Twist) and json (a String holding a JSON vehicle request).
+- `payloads(kind, count, seed)` (the fuzz suite's): random bytes, a valid message cut short, a
+  valid message with a few bytes changed, another encapsulation header, garbage after the
+  message, an absurd length field, non-finite or absurd values in a well-formed message, a
+  message of another type, or (rarely) a 10 MB blob. A few are well-formed by chance;
+  `enables_motion` tells the ones that could move, arm or release.
+- `malformed(message, rng, count)` (the property tests'): payloads malformed by construction,
+  never by chance, each named by how it was broken: truncations of minimal encodings, bytes
+  after the message that are not zero padding, wrong encapsulation or option bytes, absurd
+  string lengths and sequence counts, non-finite or absurd numbers, non-unit quaternions, scans
+  no planar lidar sends, other message types, random bytes behind a broken header, oversized
+  messages, loose JSON. A test still checks each one is refused, so a generator that made a
+  valid one would fail loudly rather than pass quietly.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Iterator
 
 import numpy as np
 
 from contracts import cdr, wire
+
+KINDS = ("scan", "pose", "bool", "twist", "json")
+"""The message kinds on the daemons' subscribed keys."""
+
+HUGE_BYTES = 10 * 1024 * 1024
+"""Size of the rare oversized payload."""
+
+
+def valid(kind: str, rng: np.random.Generator) -> bytes:
+    """A well-formed message of `kind` (neutral where it could move or arm: a false Bool, a zero
+    Twist, an empty request)."""
+    if kind == "scan":
+        count = int(rng.integers(50, 1500))
+        ranges = rng.uniform(0.1, 12.0, count).astype(np.float32)
+        scan = wire.Scan(1.0, "laser", -math.pi, 2 * math.pi / count, 0.05, 20.0, ranges)
+        return wire.encode_scan_msg(scan)
+    if kind == "pose":
+        x, y = rng.uniform(0, 10, 2)
+        return wire.encode_pose_msg(wire.Pose2D(1.0, "map", float(x), float(y), 0.3))
+    if kind == "bool":
+        return wire.encode_bool_msg(False)
+    if kind == "twist":
+        return wire.encode_twist_msg(wire.STOP)
+    return wire.encode_json_msg({"mode": "HOLD"})
+
+
+def _absurd_values(kind: str, rng: np.random.Generator) -> bytes:
+    bad = float(rng.choice([math.nan, math.inf, -math.inf, 1e308, -9.1e150, 1e30]))
+    if kind == "scan":  # float32 fields: the absurd values that fit
+        bad = float(rng.choice([math.nan, math.inf, -math.inf, 1e30, -1e30]))
+        ranges = np.full(720, 3.0, dtype=np.float32)
+        fields = [0.0, 2 * math.pi / 720, 0.05, 20.0]
+        fields[int(rng.integers(0, 4))] = bad
+        angle_min, increment, range_min, range_max = fields
+        return wire.encode_scan_msg(
+            wire.Scan(1.0, "laser", angle_min, increment, range_min, range_max, ranges)
+        )
+    if kind == "pose":
+        return wire.encode_pose_msg(wire.Pose2D(1.0, "map", bad, 1.0, 0.0))
+    if kind == "twist":
+        return wire.encode_twist_msg(wire.Twist2D(bad, float(rng.choice([0.0, bad]))))
+    if kind == "bool":
+        return b"\x00\x01\x00\x00" + bytes([int(rng.integers(2, 256))])
+    text = rng.choice(
+        ['{"arm": NaN}', '{"arm": 1}', '{"arm": "true"}', '{"arm": true, "arm": true}']
+    )
+    writer = cdr.Writer()
+    writer.string(str(text))
+    return writer.payload()
+
+
+def _absurd_length(payload: bytes, rng: np.random.Generator) -> bytes:
+    """A uint32 length field (the first one after the header, or a random aligned one) set to
+    something no message holds."""
+    if len(payload) < 12:
+        return payload + struct.pack("<I", 0xFFFFFFFF)
+    offset = 4 + 4 * int(rng.integers(0, (len(payload) - 8) // 4))
+    huge = int(rng.choice([0xFFFFFFFF, 0x7FFFFFFF, 10**9]))
+    return payload[:offset] + struct.pack("<I", huge) + payload[offset + 4 :]
+
+
+MUTATIONS: tuple[Callable[[str, bytes, np.random.Generator], bytes], ...] = (
+    lambda kind, p, rng: rng.integers(0, 256, int(rng.integers(0, 300)), dtype=np.uint8).tobytes(),
+    lambda kind, p, rng: p[: int(rng.integers(0, max(len(p), 1)))],
+    lambda kind, p, rng: _flip(p, rng),
+    lambda kind, p, rng: rng.integers(0, 256, 4, dtype=np.uint8).tobytes() + p[4:],
+    lambda kind, p, rng: (
+        p + rng.integers(1, 256, int(rng.integers(1, 64)), dtype=np.uint8).tobytes()
+    ),
+    lambda kind, p, rng: _absurd_length(p, rng),
+    lambda kind, p, rng: _absurd_values(kind, rng),
+    lambda kind, p, rng: valid(str(rng.choice([k for k in KINDS if k != kind])), rng),
+)
+
+
+def _garbage(rng: np.random.Generator) -> bytes:
+    return rng.integers(1, 256, int(rng.integers(1, 64)), dtype=np.uint8).tobytes()
+
+
+def _flip(payload: bytes, rng: np.random.Generator) -> bytes:
+    data = bytearray(payload)
+    for _ in range(int(rng.integers(1, 5))):
+        if data:
+            data[int(rng.integers(0, len(data)))] = int(rng.integers(0, 256))
+    return bytes(data)
+
+
+def payloads(kind: str, count: int, seed: int = 0) -> Iterator[bytes]:
+    """`count` mutated payloads of `kind` (one in 2000 is a 10 MB blob)."""
+    rng = np.random.default_rng([seed, KINDS.index(kind)])
+    for i in range(count):
+        if i % 2000 == 1999:
+            yield bytes(HUGE_BYTES)
+            continue
+        mutate = MUTATIONS[int(rng.integers(0, len(MUTATIONS)))]
+        yield mutate(kind, valid(kind, rng), rng)
+
+
+def enables_motion(kind: str, payload: bytes) -> bool:
+    """Whether the payload is a well-formed message that may move, arm or release: a true Bool,
+    a non-zero Twist, a request to arm. Fuzzing skips these (they are not malformed)."""
+    try:
+        if kind == "bool":
+            return wire.decode_bool_msg(payload)
+        if kind == "twist":
+            return wire.decode_twist_msg(payload) != wire.STOP
+        if kind == "json":
+            return wire.decode_json_msg(payload).get("arm") is not False
+    except wire.WireError:
+        return False
+    return False
+
+
+# ---- malformed by construction (the property tests) ----------------------------------
 
 MESSAGES = ("scan", "pose", "point", "bool", "twist", "json")
 
@@ -43,7 +158,7 @@ TWIST_BYTES = 52
 Generator = np.random.Generator
 
 
-def valid(message: str, rng: Generator) -> bytes:
+def well_formed(message: str, rng: Generator) -> bytes:
     """One well-formed payload of `message` (minimal encoding: no padding after it)."""
     frame = ["", "map", "laser", "base_link"][int(rng.integers(0, 4))]
     if message == "scan":
@@ -173,7 +288,7 @@ def malformed(
     makers: list[Callable[[], Iterator[tuple[str, bytes]]]] = [
         lambda: _structured(message, rng),
         lambda: _framing(message, rng),
-        lambda: iter([("other-type", valid(others[int(rng.integers(0, len(others)))], rng))]),
+        lambda: iter([("other-type", well_formed(others[int(rng.integers(0, len(others)))], rng))]),
         lambda: iter([("random", _random(rng))]),
     ]
     yield from _many(message, makers, rng, count)
@@ -211,7 +326,7 @@ def _random(rng: Generator) -> bytes:
 
 def _framing(message: str, rng: Generator) -> Iterator[tuple[str, bytes]]:
     """A valid payload broken in its framing: cut, extended, re-headed, re-counted."""
-    payload = valid(message, rng)
+    payload = well_formed(message, rng)
     yield "truncated", payload[: int(rng.integers(0, len(payload)))]
     tail = rng.integers(0, 256, int(rng.integers(1, 64)), dtype=np.uint8).tobytes()
     if not any(tail):
@@ -252,4 +367,4 @@ def _oversized(message: str, max_bytes: int) -> Iterator[tuple[str, bytes]]:
     elif message == "json":
         yield "oversized", _string_payload(b'{"x": "' + b"a" * max_bytes + b'"}\x00')
     else:
-        yield "oversized", valid(message, np.random.default_rng(0)) + bytes(max_bytes)
+        yield "oversized", well_formed(message, np.random.default_rng(0)) + bytes(max_bytes)

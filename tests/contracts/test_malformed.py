@@ -12,7 +12,7 @@ from contracts import wire
 from firmware_bridge import mapping
 from firmware_bridge.daemon import _parse_request
 from firmware_bridge.settings import FailsafeSettings, OutputSettings
-from tests.contracts.malformed import CANONICAL_BOOLS, MESSAGES, malformed, valid
+from tests.contracts.malformed import CANONICAL_BOOLS, MESSAGES, malformed, well_formed
 
 
 def twist_refused(payload: bytes) -> bool:
@@ -46,12 +46,12 @@ def bool_refused(payload: bytes) -> bool:
 def test_the_valid_payloads_decode() -> None:
     rng = np.random.default_rng(0)
     for _ in range(20):
-        wire.decode_scan_msg(valid("scan", rng))
-        wire.decode_pose_msg(valid("pose", rng))
-        wire.decode_point_msg(valid("point", rng))
-        wire.decode_bool_msg(valid("bool", rng))
-        assert not twist_refused(valid("twist", rng))
-        assert not request_refused(valid("json", rng))
+        wire.decode_scan_msg(well_formed("scan", rng))
+        wire.decode_pose_msg(well_formed("pose", rng))
+        wire.decode_point_msg(well_formed("point", rng))
+        wire.decode_bool_msg(well_formed("bool", rng))
+        assert not twist_refused(well_formed("twist", rng))
+        assert not request_refused(well_formed("json", rng))
     for payload in CANONICAL_BOOLS:
         assert not bool_refused(payload)
 

@@ -557,3 +557,11 @@ def test_an_empty_frame_id_on_either_side_skips_the_frame_mismatch_stop(policy: 
     c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
     feed(c, 0.0)
     assert_stop(c.decide(0.01), Reason.FRAME_MISMATCH)
+
+
+def test_the_periodic_check_stops_the_car_when_the_scans_stop(policy: Path) -> None:
+    c = ready(policy)
+    assert c.check(0.1) is None  # fresh inputs: nothing to stop for, the policy decides on scans
+    output = c.check(5.0)
+    assert output is not None
+    assert_stop(output, Reason.SCAN_STALE)

@@ -123,7 +123,13 @@ def test_a_recorder_killed_with_sigkill_keeps_every_message_it_received(tmp_path
             for _ in range(20):
                 session.put(wire.key(wire.SCAN), _scan(sent))
                 sent += 1
-            time.sleep(0.5)
+            # Wait (on a loaded machine, seconds) until the last one is in the file.
+            last = _scan(sent - 1)
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                if any(m.payload == last for m in read_recording(files[0])):
+                    break
+                time.sleep(0.05)
             assert check_health(health, max_age_s=3.0)[0], "the recording loop beats"
             os.kill(recorder.pid, signal.SIGKILL)
             recorder.wait(10)

@@ -11,7 +11,7 @@ from contextlib import ExitStack
 
 import pytest
 
-from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
+from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
 from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Twist2D, encode_twist_msg, key
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
@@ -335,3 +335,61 @@ def test_bridge_heartbeats_as_companion_computer_and_as_ground_station(
     )
     # Companion: the vehicle's id, component 191, MAV_TYPE_ONBOARD_CONTROLLER, autopilot invalid.
     assert heartbeats == {(1, 191, 18, 8), (255, 191, 6, 8)}
+
+
+def test_only_the_autopilots_own_heartbeat_brings_the_link_up() -> None:
+    from pymavlink import mavutil
+
+    with ExitStack() as stack:
+        rig = start_rig(stack, start_bridge=False)
+        port = free_port(socket.SOCK_DGRAM)
+        settings = bridge_settings(
+            rig.zenoh_port, 0, mavlink={"connection": f"udpin:127.0.0.1:{port}"}
+        )
+        stack.enter_context(Bridge(settings))
+        impostors = [
+            (1, 190, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA),  # the vehicle's id, a camera
+            (1, 1, mavutil.mavlink.MAV_AUTOPILOT_INVALID),  # the vehicle's id, not an autopilot
+            (2, 1, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA),  # another vehicle
+        ]
+        links = []
+        for system, component, _ in [*impostors, (1, 1, 0)]:
+            link = mavutil.mavlink_connection(
+                f"udpout:127.0.0.1:{port}", source_system=system, source_component=component
+            )
+            stack.callback(link.close)
+            links.append(link)
+
+        def beat(index: int, autopilot: int) -> None:
+            links[index].mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_GROUND_ROVER, autopilot, 0, 0, 0
+            )
+
+        wait_until(lambda: rig.state().get("link_up") is False, what="a state with the link down")
+        for _ in range(10):
+            for index, (_, _, autopilot) in enumerate(impostors):
+                beat(index, autopilot)
+            time.sleep(0.05)
+        assert rig.state().get("link_up") is False
+        beat(3, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+        wait_until(lambda: rig.state().get("link_up") is True, what="the autopilot's heartbeat")
+
+
+def test_a_request_the_vehicle_keeps_refusing_is_given_up_after_ten_tries(
+    make_rig: MakeRig,
+) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False, "set_mode_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"mode": "GUIDED"})  # refused: the vehicle has no position estimate
+
+    def set_mode_requests() -> int:
+        return sum(
+            1
+            for r in rig.vehicle.received("COMMAND_LONG")
+            if r.fields["command"] == MAV_CMD_DO_SET_MODE
+        )
+
+    wait_until(lambda: set_mode_requests() >= 10, timeout_s=30, what="ten tries")
+    time.sleep(1.5)  # three more retry periods: no eleventh try
+    assert set_mode_requests() == 10
+    assert rig.vehicle.mode != "GUIDED"
