@@ -2,8 +2,12 @@
 
 Defaults keep a session on this machine: listen on a loopback endpoint or connect to one, with
 multicast scouting off, so nothing is exposed or discovered by accident. A zenoh configuration
-file, when given, is used as is (TLS, access control, routers): mode, endpoints and scouting
-then come from it, and only `extra` is applied over it.
+file, when given, is used for everything it sets (TLS, access control, routers, mode,
+endpoints): only `extra` is applied over it. What it leaves unset is not zenoh's default where
+that default exposes the process: an unset listen list becomes `listen` (none by default, where
+zenoh would listen on every interface) and unset multicast scouting becomes
+`multicast_scouting` (off, where zenoh would scout). The daemon logs what it listens on and
+whether it scouts, and warns when it listens beyond loopback (`log_network`).
 """
 
 from __future__ import annotations
@@ -40,7 +44,9 @@ class ZenohSettings:
     namespace: str = ""
     """Prefix of every key, as zenoh-bridge-ros2dds's namespace (e.g. car1)."""
     config_file: str = ""
-    """A zenoh JSON5 configuration file used as is (mode, endpoints, scouting come from it)."""
+    """A zenoh JSON5 configuration file (TLS, access control...; `qnav certs` writes them) used
+    for all it sets; listening and multicast scouting it leaves unset come from the settings
+    above, not zenoh's defaults."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Further zenoh settings by path, e.g. {"transport/unicast/lowlatency" = true}."""
 
@@ -75,6 +81,7 @@ def zenoh_config(settings: ZenohSettings) -> Any:
 
     if settings.config_file:
         config = zenoh.Config.from_file(settings.config_file)
+        secure_unset_defaults(config, settings)
     else:
         config = zenoh.Config()
         config.insert_json5("mode", json.dumps(settings.session_mode))
@@ -91,6 +98,68 @@ def zenoh_config(settings: ZenohSettings) -> Any:
         except Exception as error:  # zenoh raises its own error type
             raise ConfigError(f"zenoh.extra[{path!r}] = {value!r} is refused: {error}") from None
     return config
+
+
+LOOPBACK_HOSTS = ("127.", "[::1]", "localhost")
+"""Endpoint hosts that only this machine can reach."""
+
+
+def secure_unset_defaults(config: Any, settings: ZenohSettings) -> list[str]:
+    """Replace the exposing zenoh defaults a user configuration left unset (listening on every
+    interface, multicast scouting) by our settings' values; returns what was replaced."""
+    import zenoh
+
+    default = zenoh.Config()
+    replaced = []
+    for path, ours in (
+        ("listen/endpoints", list(settings.listen)),
+        ("scouting/multicast/enabled", settings.multicast_scouting),
+    ):
+        if config.get_json(path) == default.get_json(path):
+            config.insert_json5(path, json.dumps(ours))
+            replaced.append(f"{path} = {json.dumps(ours)}")
+    return replaced
+
+
+def network_view(config: Any) -> tuple[list[str], bool]:
+    """(listen endpoints for the configured mode, multicast scouting on) of a zenoh config."""
+    mode = json.loads(config.get_json("mode")) or "peer"
+    listen = json.loads(config.get_json("listen/endpoints"))
+    if isinstance(listen, dict):
+        listen = listen.get(mode, [])
+    multicast = json.loads(config.get_json("scouting/multicast/enabled"))
+    return [str(endpoint) for endpoint in listen], multicast is None or bool(multicast)
+
+
+def exposed_endpoints(listen: list[str]) -> list[str]:
+    """The endpoints that listen beyond this machine."""
+    return [
+        endpoint
+        for endpoint in listen
+        if not endpoint.startswith("unixsock")
+        and not endpoint.split("/", 1)[-1].startswith(LOOPBACK_HOSTS)
+    ]
+
+
+def log_network(config: Any) -> None:
+    """Log what a session listens on and whether it scouts; warn when it is exposed."""
+    import logging
+
+    logger = logging.getLogger(__name__)
+    listen, multicast = network_view(config)
+    logger.info(
+        "zenoh: listening on %s, multicast scouting %s",
+        ", ".join(listen) or "nothing",
+        "on" if multicast else "off",
+    )
+    exposed = exposed_endpoints(listen)
+    if exposed:
+        logger.warning(
+            "zenoh: listening beyond loopback on %s: any host that reaches it can join",
+            ", ".join(exposed),
+        )
+    if multicast:
+        logger.warning("zenoh: multicast scouting is on: peers on the network will find this one")
 
 
 class StoppedError(Exception):
@@ -114,6 +183,8 @@ def open_session(settings: ZenohSettings, stop: threading.Event | None = None) -
             ", ".join(settings.connect),
         )
     config = zenoh_config(settings)
+    if settings.config_file:
+        log_network(config)
     if stop is None:
         return _opened(lambda: zenoh.open(config), settings)
     outcome: dict[str, Any] = {}
@@ -154,3 +225,98 @@ def _opened(open_: Callable[[], Any], settings: ZenohSettings) -> Any:
             f"cannot open a zenoh session (listen {list(settings.listen)}, "
             f"connect {list(settings.connect)}): {error}"
         ) from None
+
+
+_SUBSCRIBE_MESSAGES = (
+    "declare_subscriber",
+    "declare_liveliness_subscriber",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_queryable",
+    "query",
+    "reply",
+)
+"""What every known identity may do on any key: subscribe, and the declarations around it."""
+
+
+def secure_hub_config(
+    cert_dir: str, listen: str, publishers: dict[str, tuple[str, ...]]
+) -> dict[str, Any]:
+    """The zenoh configuration of the hub every daemon connects to, with mutual TLS (a peer
+    needs a certificate from the CA in `cert_dir`) and access control: each identity (the
+    certificate's common name) may publish only its keys in `publishers` (ROS names, any
+    namespace); every identity may subscribe to everything; anything else is denied."""
+    identities = sorted(publishers)
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "subscribe",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": list(_SUBSCRIBE_MESSAGES),
+            "key_exprs": ["**"],
+        },
+        {
+            "id": "receive",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put", "delete"],
+            "key_exprs": ["**"],
+        },
+    ]
+    policies: list[dict[str, Any]] = [{"rules": ["subscribe", "receive"], "subjects": identities}]
+    for identity in identities:
+        keys = [form for name in publishers[identity] for form in (name, f"*/{name}")]
+        if not keys:
+            continue
+        rules.append(
+            {
+                "id": f"publish-{identity}",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put"],
+                "key_exprs": keys,
+            }
+        )
+        policies.append({"rules": [f"publish-{identity}"], "subjects": [identity]})
+    return {
+        "mode": "peer",
+        "listen": {"endpoints": [listen]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": f"{cert_dir}/ca.pem",
+                    "listen_certificate": f"{cert_dir}/hub.pem",
+                    "listen_private_key": f"{cert_dir}/hub-key.pem",
+                    "enable_mtls": True,
+                }
+            }
+        },
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": [{"id": i, "cert_common_names": [i]} for i in identities],
+            "policies": policies,
+        },
+    }
+
+
+def secure_client_config(cert_dir: str, identity: str, connect: str) -> dict[str, Any]:
+    """The zenoh configuration of a daemon (`identity`) that connects to the secure hub."""
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [connect], "timeout_ms": -1},
+        "listen": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": f"{cert_dir}/ca.pem",
+                    "connect_certificate": f"{cert_dir}/{identity}.pem",
+                    "connect_private_key": f"{cert_dir}/{identity}-key.pem",
+                    "enable_mtls": True,
+                }
+            }
+        },
+    }

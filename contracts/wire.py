@@ -76,6 +76,17 @@ TOPICS = (
 )
 """Every topic of the project (what `qnav record` subscribes to)."""
 
+PUBLISHERS: dict[str, tuple[Topic, ...]] = {
+    "controller": (COMMAND, CONTROLLER_STATUS, ESTOP),
+    "bridge": (VEHICLE_STATE, ESTOP),
+    "sensors": (SCAN, POSE, ESTOP),
+    "operator": (TARGET_POSE, TARGET_POINT, ESTOP, ESTOP_RELEASE, VEHICLE_REQUEST),
+    "recorder": (),
+}
+"""Who may publish what, by certificate identity (config/zenoh-secure.json5's access control):
+only the controller commands the car, only the bridge reports the vehicle, only the operator
+sets targets, releases the stop or asks to arm; anyone known may press the stop."""
+
 
 def key(topic: Topic | str, namespace: str = "") -> str:
     """The zenoh key of a topic: `name`, or `namespace/name` (slashes trimmed)."""

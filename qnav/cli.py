@@ -395,6 +395,25 @@ def build_parser() -> argparse.ArgumentParser:
     _zenoh_options(record)
     record.set_defaults(handler=_lazy("qnav.recording:record_verb"))
 
+    certs = verbs.add_parser(
+        "certs", help="a test CA and a certificate per identity, for zenoh's mutual TLS"
+    )
+    certs.add_argument("folder", type=Path, help="where to write them (e.g. certs/)")
+    certs.add_argument(
+        "--names",
+        nargs="+",
+        help="identities (default: hub controller bridge recorder sensors operator)",
+    )
+    certs.add_argument(
+        "--endpoint",
+        default="tls/127.0.0.1:7447",
+        help="the hub's TLS endpoint written into the zenoh configs (tls/127.0.0.1:7447)",
+    )
+    certs.add_argument(
+        "--print-commands", action="store_true", help="print the openssl commands, run nothing"
+    )
+    certs.set_defaults(handler=_lazy("qnav.certs:certs_verb"))
+
     recover = verbs.add_parser(
         "recover",
         help="make a killed recording whole: every complete message, indexed, with metadata.yaml",

@@ -1,0 +1,188 @@
+"""Nobody gets in where they don't belong (issue 18 part 6): zenoh with mutual TLS and access
+control, on loopback with real sessions and certificates made by `qnav certs`; and the network
+a daemon exposes when given a zenoh configuration file."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from contracts import wire
+from contracts.transport import (
+    ZenohSettings,
+    exposed_endpoints,
+    network_view,
+    open_session,
+    secure_hub_config,
+    zenoh_config,
+)
+from firmware_bridge.bench import free_port
+
+ROOT = Path(__file__).resolve().parents[1]
+PUBLISHERS = {name: tuple(t.name for t in topics) for name, topics in wire.PUBLISHERS.items()}
+
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """Certificates for every identity and an intruder, with their zenoh configs."""
+    folder = tmp_path_factory.mktemp("certs")
+    endpoint = f"tls/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+    done = subprocess.run(
+        [sys.executable, "-m", "qnav", "certs", str(folder), "--endpoint", endpoint, "--names",
+         "hub", "controller", "bridge", "sensors", "operator", "recorder", "intruder"],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return folder, endpoint
+
+
+def _session(folder: Path, name: str) -> Any:
+    return open_session(ZenohSettings(config_file=str(folder / f"zenoh-{name}.json5")))
+
+
+@pytest.fixture(scope="module")
+def hub(certs: tuple[Path, str]) -> Iterator[Any]:
+    folder, _ = certs
+    with _session(folder, "hub") as session:
+        yield session
+
+
+class Heard:
+    """Everything a listening identity receives, by key."""
+
+    def __init__(self, session: Any) -> None:
+        self.lock = threading.Lock()
+        self.samples: list[tuple[str, bytes]] = []
+        self.subscriber = session.declare_subscriber("**", self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        with self.lock:
+            self.samples.append((str(sample.key_expr), bytes(sample.payload.to_bytes())))
+
+    def payloads(self, key: str) -> list[bytes]:
+        with self.lock:
+            return [payload for k, payload in self.samples if k == key]
+
+
+def test_only_the_controller_commands_and_only_the_operator_arms_or_releases(
+    certs: tuple[Path, str], hub: Any
+) -> None:
+    folder, _ = certs
+    with (
+        _session(folder, "recorder") as listener,
+        _session(folder, "controller") as controller,
+        _session(folder, "operator") as operator,
+        _session(folder, "bridge") as bridge,
+        _session(folder, "intruder") as intruder,
+    ):
+        heard = Heard(listener)
+        time.sleep(0.5)
+        arm = wire.encode_json_msg({"arm": True})
+        release = wire.encode_bool_msg(True)
+        for _ in range(3):
+            for who, session in (("intruder", intruder), ("bridge", bridge)):
+                session.put(wire.key(wire.COMMAND), who.encode())
+                session.put(wire.key(wire.VEHICLE_REQUEST), arm)
+                session.put(wire.key(wire.ESTOP_RELEASE), release)
+            intruder.put(wire.key(wire.VEHICLE_STATE), b"forged")
+            controller.put(wire.key(wire.COMMAND), b"controller")
+            operator.put(wire.key(wire.VEHICLE_REQUEST), arm)
+            operator.put(wire.key(wire.ESTOP_RELEASE), release)
+            bridge.put(wire.key(wire.VEHICLE_STATE), b"state")
+            time.sleep(0.05)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and len(heard.payloads("qnav/vehicle_state")) < 3:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        assert heard.payloads("cmd_vel") == [b"controller"] * 3
+        assert heard.payloads("qnav/vehicle_request") == [arm] * 3
+        assert heard.payloads("qnav/estop_release") == [release] * 3
+        assert heard.payloads("qnav/vehicle_state") == [b"state"] * 3
+
+
+def test_a_peer_without_a_certificate_cannot_join(certs: tuple[Path, str], hub: Any) -> None:
+    folder, endpoint = certs
+    config = json.loads((folder / "zenoh-controller.json5").read_text())
+    tls = config["transport"]["link"]["tls"]
+    del tls["connect_certificate"], tls["connect_private_key"]
+    config["connect"]["timeout_ms"] = 2000
+    path = folder / "zenoh-nocert.json5"
+    path.write_text(json.dumps(config))
+    with pytest.raises(Exception, match="cannot open a zenoh session"):
+        open_session(ZenohSettings(config_file=str(path)))
+    # And plain TCP to the same port is no way in either.
+    plain = endpoint.replace("tls/", "tcp/")
+    settings = ZenohSettings(connect=(plain,), extra={"connect/timeout_ms": 2000})
+    with pytest.raises(Exception, match="cannot open a zenoh session"):
+        open_session(settings)
+
+
+def test_the_controller_daemon_runs_with_its_secure_config(
+    certs: tuple[Path, str], hub: Any, tmp_path: Path
+) -> None:
+    folder, _ = certs
+    policy = ROOT / "tests" / "data" / "playback" / "policy.onnx"
+    with _session(folder, "recorder") as listener:
+        heard = Heard(listener)
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "qnav", "controller", "--policy", str(policy),
+             "--set", f'zenoh.config_file="{folder / "zenoh-controller.json5"}"'],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not heard.payloads("cmd_vel"):
+                time.sleep(0.1)
+            assert heard.payloads("cmd_vel"), "no command came through the secure hub"
+            assert wire.decode_twist_msg(heard.payloads("cmd_vel")[0]) == wire.STOP
+        finally:
+            daemon.terminate()
+            _, stderr = daemon.communicate(timeout=20)
+        assert "multicast scouting off" in stderr
+
+
+def test_the_shipped_secure_config_is_the_generated_one() -> None:
+    text = (ROOT / "config" / "zenoh-secure.json5").read_text()
+    body = "\n".join(line for line in text.splitlines() if not line.startswith("//"))
+    expected = secure_hub_config("certs", "tls/127.0.0.1:7447", PUBLISHERS)
+    assert json.loads(body) == expected
+
+
+def test_a_minimal_user_config_neither_scouts_nor_listens_everywhere(tmp_path: Path) -> None:
+    path = tmp_path / "minimal.json5"
+    path.write_text('{ mode: "peer" }')
+    listen, multicast = network_view(zenoh_config(ZenohSettings(config_file=str(path))))
+    assert (listen, multicast) == ([], False)
+    path.write_text('{ mode: "peer", listen: { endpoints: ["tcp/0.0.0.0:7448"] } }')
+    listen, _ = network_view(zenoh_config(ZenohSettings(config_file=str(path))))
+    assert exposed_endpoints(listen) == ["tcp/0.0.0.0:7448"]
+    assert exposed_endpoints(["tcp/127.0.0.1:1", "tcp/[::1]:2", "unixsock-stream//x"]) == []
+
+
+def test_a_daemon_warns_when_its_config_listens_beyond_loopback(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    port = free_port(socket.SOCK_STREAM)
+    path = tmp_path / "exposed.json5"
+    path.write_text(json.dumps({"mode": "peer", "listen": {"endpoints": [f"tcp/0.0.0.0:{port}"]}}))
+    with (
+        caplog.at_level(logging.INFO, logger="contracts.transport"),
+        open_session(ZenohSettings(config_file=str(path))),
+    ):
+        pass
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("multicast scouting off" in m for m in messages)
+    assert any("beyond loopback" in m and f"0.0.0.0:{port}" in m for m in messages)
