@@ -68,6 +68,16 @@ TOPICS = (
 )
 """Every topic of the project (what `qnav record` subscribes to)."""
 
+PUBLISHES: dict[str, tuple[Topic, ...]] = {
+    "controller": (COMMAND, CONTROLLER_STATUS),
+    "bridge": (VEHICLE_STATE,),
+    "sensors": (SCAN, POSE),
+    "operator": (TARGET_POSE, TARGET_POINT, ESTOP, ESTOP_RELEASE, VEHICLE_REQUEST),
+    "recorder": (),
+}
+"""Who may publish each topic: identity (a certificate's common name) to its topics. The
+access rules of config/zenoh-secure.json5 are made from this table (a test checks it)."""
+
 
 def key(topic: Topic | str, namespace: str = "") -> str:
     """The zenoh key of a topic: `name`, or `namespace/name` (slashes trimmed)."""

@@ -536,6 +536,28 @@ def _bench_policy_file(bench: argparse.ArgumentParser) -> None:
 
 def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """`qnav bridge` (zenoh to MAVLink) and `qnav fake-vehicle` (a MAVLink car for tests)."""
+    certs = verbs.add_parser(
+        "certs",
+        help="make a test certificate authority and a certificate per identity "
+        "(for config/zenoh-secure.json5)",
+    )
+    certs.add_argument("folder", type=Path, metavar="DIR", help="where the files go")
+    certs.add_argument(
+        "--identity",
+        action="append",
+        metavar="NAME",
+        help="only this identity (repeatable; default: router and every identity of the "
+        "access rules)",
+    )
+    certs.add_argument(
+        "--host",
+        action="append",
+        metavar="NAME|IP",
+        help="a further name or address the certificates are valid for (repeatable; "
+        "127.0.0.1 and localhost always are)",
+    )
+    certs.set_defaults(handler=_lazy("qnav.certs:run"))
+
     bridge = verbs.add_parser(
         "bridge", help="the firmware bridge: commands from zenoh to the car over MAVLink"
     )
