@@ -91,6 +91,21 @@ def make_certificates(
     return made
 
 
+def client_settings(folder: Path, identity: str, endpoint: str = "tls/127.0.0.1:7447") -> str:
+    """The `[zenoh]` section of a daemon connecting to the secure hub as `identity`."""
+    tls = "transport/link/tls"
+    folder = folder.resolve()
+    return (
+        "[zenoh]\n"
+        f'connect = ["{endpoint}"]\n'
+        "extra = { "
+        f'"{tls}/root_ca_certificate" = "{folder / "ca.pem"}", '
+        f'"{tls}/connect_certificate" = "{folder / f"{identity}.pem"}", '
+        f'"{tls}/connect_private_key" = "{folder / f"{identity}.key"}", '
+        f'"{tls}/enable_mtls" = true }}\n'
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     """The `qnav certs` verb."""
     folder: Path = args.folder
@@ -99,4 +114,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"authority: {folder / 'ca.pem'} (keep {folder / 'ca.key'} off the car)")
     for identity, (cert, key) in made.items():
         print(f"{identity}: {cert} {key}")
+    print("\nA daemon connects to the hub (config/zenoh-secure.json5) as, e.g., the controller with:")
+    print(client_settings(folder, "controller"))
     return 0
