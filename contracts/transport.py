@@ -109,7 +109,7 @@ def is_loopback(endpoint: str) -> bool:
     if protocol in LOCAL_PROTOCOLS:
         return True
     host = address.split("?")[0].split("#")[0].rsplit(":", 1)[0].strip("[]").lower()
-    return host == "localhost" or host == "::1" or host.startswith("127.")
+    return host in {"localhost", "::1"} or host.startswith("127.")
 
 
 def loopback_default(mode: str) -> list[str]:

@@ -54,10 +54,12 @@ def make_certificates(
     ca_cert, ca_key = folder / "ca.pem", folder / "ca.key"
     if not (ca_cert.is_file() and ca_key.is_file()):
         _run(
-            [openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256"]
-            + ["-nodes", "-keyout", str(ca_key), "-out", str(ca_cert), "-days", str(DAYS)]
-            + ["-subj", "/CN=qnav test CA", "-addext", "basicConstraints=critical,CA:TRUE"]
-            + ["-addext", "keyUsage=critical,keyCertSign,cRLSign"]
+            [
+                *(openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256"),
+                *("-nodes", "-keyout", str(ca_key), "-out", str(ca_cert), "-days", str(DAYS)),
+                *("-subj", "/CN=qnav test CA", "-addext", "basicConstraints=critical,CA:TRUE"),
+                *("-addext", "keyUsage=critical,keyCertSign,cRLSign"),
+            ]
         )
     names = ["IP:127.0.0.1", "DNS:localhost"] + [
         f"IP:{host}" if host.replace(".", "").isdigit() or ":" in host else f"DNS:{host}"
@@ -69,8 +71,10 @@ def make_certificates(
         request = folder / f"{identity}.csr"
         extensions = folder / f"{identity}.ext"
         _run(
-            [openssl, "req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"]
-            + ["-keyout", str(key), "-out", str(request), "-subj", f"/CN={identity}"]
+            [
+                *(openssl, "req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"),
+                *("-keyout", str(key), "-out", str(request), "-subj", f"/CN={identity}"),
+            ]
         )
         extensions.write_text(
             "basicConstraints=CA:FALSE\n"
@@ -79,9 +83,11 @@ def make_certificates(
             f"subjectAltName={','.join(names)}\n"
         )
         _run(
-            [openssl, "x509", "-req", "-in", str(request), "-CA", str(ca_cert)]
-            + ["-CAkey", str(ca_key), "-CAcreateserial", "-out", str(cert)]
-            + ["-days", str(DAYS), "-extfile", str(extensions)]
+            [
+                *(openssl, "x509", "-req", "-in", str(request), "-CA", str(ca_cert)),
+                *("-CAkey", str(ca_key), "-CAcreateserial", "-out", str(cert)),
+                *("-days", str(DAYS), "-extfile", str(extensions)),
+            ]
         )
         request.unlink()
         extensions.unlink()
@@ -114,6 +120,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"authority: {folder / 'ca.pem'} (keep {folder / 'ca.key'} off the car)")
     for identity, (cert, key) in made.items():
         print(f"{identity}: {cert} {key}")
-    print("\nA daemon connects to the hub (config/zenoh-secure.json5) as, e.g., the controller with:")
+    print("\nA daemon joins the hub (config/zenoh-secure.json5) as the controller with:")
     print(client_settings(folder, "controller"))
     return 0
