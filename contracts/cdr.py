@@ -39,13 +39,16 @@ class NotDirectError(Exception):
 class Reader:
     """Sequential little-endian reads from one CDR payload."""
 
-    __slots__ = ("data", "pos")
+    __slots__ = ("data", "pos", "strict")
 
-    def __init__(self, payload: bytes) -> None:
+    def __init__(self, payload: bytes, *, strict: bool = False) -> None:
         data = bytes(payload)  # no copy for bytes; memoryviews and bytearrays become bytes
-        # Only the representation identifier counts (rosbags ignores the options bytes too).
-        if len(data) < len(ENCAPSULATION_LE) or data[:2] != ENCAPSULATION_LE[:2]:
+        # Only the representation identifier counts (rosbags ignores the options bytes too);
+        # a strict reader wants the header ROS 2 writes, options zero.
+        wanted = ENCAPSULATION_LE if strict else ENCAPSULATION_LE[:2]
+        if len(data) < len(ENCAPSULATION_LE) or data[: len(wanted)] != wanted:
             raise NotDirectError
+        self.strict = strict
         self.data = data
         self.pos = len(ENCAPSULATION_LE)
 
@@ -83,8 +86,10 @@ class Reader:
         return np.asarray(values, dtype=np.float32)
 
     def finish(self) -> None:
-        """The message ends here: only alignment padding may follow."""
-        if len(self.data) - self.pos > MAX_PADDING:
+        """The message ends here: only alignment padding may follow (zeros, for a strict
+        reader)."""
+        rest = self.data[self.pos :]
+        if len(rest) > MAX_PADDING or (self.strict and rest.strip(b"\x00")):
             raise NotDirectError
 
     def _align(self, align: int) -> None:

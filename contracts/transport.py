@@ -2,16 +2,19 @@
 
 Defaults keep a session on this machine: listen on a loopback endpoint or connect to one, with
 multicast scouting off, so nothing is exposed or discovered by accident. A zenoh configuration
-file, when given, is used as is (TLS, access control, routers): mode, endpoints and scouting
-then come from it, and only `extra` is applied over it; but listen endpoints and multicast
-scouting it leaves unset stay local (loopback, off) rather than zenoh's defaults (every
-interface, on), and what the session then exposes is logged at start.
+file, when given, is used for everything it sets (TLS, access control, routers, mode,
+endpoints): only `extra` is applied over it. What it leaves unset is not zenoh's default where
+that default exposes the process: an unset listen list becomes `listen` (none by default, where
+zenoh would listen on every interface) and unset multicast scouting becomes
+`multicast_scouting` (off, where zenoh would scout). The daemon logs what it listens on and
+whether it scouts, and warns when it listens beyond loopback (`log_network`).
 """
 
 from __future__ import annotations
 
 import json
-import logging
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -41,8 +44,9 @@ class ZenohSettings:
     namespace: str = ""
     """Prefix of every key, as zenoh-bridge-ros2dds's namespace (e.g. car1)."""
     config_file: str = ""
-    """A zenoh JSON5 configuration file used as is (mode, endpoints, scouting come from it;
-    listening and multicast scouting it leaves unset stay loopback and off)."""
+    """A zenoh JSON5 configuration file (TLS, access control...; `qnav certs` writes them) used
+    for all it sets; listening and multicast scouting it leaves unset come from the settings
+    above, not zenoh's defaults."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Further zenoh settings by path, e.g. {"transport/unicast/lowlatency" = true}."""
 
@@ -76,11 +80,8 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     import zenoh
 
     if settings.config_file:
-        try:
-            config = zenoh.Config.from_file(settings.config_file)
-        except Exception as error:  # zenoh raises its own error type
-            raise ConfigError(f"zenoh.config_file {settings.config_file!r}: {error}") from None
-        _guard_file_config(config, settings.config_file)
+        config = zenoh.Config.from_file(settings.config_file)
+        secure_unset_defaults(config, settings)
     else:
         config = zenoh.Config()
         config.insert_json5("mode", json.dumps(settings.session_mode))
@@ -99,72 +100,81 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     return config
 
 
-LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
-"""Endpoint protocols that never leave the machine."""
+LOOPBACK_HOSTS = ("127.", "[::1]", "localhost")
+"""Endpoint hosts that only this machine can reach."""
 
 
-def is_loopback(endpoint: str) -> bool:
-    """Whether a zenoh endpoint (PROTOCOL/ADDRESS:PORT) is reachable only from this machine."""
-    protocol, _, address = endpoint.partition("/")
-    if protocol in LOCAL_PROTOCOLS:
-        return True
-    host = address.split("?")[0].split("#")[0].rsplit(":", 1)[0].strip("[]").lower()
-    return host in {"localhost", "::1"} or host.startswith("127.")
+def secure_unset_defaults(config: Any, settings: ZenohSettings) -> list[str]:
+    """Replace the exposing zenoh defaults a user configuration left unset (listening on every
+    interface, multicast scouting) by our settings' values; returns what was replaced."""
+    import zenoh
+
+    default = zenoh.Config()
+    replaced = []
+    for path, ours in (
+        ("listen/endpoints", list(settings.listen)),
+        ("scouting/multicast/enabled", settings.multicast_scouting),
+    ):
+        if config.get_json(path) == default.get_json(path):
+            config.insert_json5(path, json.dumps(ours))
+            replaced.append(f"{path} = {json.dumps(ours)}")
+    return replaced
 
 
-def loopback_default(mode: str) -> list[str]:
-    """Where a file that names no listen endpoints listens: zenoh's defaults, on loopback only
-    (zenoh's own listen on every interface)."""
-    if mode == "router":
-        return ["tcp/127.0.0.1:7447"]
-    return ["tcp/127.0.0.1:0"] if mode == "peer" else []
+def network_view(config: Any) -> tuple[list[str], bool]:
+    """(listen endpoints for the configured mode, multicast scouting on) of a zenoh config."""
+    mode = json.loads(config.get_json("mode")) or "peer"
+    listen = json.loads(config.get_json("listen/endpoints"))
+    if isinstance(listen, dict):
+        listen = listen.get(mode, [])
+    multicast = json.loads(config.get_json("scouting/multicast/enabled"))
+    return [str(endpoint) for endpoint in listen], multicast is None or bool(multicast)
 
 
-def _json_setting(config: Any, path: str) -> Any:
-    return json.loads(config.get_json(path))
+def exposed_endpoints(listen: list[str]) -> list[str]:
+    """The endpoints that listen beyond this machine."""
+    return [
+        endpoint
+        for endpoint in listen
+        if not endpoint.startswith("unixsock")
+        and not endpoint.split("/", 1)[-1].startswith(LOOPBACK_HOSTS)
+    ]
 
 
-def _guard_file_config(config: Any, path: str) -> None:
-    """Default what a user's file leaves unset to local-only, and log what the session exposes.
+def log_network(config: Any) -> None:
+    """Log what a session listens on and whether it scouts; warn when it is exposed."""
+    import logging
 
-    Zenoh's own defaults listen on every interface and scout by multicast; a file that does not
-    name them would silently do both. Set explicitly, the file's values are kept (with a warning
-    when they reach beyond this machine).
-    """
-    log = logging.getLogger(__name__)
-    mode = _json_setting(config, "mode") or "peer"
-    notes = []
-    listen = _json_setting(config, "listen/endpoints")
-    if not isinstance(listen, list):  # unset: zenoh's per-mode defaults
-        listen = loopback_default(mode)
-        config.insert_json5("listen/endpoints", json.dumps(listen))
-        notes.append("listen endpoints unset in the file: loopback only")
-    multicast = _json_setting(config, "scouting/multicast/enabled")
-    if multicast is None:
-        multicast = False
-        config.insert_json5("scouting/multicast/enabled", "false")
-        notes.append("multicast scouting unset in the file: off")
-    log.info(
-        "zenoh: config file %s: mode %s, listening on %s, multicast scouting %s%s",
-        path,
-        mode,
+    logger = logging.getLogger(__name__)
+    listen, multicast = network_view(config)
+    logger.info(
+        "zenoh: listening on %s, multicast scouting %s",
         ", ".join(listen) or "nothing",
         "on" if multicast else "off",
-        f" ({'; '.join(notes)})" if notes else "",
     )
-    exposed = [endpoint for endpoint in listen if not is_loopback(endpoint)]
+    exposed = exposed_endpoints(listen)
     if exposed:
-        log.warning(
-            "zenoh: listening beyond loopback on %s: other machines can reach this session "
-            "(use TLS with access rules, docs/deploy.md 'Securing zenoh')",
+        logger.warning(
+            "zenoh: listening beyond loopback on %s: any host that reaches it can join",
             ", ".join(exposed),
         )
     if multicast:
-        log.warning("zenoh: multicast scouting is on: this session announces itself on the LAN")
+        logger.warning("zenoh: multicast scouting is on: peers on the network will find this one")
 
 
-def open_session(settings: ZenohSettings) -> Any:
-    """An open zenoh session (close it, or use it in a `with` block)."""
+class StoppedError(Exception):
+    """A stop was asked for before the zenoh session opened."""
+
+
+def open_session(settings: ZenohSettings, stop: threading.Event | None = None) -> Any:
+    """An open zenoh session (close it, or use it in a `with` block).
+
+    A client waits inside zenoh until something listens at its endpoint, where no Python signal
+    handler runs. With `stop` the wait happens in a helper thread instead and this one watches
+    `stop`: once it is set, `StoppedError` is raised at once (the helper is left to the
+    interpreter's exit), so a daemon stops on SIGTERM before it ever connects."""
+    import logging
+
     import zenoh
 
     if settings.session_mode == "client" and not settings.config_file:
@@ -172,8 +182,44 @@ def open_session(settings: ZenohSettings) -> Any:
             "zenoh: connecting to %s (waiting until something listens there)",
             ", ".join(settings.connect),
         )
+    config = zenoh_config(settings)
+    if settings.config_file:
+        log_network(config)
+    if stop is None:
+        return _opened(lambda: zenoh.open(config), settings)
+    outcome: dict[str, Any] = {}
+    lock = threading.Lock()
+    opened = threading.Event()
+
+    def opening() -> None:
+        try:
+            session = _opened(lambda: zenoh.open(config), settings)
+        except BaseException as error:
+            outcome["error"] = error
+            opened.set()
+            return
+        with lock:
+            if outcome.get("abandoned"):
+                session.close()  # opened too late: nobody will use it
+                return
+            outcome["session"] = session
+        opened.set()
+
+    threading.Thread(target=opening, name="zenoh-open", daemon=True).start()
+    while not opened.wait(0.05):
+        if stop.is_set():
+            with lock:
+                if "session" not in outcome and "error" not in outcome:
+                    outcome["abandoned"] = True
+                    raise StoppedError("stopped before the zenoh session opened")
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["session"]
+
+
+def _opened(open_: Callable[[], Any], settings: ZenohSettings) -> Any:
     try:
-        return zenoh.open(zenoh_config(settings))
+        return open_()
     except Exception as error:
         raise ConfigError(
             f"cannot open a zenoh session (listen {list(settings.listen)}, "
@@ -181,50 +227,96 @@ def open_session(settings: ZenohSettings) -> Any:
         ) from None
 
 
-def access_rules(publishes: dict[str, tuple[str, ...]]) -> dict[str, Any]:
-    """Zenoh `access_control` allowing each identity to publish only its keys.
+_SUBSCRIBE_MESSAGES = (
+    "declare_subscriber",
+    "declare_liveliness_subscriber",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_queryable",
+    "query",
+    "reply",
+)
+"""What every known identity may do on any key: subscribe, and the declarations around it."""
 
-    `publishes` maps a certificate common name to topic names. Every key is also allowed under
-    any namespace (`**/name` matches `name` and `car1/name`). Anything else a remote sends is
-    refused (default deny); subscribing, and the hub forwarding publications out, stay open.
-    """
+
+def secure_hub_config(
+    cert_dir: str, listen: str, publishers: dict[str, tuple[str, ...]]
+) -> dict[str, Any]:
+    """The zenoh configuration of the hub every daemon connects to, with mutual TLS (a peer
+    needs a certificate from the CA in `cert_dir`) and access control: each identity (the
+    certificate's common name) may publish only its keys in `publishers` (ROS names, any
+    namespace); every identity may subscribe to everything; anything else is denied."""
+    identities = sorted(publishers)
     rules: list[dict[str, Any]] = [
         {
             "id": "subscribe",
-            "messages": ["declare_subscriber"],
-            "flows": ["ingress", "egress"],
             "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": list(_SUBSCRIBE_MESSAGES),
             "key_exprs": ["**"],
         },
         {
-            "id": "deliver",
-            "messages": ["put"],
-            "flows": ["egress"],
+            "id": "receive",
             "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put", "delete"],
             "key_exprs": ["**"],
         },
     ]
-    subjects: list[dict[str, Any]] = []
-    policies: list[dict[str, Any]] = []
-    for identity, names in publishes.items():
-        subjects.append({"id": identity, "cert_common_names": [identity]})
-        granted = ["subscribe", "deliver"]
-        if names:
-            rules.append(
-                {
-                    "id": f"{identity}-publishes",
-                    "messages": ["put"],
-                    "flows": ["ingress"],
-                    "permission": "allow",
-                    "key_exprs": [f"**/{name}" for name in names],
-                }
-            )
-            granted.append(f"{identity}-publishes")
-        policies.append({"id": identity, "rules": granted, "subjects": [identity]})
+    policies: list[dict[str, Any]] = [{"rules": ["subscribe", "receive"], "subjects": identities}]
+    for identity in identities:
+        keys = [form for name in publishers[identity] for form in (name, f"*/{name}")]
+        if not keys:
+            continue
+        rules.append(
+            {
+                "id": f"publish-{identity}",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put"],
+                "key_exprs": keys,
+            }
+        )
+        policies.append({"rules": [f"publish-{identity}"], "subjects": [identity]})
     return {
-        "enabled": True,
-        "default_permission": "deny",
-        "rules": rules,
-        "subjects": subjects,
-        "policies": policies,
+        "mode": "peer",
+        "listen": {"endpoints": [listen]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": f"{cert_dir}/ca.pem",
+                    "listen_certificate": f"{cert_dir}/hub.pem",
+                    "listen_private_key": f"{cert_dir}/hub-key.pem",
+                    "enable_mtls": True,
+                }
+            }
+        },
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": [{"id": i, "cert_common_names": [i]} for i in identities],
+            "policies": policies,
+        },
+    }
+
+
+def secure_client_config(cert_dir: str, identity: str, connect: str) -> dict[str, Any]:
+    """The zenoh configuration of a daemon (`identity`) that connects to the secure hub."""
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [connect], "timeout_ms": -1},
+        "listen": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": f"{cert_dir}/ca.pem",
+                    "connect_certificate": f"{cert_dir}/{identity}.pem",
+                    "connect_private_key": f"{cert_dir}/{identity}-key.pem",
+                    "enable_mtls": True,
+                }
+            }
+        },
     }

@@ -18,6 +18,8 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -68,15 +70,16 @@ TOPICS = (
 )
 """Every topic of the project (what `qnav record` subscribes to)."""
 
-PUBLISHES: dict[str, tuple[Topic, ...]] = {
-    "controller": (COMMAND, CONTROLLER_STATUS),
-    "bridge": (VEHICLE_STATE,),
-    "sensors": (SCAN, POSE),
+PUBLISHERS: dict[str, tuple[Topic, ...]] = {
+    "controller": (COMMAND, CONTROLLER_STATUS, ESTOP),
+    "bridge": (VEHICLE_STATE, ESTOP),
+    "sensors": (SCAN, POSE, ESTOP),
     "operator": (TARGET_POSE, TARGET_POINT, ESTOP, ESTOP_RELEASE, VEHICLE_REQUEST),
     "recorder": (),
 }
-"""Who may publish each topic: identity (a certificate's common name) to its topics. The
-access rules of config/zenoh-secure.json5 are made from this table (a test checks it)."""
+"""Who may publish what, by certificate identity (config/zenoh-secure.json5's access control):
+only the controller commands the car, only the bridge reports the vehicle, only the operator
+sets targets, releases the stop or asks to arm; anyone known may press the stop."""
 
 
 def key(topic: Topic | str, namespace: str = "") -> str:
@@ -251,6 +254,10 @@ def encode_pose_msg(pose: Pose2D) -> bytes:
     return serialize(message, POSE.ros_type)
 
 
+QUATERNION_NORM_TOLERANCE = 0.1
+"""How far from 1 an orientation's norm may be (drivers round; a zero or garbled quaternion is
+far off)."""
+
 _POSE_FLOATS = struct.Struct("<7d")
 """geometry_msgs/msg/Pose: position x, y, z and orientation x, y, z, w."""
 
@@ -270,8 +277,8 @@ def decode_pose_msg(payload: bytes) -> Pose2D:
     if not all(math.isfinite(v) for v in (x, y, qx, qy, qz, qw)):
         raise WireError("PoseStamped has NaN or infinite values")
     norm = math.sqrt(qx**2 + qy**2 + qz**2 + qw**2)
-    if norm < 1e-6:
-        raise WireError("PoseStamped has a zero quaternion")
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise WireError(f"PoseStamped's quaternion has norm {norm:.6g}, not 1")
     yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy**2 + qz**2))
     return Pose2D(stamp_s, frame_id, x, y, yaw)
 
@@ -322,12 +329,28 @@ def encode_twist_msg(twist: Twist2D) -> bytes:
 
 
 def decode_twist_msg(payload: bytes) -> Twist2D:
-    """A Twist as a planar command; `WireError` if malformed or not finite."""
-    message = deserialize(payload, COMMAND.ros_type)
-    linear, angular = float(message.linear.x), float(message.angular.z)
+    """A Twist as a planar command; `WireError` if malformed or not finite.
+
+    A Twist moves the car, so it is read strictly (`strict_reader`): little-endian CDR as ROS 2
+    writes it, zero options, nothing after the six values but zero padding."""
+    with strict_reader(payload, "Twist") as reader:
+        linear, _, _, _, _, angular = reader.unpack(_TWIST, 8)
+        reader.finish()
     if not (math.isfinite(linear) and math.isfinite(angular)):
         raise WireError("Twist has NaN or infinite values")
     return Twist2D(linear, angular)
+
+
+@contextmanager
+def strict_reader(payload: bytes, what: str) -> Iterator[cdr.Reader]:
+    """A strict CDR reader (`contracts.cdr.Reader`) for an input that can move, arm or release
+    the car: anything it does not take is a `WireError`, never handed to a lenient decoder."""
+    try:
+        yield cdr.Reader(payload, strict=True)
+    except cdr.NotDirectError:
+        raise WireError(
+            f"{what} is not canonical little-endian CDR (header 00 01 00 00, exact length)"
+        ) from None
 
 
 def encode_bool_msg(value: bool) -> bytes:
@@ -335,9 +358,18 @@ def encode_bool_msg(value: bool) -> bytes:
     return serialize(_typestore().types[ESTOP.ros_type](data=value), ESTOP.ros_type)
 
 
+_BOOL = struct.Struct("<B")
+
+
 def decode_bool_msg(payload: bytes) -> bool:
-    """A std_msgs/Bool; `WireError` if malformed."""
-    return bool(deserialize(payload, ESTOP.ros_type).data)
+    """A std_msgs/Bool, strictly: the value byte exactly 0 or 1, zero options, nothing after it
+    but zero padding; `WireError` otherwise (a stop release must never be read into a byte)."""
+    with strict_reader(payload, "Bool") as reader:
+        (value,) = reader.unpack(_BOOL, 1)
+        reader.finish()
+    if value not in (0, 1):
+        raise WireError(f"Bool value byte is {value}, not 0 or 1")
+    return bool(value == 1)
 
 
 def encode_json_msg(value: dict[str, Any]) -> bytes:
@@ -348,12 +380,28 @@ def encode_json_msg(value: dict[str, Any]) -> bytes:
 
 
 def decode_json_msg(payload: bytes) -> dict[str, Any]:
-    """The JSON object inside a std_msgs/String; `WireError` if either is malformed."""
-    text = deserialize(payload, "std_msgs/msg/String").data
+    """The JSON object inside a std_msgs/String; `WireError` if either is malformed.
+
+    Requests (arm, mode) come this way, so the parse is strict: canonical CDR, no NaN or
+    Infinity literals, no repeated keys."""
+    with strict_reader(payload, "String") as reader:
+        text = reader.string()
+        reader.finish()
     try:
-        value = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise WireError(f"String payload is not JSON: {error}") from None
+        value = json.loads(text, parse_constant=_refuse_constant, object_pairs_hook=_unique_keys)
+    except (json.JSONDecodeError, ValueError) as error:
+        raise WireError(f"String payload is not strict JSON: {error}") from None
     if not isinstance(value, dict):
         raise WireError("String payload is not a JSON object")
     return value
+
+
+def _refuse_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    keys = [key for key, _ in pairs]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"repeated keys in {keys}")
+    return dict(pairs)

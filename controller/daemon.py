@@ -36,7 +36,7 @@ from typing import Any
 from contracts import wire
 from contracts.health import Heartbeat
 from contracts.settings import to_toml
-from contracts.transport import open_session
+from contracts.transport import StoppedError, open_session
 from contracts.wire import Twist2D
 from controller.config import DaemonConfig, load_config
 from controller.decision import Controller, Input, Output, Reason
@@ -146,7 +146,12 @@ class Daemon:
         self.controller.warm_up()
         wire.decode_twist_msg(wire.encode_twist_msg(wire.STOP))
         wire.decode_json_msg(wire.encode_json_msg({}))
-        session = open_session(self.config.zenoh)
+        try:
+            session = open_session(self.config.zenoh, self.stopping)
+        except StoppedError:
+            log.info("stopped before zenoh connected: no command was ever published")
+            self.heartbeat.close()
+            return
         try:
             self._command = session.declare_publisher(
                 self.command_key,

@@ -259,6 +259,9 @@ class Controller:
                 return self._take_release(wire.decode_bool_msg(payload), now)
         except Exception as error:  # whatever a payload does, it is only ever refused
             self.counters.malformed[source.value] += 1
+            if source is Input.ESTOP:
+                # Someone tried to press the stop: a garbled press is still a press.
+                self._take_estop(True, now)
             return (
                 str(error) if isinstance(error, WireError) else f"{type(error).__name__}: {error}"
             )
@@ -303,6 +306,20 @@ class Controller:
         if not self.uses_scan:
             return  # the lidar-less policy has no use for it
         count, increment = len(scan.ranges_m), abs(scan.angle_increment_rad)
+        if count < self.lidar.min_readings:
+            raise WireError(
+                f"scan of {count} readings (fewer than lidar.min_readings = "
+                f"{self.lidar.min_readings})"
+            )
+        if not (
+            math.isfinite(scan.range_min_m)
+            and math.isfinite(scan.range_max_m)
+            and 0.0 <= scan.range_min_m < scan.range_max_m
+        ):
+            raise WireError(
+                f"scan range_min {scan.range_min_m} / range_max {scan.range_max_m} are not "
+                "finite with 0 <= range_min < range_max"
+            )
         if count > MAX_SCAN_READINGS or increment > math.pi or count * increment > 4 * math.pi:
             raise WireError(
                 f"scan of {count} readings {increment:.4g} rad apart is not a planar scan of at "
@@ -320,6 +337,11 @@ class Controller:
     def _check_frame(self, what: str, value: Pose2D) -> None:
         if not all(math.isfinite(v) for v in (value.x_m, value.y_m, value.yaw_rad)):
             raise WireError(f"{what} has NaN or infinite values")
+        if math.hypot(value.x_m, value.y_m) > self.safety.max_position_m:
+            raise WireError(
+                f"{what} at ({value.x_m:.6g}, {value.y_m:.6g}) m is beyond "
+                f"safety.max_position_m = {self.safety.max_position_m}"
+            )
         wanted = self.safety.frame_id
         if wanted and value.frame_id != wanted:
             raise WireError(f"{what} in frame {value.frame_id!r}; safety.frame_id is {wanted!r}")

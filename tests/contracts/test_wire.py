@@ -102,8 +102,9 @@ def rosbags_pose(payload: bytes) -> wire.Pose2D:
     p, q = message.pose.position, message.pose.orientation
     if not all(math.isfinite(v) for v in (p.x, p.y, q.x, q.y, q.z, q.w)):
         raise wire.WireError("PoseStamped has NaN or infinite values")
-    if math.sqrt(q.x**2 + q.y**2 + q.z**2 + q.w**2) < 1e-6:
-        raise wire.WireError("PoseStamped has a zero quaternion")
+    norm = math.sqrt(q.x**2 + q.y**2 + q.z**2 + q.w**2)
+    if abs(norm - 1.0) > wire.QUATERNION_NORM_TOLERANCE:
+        raise wire.WireError(f"PoseStamped's quaternion has norm {norm:.6g}, not 1")
     yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y**2 + q.z**2))
     header = message.header
     stamp_s = float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9

@@ -257,3 +257,38 @@ def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_
             assert listener.commands[-1] == wire.STOP
     finally:
         listener.session.close()
+
+
+def test_the_scan_triggered_daemon_stops_the_car_when_the_scans_stop(
+    tmp_path: Path,
+    endpoint: str,
+    make_policy: PolicyFactory,
+    processes: list[subprocess.Popen[str]],
+) -> None:
+    """With trigger = scan nothing decides between scans: the periodic check must stop the car
+    once they stop coming."""
+    policy = make_policy("walls-inertia")
+    config = DaemonConfig(
+        controller=ControllerSettings(policy=str(policy), trigger="scan"),
+        safety=SafetySettings(frame_id="map"),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+    )
+    daemon = start_daemon(tmp_path, config)
+    processes.append(daemon)
+    listener = Listener(endpoint)
+    try:
+        listener.wait_for(lambda s: True, timeout=30)
+        feeder = start_feeder(endpoint)
+        processes.append(feeder)
+        assert feeder.stdin is not None
+        listener.wait_for(reason_is("policy"))
+        feeder.stdin.write("scan off\n")
+        feeder.stdin.flush()
+        stale = listener.wait_for(reason_is("scan_stale"))
+        assert stale["command"] == {"linear_mps": 0.0, "angular_radps": 0.0}
+        with listener.lock:
+            assert listener.commands[-1] == wire.STOP
+        daemon.send_signal(signal.SIGTERM)
+        daemon.communicate(timeout=20)
+    finally:
+        listener.session.close()

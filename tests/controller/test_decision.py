@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from contracts import wire
+from contracts.errors import PolicyInputError
 from contracts.wire import STOP, Pose2D, Scan, Twist2D
 from controller.config import LidarSettings, SafetySettings
 from controller.decision import Controller, Input, Output, Reason
@@ -30,6 +31,26 @@ def pose_payload(x: float = 1.0, y: float = 1.0, yaw: float = 0.3, frame: str = 
 
 def target_payload(x: float = 8.0, y: float = 8.0, frame: str = "map") -> bytes:
     return wire.encode_pose_msg(Pose2D(0.0, frame, x, y))
+
+
+def odd_scan_payload(range_min: float, range_max: float, count: int = 1080) -> bytes:
+    ranges = np.full(count, 3.0, dtype=np.float32)
+    return wire.encode_scan_msg(
+        Scan(0.0, "laser", -math.pi, 2 * math.pi / count, range_min, range_max, ranges)
+    )
+
+
+def quaternion_payload(w: float) -> bytes:
+    """A PoseStamped whose orientation is (0, 0, 0, w)."""
+    types = wire._typestore().types
+    message = types[wire.POSE.ros_type](
+        header=wire._header(0.0, "map"),
+        pose=types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=1.0, y=1.0, z=0.0),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=w),
+        ),
+    )
+    return wire.serialize(message, wire.POSE.ros_type)
 
 
 @pytest.fixture
@@ -146,11 +167,20 @@ def test_the_car_stops_at_the_target_until_a_different_target_arrives(policy: Pa
             Input.POSE, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, math.inf)), id="pose-inf"
         ),
         pytest.param(Input.POSE, b"\x00\x01", id="pose-truncated"),
+        pytest.param(Input.POSE, pose_payload(x=1e308), id="pose-absurd"),
+        pytest.param(Input.POSE, pose_payload(y=-1001.0), id="pose-beyond-max-position"),
+        pytest.param(Input.POSE, quaternion_payload(2.0), id="pose-quaternion-norm-2"),
+        pytest.param(Input.POSE, quaternion_payload(0.0), id="pose-zero-quaternion"),
+        pytest.param(Input.TARGET, target_payload(x=-1e308), id="target-absurd"),
+        pytest.param(Input.SCAN, odd_scan_payload(math.nan, 30.0), id="scan-range-min-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, math.nan), id="scan-range-max-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(5.0, 1.0), id="scan-range-min-above-max"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=1), id="scan-one-reading"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=49), id="scan-49-readings"),
         pytest.param(
             Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", math.nan, 1.0)), id="target-nan"
         ),
         pytest.param(Input.TARGET, scan_payload()[:30], id="target-garbage"),
-        pytest.param(Input.ESTOP, b"\xff", id="estop-garbage"),
         pytest.param(Input.ESTOP_RELEASE, b"", id="release-empty"),
     ],
 )
@@ -168,6 +198,53 @@ def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
     # The age is still that of the last good input (arrived at 0.0; estop never).
     good_age = None if source in (Input.ESTOP, Input.ESTOP_RELEASE) else 0.1
     assert status.ages_s[source.value] == good_age
+
+
+@pytest.mark.parametrize(
+    "payload", [b"\xff", b"", bytes.fromhex("0001000002"), bytes.fromhex("0001ffff00")]
+)
+def test_a_malformed_stop_message_presses_the_stop(policy: Path, payload: bytes) -> None:
+    c = ready(policy)
+    assert c.receive(Input.ESTOP, payload, 0.01)
+    assert c.counters.malformed["estop"] == 1
+    status = c.decide(0.02).status
+    assert (status.estop_latched, status.estop_pressed) == (True, True)
+    assert status.reason is not None and status.reason.name.startswith("ESTOP")
+
+
+RELEASE_LOOKALIKES = [
+    "0001000002",  # value byte 2
+    "00010000ff",
+    "0001000080000000",
+    "0001000001deadbe",  # garbage after the value
+    "0001ffff01",  # non-zero options
+    "0000000001",  # big-endian header
+    "000100000100000000",  # more than alignment padding
+    "00010000",  # no value
+]
+
+
+def test_no_malformed_payload_releases_a_latched_stop(policy: Path) -> None:
+    rng = np.random.default_rng(11)
+    payloads = [bytes.fromhex(h) for h in RELEASE_LOOKALIKES]
+    for _ in range(3000):
+        size = int(rng.integers(0, 12))
+        body = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        payloads.append(b"\x00\x01\x00\x00" + body if rng.random() < 0.7 else body)
+    canonical = {wire.encode_bool_msg(True), wire.encode_bool_msg(True) + bytes(3)}
+    canonical |= {wire.encode_bool_msg(True) + bytes(n) for n in (1, 2)}
+    c = ready(policy)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.0)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.0)
+    for i, payload in enumerate(payloads):
+        if payload in canonical:
+            continue
+        c.receive(Input.ESTOP_RELEASE, payload, 0.001 * i)
+        output = c.decide(0.001 * i)
+        assert output.command == STOP and output.status.estop_latched, payload.hex()
+    # ... and the canonical release still works afterwards.
+    c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 10.0)
+    assert not c.decide(10.0).status.estop_latched
 
 
 def test_payloads_in_the_wrong_frame_are_malformed_when_a_frame_is_configured(
@@ -318,7 +395,7 @@ def test_the_status_is_one_json_object_with_the_decision_and_its_reasons(policy:
 
 @pytest.mark.parametrize(
     ("count", "increment"),
-    [(200_000, 1e-5), (10, 4.0), (1000, 0.1), (5, -1e30)],
+    [(200_000, 1e-5), (60, 4.0), (1000, 0.1), (60, -1e30)],
 )
 def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     policy: Path, count: int, increment: float
@@ -328,3 +405,45 @@ def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     payload = wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, 0.1, 30, ranges))
     assert "not a planar scan" in (c.receive(Input.SCAN, payload, 0.1) or "")
     assert c.counters.malformed["scan"] == 1
+
+
+def test_a_target_that_only_changes_frame_is_a_new_target(policy: Path) -> None:
+    c = ready(policy)
+    c.receive(Input.TARGET, target_payload(x=1.2, y=1.0), 0.01)  # within the tolerance
+    assert_stop(c.decide(0.02), Reason.TARGET_REACHED)
+    assert c.target_reached
+    c.receive(Input.TARGET, target_payload(x=1.2, y=1.0, frame="odom"), 0.03)
+    assert not c.target_reached
+
+
+def test_an_empty_frame_id_never_counts_as_a_frame_mismatch(policy: Path) -> None:
+    c = controller(policy)
+    c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
+    c.receive(Input.SCAN, scan_payload(0.0), 0.0)
+    c.receive(Input.POSE, pose_payload(frame=""), 0.0)
+    assert c.decide(0.01).status.reason is Reason.POLICY
+    c.receive(Input.POSE, pose_payload(frame="map"), 0.02)
+    assert_stop(c.decide(0.03), Reason.FRAME_MISMATCH)
+
+
+class _RefusingRuntime(PolicyRuntime):
+    """A real policy runtime that refuses every observation, as it would refuse one of the
+    wrong shape: the controller's rule for that case is what is under test."""
+
+    def step(self, *args: object, **kwargs: object) -> object:  # type: ignore[override]
+        raise PolicyInputError("refused")
+
+
+def test_a_policy_that_refuses_its_input_stops_the_car(policy: Path) -> None:
+    c = Controller(_RefusingRuntime(policy), SafetySettings())
+    c.receive(Input.TARGET, target_payload(), 0.0)
+    feed(c, 0.0)
+    assert_stop(c.decide(0.01), Reason.POLICY_INPUT_ERROR)
+
+
+def test_the_periodic_check_stops_the_car_when_the_scans_stop(policy: Path) -> None:
+    c = ready(policy)
+    assert c.check(0.1) is None  # fresh inputs: nothing to stop for, the policy decides on scans
+    output = c.check(5.0)
+    assert output is not None
+    assert_stop(output, Reason.SCAN_STALE)
