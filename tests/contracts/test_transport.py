@@ -1,9 +1,8 @@
-"""Zenoh session settings: a user's config file stays local unless it says otherwise, and says
-what it exposes; the docs' settings tables show the settings as they are."""
+"""Zenoh session settings: a user's config file stays local unless it says otherwise, and the log
+says what it exposes; the docs' settings tables show the zenoh settings as they are."""
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -13,8 +12,10 @@ from contracts.errors import ConfigError
 from contracts.settings import to_markdown
 from contracts.transport import (
     ZenohSettings,
+    exposed_endpoints,
     is_loopback,
-    loopback_default,
+    log_network,
+    network_view,
     zenoh_config,
 )
 
@@ -36,10 +37,19 @@ def test_loopback_endpoints(endpoint: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "endpoint", ["tcp/[::]:7447", "tcp/0.0.0.0:7447", "tls/192.168.1.5:7447", "tcp/car.local:7447"]
+    "endpoint",
+    [
+        "tcp/[::]:7447",
+        "tcp/0.0.0.0:7447",
+        "tls/192.168.1.5:7447",
+        "tcp/car.local:7447",
+        "tcp/localhost.example.com:7447",
+        "tcp/127.0.0.1.example.com:7447",
+    ],
 )
 def test_endpoints_beyond_loopback(endpoint: str) -> None:
     assert not is_loopback(endpoint)
+    assert exposed_endpoints([endpoint, "tcp/127.0.0.1:7447"]) == [endpoint]
 
 
 def _settings(tmp_path: Path, text: str) -> ZenohSettings:
@@ -49,22 +59,19 @@ def _settings(tmp_path: Path, text: str) -> ZenohSettings:
 
 
 @pytest.mark.parametrize("mode", ["peer", "router"])
-def test_a_minimal_user_file_listens_on_loopback_without_multicast(
+def test_a_minimal_user_file_listens_nowhere_without_multicast_and_says_so(
     tmp_path: Path, caplog: pytest.LogCaptureFixture, mode: str
 ) -> None:
     caplog.set_level("INFO", logger="contracts.transport")
     config = zenoh_config(_settings(tmp_path, f'{{ mode: "{mode}" }}'))
-    listen = json.loads(config.get_json("listen/endpoints"))
-    assert listen == loopback_default(mode) and all(is_loopback(e) for e in listen)
-    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
-    assert f"mode {mode}, listening on {listen[0]}, multicast scouting off" in caplog.text
-    assert "unset in the file" in caplog.text
+    assert network_view(config) == ([], False)
+    assert "leaves unset what would expose it" in caplog.text
+    assert "listen/endpoints = []" in caplog.text
+    assert "scouting/multicast/enabled = false" in caplog.text
+    caplog.clear()
+    log_network(config)
+    assert "listening on nothing, multicast scouting off" in caplog.text
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
-
-
-def test_a_file_without_a_mode_is_a_peer_on_loopback(tmp_path: Path) -> None:
-    config = zenoh_config(_settings(tmp_path, "{}"))
-    assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
 
 
 def test_what_the_file_sets_is_kept_and_exposure_is_warned(
@@ -76,28 +83,26 @@ def test_what_the_file_sets_is_kept_and_exposure_is_warned(
         " scouting: { multicast: { enabled: true } } }"
     )
     config = zenoh_config(_settings(tmp_path, text))
-    assert json.loads(config.get_json("listen/endpoints")) == [
-        "tcp/0.0.0.0:7447",
-        "tcp/127.0.0.1:7448",
-    ]
-    assert json.loads(config.get_json("scouting/multicast/enabled")) is True
+    assert network_view(config) == (["tcp/0.0.0.0:7447", "tcp/127.0.0.1:7448"], True)
+    assert "leaves unset" not in caplog.text
+    log_network(config)
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert any("beyond loopback on tcp/0.0.0.0:7447:" in w for w in warnings), warnings
     assert not any("7448" in w for w in warnings)
     assert any("multicast scouting is on" in w for w in warnings)
 
 
-def test_an_explicit_empty_listen_and_multicast_off_are_kept(tmp_path: Path) -> None:
-    text = (
-        '{ mode: "client", listen: { endpoints: [] }, scouting: { multicast: { enabled: false } } }'
-    )
+def test_an_explicit_loopback_listen_is_kept(tmp_path: Path) -> None:
+    text = '{ mode: "router", listen: { endpoints: ["tcp/127.0.0.1:7449"] } }'
     config = zenoh_config(_settings(tmp_path, text))
-    assert json.loads(config.get_json("listen/endpoints")) == []
+    assert network_view(config) == (["tcp/127.0.0.1:7449"], False)
 
 
-def test_a_malformed_file_names_the_setting(tmp_path: Path) -> None:
+def test_a_malformed_or_missing_file_names_the_setting(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"zenoh\.config_file"):
         zenoh_config(_settings(tmp_path, "{ mode: "))
+    with pytest.raises(ConfigError, match=r"zenoh\.config_file"):
+        zenoh_config(_settings(tmp_path, '{ mode: "peer", no_such_setting: 1 }'))
     with pytest.raises(ConfigError, match=r"zenoh\.config_file"):
         ZenohSettings(config_file=str(tmp_path / "missing.json5"))
 
@@ -115,12 +120,3 @@ def test_the_docs_show_the_zenoh_settings_as_they_are(doc: str) -> None:
     text = (ROOT / "docs" / doc).read_text()
     for row in rows:
         assert row in text, f"docs/{doc} is stale; paste to_markdown's row: {row}"
-
-
-def test_controller_docs_table_is_current() -> None:
-    from controller.config import DaemonConfig
-
-    text = (ROOT / "docs" / "controller.md").read_text()
-    assert to_markdown(DaemonConfig()).strip() in text, (
-        "paste `to_markdown(DaemonConfig())` into docs/controller.md"
-    )
