@@ -33,6 +33,8 @@ from contracts.transport import (
 from firmware_bridge.bench import free_port
 from qnav.certs import IDENTITIES, make_certificates
 from qnav.cli import main
+from sim.mavlink_vehicle import MavlinkVehicle
+from tests.firmware_bridge.rig import vehicle_settings, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 PUBLISHERS = {name: tuple(t.name for t in topics) for name, topics in wire.PUBLISHERS.items()}
@@ -220,6 +222,13 @@ class Ordered:
         )
         self.seen: list[tuple[str, bytes]] = []
 
+    def has(self, key: str) -> bool:
+        """Whether a sample of `key` has arrived (without waiting)."""
+        with contextlib.suppress(queue.Empty):
+            while True:
+                self.seen.append(self.arrived.get_nowait())
+        return any(k == key for k, _ in self.seen)
+
     def until(self, key: str, payload: bytes) -> list[tuple[str, bytes]]:
         """Every sample up to and including (key, payload), which must come within 10 s."""
         deadline = time.monotonic() + 10
@@ -325,3 +334,57 @@ def test_qnav_certs_without_openssl_says_what_is_missing(
     monkeypatch.setenv("PATH", str(tmp_path / "nothing-here"))
     assert main(["certs", str(tmp_path / "certs")]) == 2
     assert "needs the openssl command" in capsys.readouterr().err
+
+
+def test_the_bridge_daemon_runs_with_its_secure_config_and_only_the_controller_drives(
+    certs: tuple[Path, str], hub: Any, tmp_path: Path
+) -> None:
+    folder, _ = certs
+    forward = wire.encode_twist_msg(wire.Twist2D(0.5, 0.0))
+
+    def throttles() -> list[int]:
+        return [r.fields["chan3_raw"] for r in car.received("RC_CHANNELS_OVERRIDE")]
+
+    with (
+        MavlinkVehicle(vehicle_settings(free_port(socket.SOCK_DGRAM))) as car,
+        _session(folder, "recorder") as listener,
+    ):
+        heard = Ordered(listener)
+        port = car.settings.connection.rsplit(":", 1)[1]
+        log = tmp_path / "bridge.log"
+        with log.open("wb") as out:
+            bridge = subprocess.Popen(
+                [sys.executable, "-m", "qnav", "bridge",
+                 "--set", f'zenoh.config_file="{folder / "zenoh-bridge.json5"}"',
+                 "--set", f'mavlink.connection="udpout:127.0.0.1:{port}"'],
+                stdout=out, stderr=out,
+            )  # fmt: skip
+        try:
+            # Its state comes through the hub: the bridge's own publisher is allowed.
+            wait_until(
+                lambda: heard.has(wire.key(wire.VEHICLE_STATE)),
+                timeout_s=60,
+                what="the bridge's vehicle state through the secure hub",
+            )
+            # The operator's forward command is refused by the hub, its release is not: once
+            # the release reached the recorder, the command would have reached the bridge.
+            with _session(folder, "operator") as operator:
+                command, release = _ready_publishers(
+                    operator, [wire.key(wire.COMMAND), wire.key(wire.ESTOP_RELEASE)]
+                )
+                command.put(forward)
+                release.put(wire.encode_bool_msg(True))
+                heard.until(wire.key(wire.ESTOP_RELEASE), wire.encode_bool_msg(True))
+                time.sleep(0.3)  # the bridge's next overrides go out every failsafe period
+            assert set(throttles()) == {1500}, "a refused command moved the car"
+            with _session(folder, "controller") as controller:
+                (command,) = _ready_publishers(controller, [wire.key(wire.COMMAND)])
+                wait_until(
+                    lambda: command.put(forward) or any(t > 1500 for t in throttles()),
+                    timeout_s=10,
+                    what="the controller's command to reach the car",
+                )
+        finally:
+            bridge.terminate()
+            bridge.wait(timeout=20)
+    assert "multicast scouting off" in log.read_text()
