@@ -68,6 +68,8 @@ class LidarSettings:
     min_readings: int = 50
     """A scan with fewer readings is malformed: no lidar the policy can use has so few (a
     single reading would be stretched over every beam)."""
+    min_field_of_view_rad: float = math.pi
+    """A scan covering less than this angle (readings times abs(angle_increment)) is malformed."""
 
     def __post_init__(self) -> None:
         check_range(self, "mount_yaw_rad", self.mount_yaw_rad, -2 * math.pi, 2 * math.pi)
@@ -78,6 +80,7 @@ class LidarSettings:
                 "allowed [0, inf]"
             )
         check_range(self, "max_invalid_fraction", self.max_invalid_fraction, 0.0, 1.0)
+        check_range(self, "min_field_of_view_rad", self.min_field_of_view_rad, 0.0, 2 * math.pi)
 
 
 @dataclass(frozen=True)

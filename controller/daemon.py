@@ -197,8 +197,11 @@ class Daemon:
 
     def _send(self, command: Twist2D) -> None:
         """Publish a command the moment the controller decides it (its status comes after)."""
-        self._command.put(wire.encode_twist_msg(command))
+        payload = wire.encode_twist_msg(command)
+        # Stamped as it is handed to zenoh: stamped after `put` returned, a listener on a loaded
+        # machine could hold the command before the stamp (a negative outbound time).
         self._sent_s = time.monotonic()
+        self._command.put(payload)
 
     def _publish_status(self, output: Output, started: float) -> None:
         """Publish the status of the output whose command `_send` published."""

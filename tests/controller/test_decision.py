@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts import wire
-from contracts.errors import PolicyInputError
+from contracts import cdr, wire
 from contracts.wire import STOP, Pose2D, Scan, Twist2D
 from controller.config import LidarSettings, SafetySettings
 from controller.decision import Controller, Input, Output, Reason
 from controller.policy import PolicyRuntime
 from tests.conftest import PolicyFactory
+from tests.contracts.malformed import CANONICAL_TRUE
 
 PERIOD = 0.2  # the scenarios' control period
 
@@ -40,17 +40,17 @@ def odd_scan_payload(range_min: float, range_max: float, count: int = 1080) -> b
     )
 
 
+def pose_with_quaternion(qx: float, qy: float, qz: float, qw: float) -> bytes:
+    writer = cdr.Writer()
+    writer.pack(cdr.TIME, 4, 0, 0)
+    writer.string("map")
+    writer.pack(cdr.Layout("7d"), 8, 1.0, 1.0, 0.0, qx, qy, qz, qw)
+    return writer.payload()
+
+
 def quaternion_payload(w: float) -> bytes:
     """A PoseStamped whose orientation is (0, 0, 0, w)."""
-    types = wire._typestore().types
-    message = types[wire.POSE.ros_type](
-        header=wire._header(0.0, "map"),
-        pose=types["geometry_msgs/msg/Pose"](
-            position=types["geometry_msgs/msg/Point"](x=1.0, y=1.0, z=0.0),
-            orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=w),
-        ),
-    )
-    return wire.serialize(message, wire.POSE.ros_type)
+    return pose_with_quaternion(0.0, 0.0, 0.0, w)
 
 
 @pytest.fixture
@@ -182,6 +182,10 @@ def test_the_car_stops_at_the_target_until_a_different_target_arrives(policy: Pa
         ),
         pytest.param(Input.TARGET, scan_payload()[:30], id="target-garbage"),
         pytest.param(Input.ESTOP_RELEASE, b"", id="release-empty"),
+        pytest.param(Input.ESTOP_RELEASE, bytes.fromhex("0001000002"), id="release-bool-2"),
+        pytest.param(
+            Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, -1001.0)), id="target-far"
+        ),
     ],
 )
 def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
@@ -195,9 +199,125 @@ def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
     assert status.counters["received"][source.value] == received + 1
     assert status.counters["malformed"][source.value] == 1
     assert status.q_values == reference.decide(0.1).status.q_values
-    # The age is still that of the last good input (arrived at 0.0; estop never).
-    good_age = None if source in (Input.ESTOP, Input.ESTOP_RELEASE) else 0.1
+    # The age is still that of the last good input (arrived at 0.0; the release never).
+    good_age = None if source is Input.ESTOP_RELEASE else 0.1
     assert status.ages_s[source.value] == good_age
+
+
+@pytest.mark.parametrize(
+    "quaternion", [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0), (0.0, 0.0, 0.5, 0.5)]
+)
+def test_a_pose_whose_quaternion_is_not_a_unit_one_is_malformed(
+    policy: Path, quaternion: tuple[float, float, float, float]
+) -> None:
+    c = ready(policy)
+    assert "quaternion" in (c.receive(Input.POSE, pose_with_quaternion(*quaternion), 0.1) or "")
+    assert c.counters.malformed["pose"] == 1
+    assert c.receive(Input.POSE, pose_with_quaternion(0.0, 0.0, 0.0, 1.0), 0.1) is None
+
+
+def test_a_position_beyond_safety_max_position_m_is_malformed(policy: Path) -> None:
+    c = ready(policy, max_position_m=50.0)
+    assert c.receive(Input.POSE, pose_payload(x=30.0, y=-40.0), 0.1) is None
+    error = c.receive(Input.POSE, pose_payload(x=50.5), 0.15)
+    assert error is not None and "safety.max_position_m = 50.0" in error
+    assert "safety.max_position_m" in (c.receive(Input.TARGET, target_payload(y=-51.0), 0.15) or "")
+    assert c.counters.malformed["pose"] == 1 and c.counters.malformed["target"] == 1
+    assert c.decide(0.15).status.target_distance_m == pytest.approx(math.hypot(8 - 30, 8 + 40))
+
+
+def test_a_malformed_message_on_the_estop_topic_presses_the_stop(policy: Path) -> None:
+    for index, payload in enumerate(
+        [b"\xff", b"", bytes.fromhex("0001000002"), bytes.fromhex("0001ffff00"), scan_payload()]
+    ):
+        c = ready(policy)
+        assert c.decide(0.05).status.reason is Reason.POLICY
+        error = c.receive(Input.ESTOP, payload, 0.06)
+        assert error is not None and "taken as a press" in error, index
+        output = c.decide(0.07)
+        assert_stop(output, Reason.ESTOP_LATCHED)
+        assert (output.status.estop_latched, output.status.estop_pressed) == (True, True)
+        counters = output.status.counters
+        assert counters["malformed"]["estop"] == 1 and counters["estop_presses"] == 1
+        assert output.status.ages_s["estop"] is None  # no well-formed estop message yet
+        # Pressed: a release is refused until a well-formed false says the button is out.
+        assert c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 0.08)
+        assert c.counters.releases_refused == 1
+        assert c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.09) is None
+        assert_stop(c.decide(0.09), Reason.ESTOP_LATCHED)
+        assert c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 0.1) is None
+        feed(c, 0.1)
+        assert c.decide(0.11).status.reason is Reason.POLICY
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        "0001000002",
+        "00010000ff",
+        "0001000080000000",
+        "0001000001deadbe",
+        "0001ffff01",
+        "000100000101",
+        "0001000201000000",
+    ],
+)
+def test_a_malformed_release_never_releases(policy: Path, payload: str) -> None:
+    """Issue 18: each of these released a latched stop with the button out."""
+    c = ready(policy)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.01)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.02)
+    assert c.receive(Input.ESTOP_RELEASE, bytes.fromhex(payload), 0.03)
+    feed(c, 0.03)
+    assert_stop(c.decide(0.04), Reason.ESTOP_LATCHED)
+    assert c.counters.malformed["estop_release"] == 1
+    for canonical in ("0001000001", "0001000301000000"):  # padded as Cyclone DDS writes it
+        c = ready(policy, estop_start_latched=True)
+        assert c.receive(Input.ESTOP_RELEASE, bytes.fromhex(canonical), 0.03) is None
+        assert c.decide(0.04).status.reason is Reason.POLICY
+
+
+def scan_layout(
+    count: int = 720,
+    increment: float = 2 * math.pi / 720,
+    range_min: float = 0.1,
+    range_max: float = 30.0,
+) -> bytes:
+    ranges = np.full(count, 3.0, dtype=np.float32)
+    return wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, range_min, range_max, ranges))
+
+
+@pytest.mark.parametrize(
+    ("payload", "why"),
+    [
+        pytest.param(scan_layout(range_min=math.nan), "range_min", id="range-min-nan"),
+        pytest.param(scan_layout(range_max=math.nan), "range_min", id="range-max-nan"),
+        pytest.param(scan_layout(range_max=math.inf), "range_min", id="range-max-inf"),
+        pytest.param(scan_layout(range_min=5.0, range_max=5.0), "range_min", id="min-equals-max"),
+        pytest.param(scan_layout(range_min=-1.0), "range_min", id="range-min-negative"),
+        pytest.param(scan_layout(count=1, increment=0.01), "min_readings", id="one-reading"),
+        pytest.param(scan_layout(count=49, increment=0.1), "min_readings", id="49-readings"),
+        pytest.param(scan_layout(count=300, increment=0.01), "min_field_of_view", id="narrow"),
+    ],
+)
+def test_a_scan_that_no_planar_lidar_sends_is_malformed(
+    policy: Path, payload: bytes, why: str
+) -> None:
+    c = ready(policy)
+    error = c.receive(Input.SCAN, payload, 0.3)
+    assert error is not None and why in error
+    assert c.counters.malformed["scan"] == 1
+    assert_stop(c.decide(0.5), Reason.SCAN_STALE)
+
+
+def test_the_scan_plausibility_bounds_are_settings(policy: Path) -> None:
+    lidar = LidarSettings(min_readings=10, min_field_of_view_rad=1.0)
+    c = Controller(PolicyRuntime(policy), SafetySettings(), lidar)
+    assert c.receive(Input.SCAN, scan_layout(count=10, increment=0.1), 0.0) is None
+    assert c.receive(Input.SCAN, scan_layout(count=9, increment=0.2), 0.0)
+    assert c.receive(Input.SCAN, scan_layout(count=50, increment=0.0199), 0.0)
+    assert c.receive(Input.SCAN, scan_layout(count=180, increment=math.pi / 180), 0.0) is None
+    assert ready(policy).receive(Input.SCAN, scan_layout(181, math.pi / 180), 0.0) is None
 
 
 @pytest.mark.parametrize(
@@ -218,7 +338,7 @@ RELEASE_LOOKALIKES = [
     "0001000080000000",
     "0001000001deadbe",  # garbage after the value
     "0001ffff01",  # non-zero options
-    "0000000001",  # big-endian header
+    "0000000002",  # big-endian, value byte 2
     "000100000100000000",  # more than alignment padding
     "00010000",  # no value
 ]
@@ -231,8 +351,7 @@ def test_no_malformed_payload_releases_a_latched_stop(policy: Path) -> None:
         size = int(rng.integers(0, 12))
         body = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
         payloads.append(b"\x00\x01\x00\x00" + body if rng.random() < 0.7 else body)
-    canonical = {wire.encode_bool_msg(True), wire.encode_bool_msg(True) + bytes(3)}
-    canonical |= {wire.encode_bool_msg(True) + bytes(n) for n in (1, 2)}
+    canonical = CANONICAL_TRUE  # written out independently of the reader
     c = ready(policy)
     c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.0)
     c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.0)
@@ -407,38 +526,37 @@ def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     assert c.counters.malformed["scan"] == 1
 
 
+def test_a_policy_that_refuses_the_observation_stops_the_car(policy: Path) -> None:
+    """The `policy_input_error` rule: a runtime that refuses the observation (here one built
+    for two streams, whose single-stream step refuses) stops the car instead of raising."""
+    c = Controller(PolicyRuntime(policy, num_streams=2), SafetySettings())
+    assert c.receive(Input.TARGET, target_payload(), 0.0) is None
+    feed(c, 0.0)
+    output = c.decide(0.05)
+    assert_stop(output, Reason.POLICY_INPUT_ERROR)
+    assert c.counters.policy_steps == 0 and c.counters.stops == 1
+
+
 def test_a_target_that_only_changes_frame_is_a_new_target(policy: Path) -> None:
-    c = ready(policy)
-    c.receive(Input.TARGET, target_payload(x=1.2, y=1.0), 0.01)  # within the tolerance
-    assert_stop(c.decide(0.02), Reason.TARGET_REACHED)
-    assert c.target_reached
-    c.receive(Input.TARGET, target_payload(x=1.2, y=1.0, frame="odom"), 0.03)
-    assert not c.target_reached
+    c = ready(policy, target_tolerance_m=0.3)
+    c.receive(Input.TARGET, target_payload(1.2, 1.1), 0.0)
+    assert_stop(c.decide(0.01), Reason.TARGET_REACHED)
+    c.receive(Input.POSE, pose_payload(x=3.0, frame="odom"), 0.02)  # away, in the new frame
+    c.receive(Input.TARGET, target_payload(1.2, 1.1, frame="odom"), 0.02)  # same place
+    assert c.decide(0.03).status.reason is Reason.POLICY
 
 
-def test_an_empty_frame_id_never_counts_as_a_frame_mismatch(policy: Path) -> None:
+def test_an_empty_frame_id_on_either_side_skips_the_frame_mismatch_stop(policy: Path) -> None:
+    for pose_frame, target_frame in [("", "odom"), ("map", ""), ("", "")]:
+        c = controller(policy)
+        assert c.receive(Input.TARGET, target_payload(frame=target_frame), 0.0) is None
+        feed(c, 0.0, pose=False)
+        assert c.receive(Input.POSE, pose_payload(frame=pose_frame), 0.0) is None
+        assert c.decide(0.01).status.reason is Reason.POLICY, (pose_frame, target_frame)
     c = controller(policy)
     c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
-    c.receive(Input.SCAN, scan_payload(0.0), 0.0)
-    c.receive(Input.POSE, pose_payload(frame=""), 0.0)
-    assert c.decide(0.01).status.reason is Reason.POLICY
-    c.receive(Input.POSE, pose_payload(frame="map"), 0.02)
-    assert_stop(c.decide(0.03), Reason.FRAME_MISMATCH)
-
-
-class _RefusingRuntime(PolicyRuntime):
-    """A real policy runtime that refuses every observation, as it would refuse one of the
-    wrong shape: the controller's rule for that case is what is under test."""
-
-    def step(self, *args: object, **kwargs: object) -> object:  # type: ignore[override]
-        raise PolicyInputError("refused")
-
-
-def test_a_policy_that_refuses_its_input_stops_the_car(policy: Path) -> None:
-    c = Controller(_RefusingRuntime(policy), SafetySettings())
-    c.receive(Input.TARGET, target_payload(), 0.0)
     feed(c, 0.0)
-    assert_stop(c.decide(0.01), Reason.POLICY_INPUT_ERROR)
+    assert_stop(c.decide(0.01), Reason.FRAME_MISMATCH)
 
 
 def test_the_periodic_check_stops_the_car_when_the_scans_stop(policy: Path) -> None:
