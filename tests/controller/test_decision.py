@@ -250,20 +250,24 @@ def test_a_malformed_message_on_the_estop_topic_presses_the_stop(policy: Path) -
         assert c.decide(0.11).status.reason is Reason.POLICY
 
 
-@pytest.mark.parametrize(
-    "payload",
-    [
-        "0001000002",
-        "00010000ff",
-        "0001000080000000",
-        "0001000001deadbe",
-        "0001ffff01",
-        "000100000101",
-        "0001000201000000",
-    ],
-)
+RELEASE_LOOKALIKES = [
+    "0001000002",  # value byte 2
+    "00010000ff",
+    "0001000080000000",
+    "0001000001deadbe",  # garbage after the value
+    "0001ffff01",  # non-zero options
+    "0000000002",  # big-endian, value byte 2
+    "000100000100000000",  # more than alignment padding
+    "00010000",  # no value
+    "000100000101",  # a second byte
+    "0001000201000000",  # options announce 2 padding bytes, 3 follow
+]
+
+
+@pytest.mark.parametrize("payload", RELEASE_LOOKALIKES)
 def test_a_malformed_release_never_releases(policy: Path, payload: str) -> None:
-    """Issue 18: each of these released a latched stop with the button out."""
+    """The first five released a latched stop with the button out when issue 18 was filed;
+    the rest are lookalikes of a canonical true. The canonical ones still release."""
     c = ready(policy)
     c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.01)
     c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.02)
@@ -318,30 +322,6 @@ def test_the_scan_plausibility_bounds_are_settings(policy: Path) -> None:
     assert c.receive(Input.SCAN, scan_layout(count=50, increment=0.0199), 0.0)
     assert c.receive(Input.SCAN, scan_layout(count=180, increment=math.pi / 180), 0.0) is None
     assert ready(policy).receive(Input.SCAN, scan_layout(181, math.pi / 180), 0.0) is None
-
-
-@pytest.mark.parametrize(
-    "payload", [b"\xff", b"", bytes.fromhex("0001000002"), bytes.fromhex("0001ffff00")]
-)
-def test_a_malformed_stop_message_presses_the_stop(policy: Path, payload: bytes) -> None:
-    c = ready(policy)
-    assert c.receive(Input.ESTOP, payload, 0.01)
-    assert c.counters.malformed["estop"] == 1
-    status = c.decide(0.02).status
-    assert (status.estop_latched, status.estop_pressed) == (True, True)
-    assert status.reason is not None and status.reason.name.startswith("ESTOP")
-
-
-RELEASE_LOOKALIKES = [
-    "0001000002",  # value byte 2
-    "00010000ff",
-    "0001000080000000",
-    "0001000001deadbe",  # garbage after the value
-    "0001ffff01",  # non-zero options
-    "0000000002",  # big-endian, value byte 2
-    "000100000100000000",  # more than alignment padding
-    "00010000",  # no value
-]
 
 
 def test_no_malformed_payload_releases_a_latched_stop(policy: Path) -> None:
