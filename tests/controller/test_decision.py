@@ -506,6 +506,20 @@ def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     assert c.counters.malformed["scan"] == 1
 
 
+@pytest.mark.parametrize("angle_min", [1e30, -1e7, 2 * math.pi + 0.01, -7.0])
+def test_a_scan_starting_at_an_absurd_angle_is_refused(policy: Path, angle_min: float) -> None:
+    """A finite but absurd angle_min rounds every reading's angle to one: resampled, a scan of
+    walls 1 m away all round would read as open space."""
+    c = ready(policy)
+    ranges = np.full(720, 1.0, dtype=np.float32)
+    scan = Scan(0.0, "laser", angle_min, 2 * math.pi / 720, 0.1, 30, ranges)
+    assert "angle_min" in (c.receive(Input.SCAN, wire.encode_scan_msg(scan), 0.1) or "")
+    assert c.counters.malformed["scan"] == 1
+    for start in (-math.pi, 0.0, 2 * math.pi - 0.01):
+        scan = Scan(0.0, "laser", start, 2 * math.pi / 720, 0.1, 30, ranges)
+        assert c.receive(Input.SCAN, wire.encode_scan_msg(scan), 0.1) is None
+
+
 def test_a_policy_that_refuses_the_observation_stops_the_car(policy: Path) -> None:
     """The `policy_input_error` rule: a runtime that refuses the observation (here one built
     for two streams, whose single-stream step refuses) stops the car instead of raising."""
