@@ -80,8 +80,19 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     import zenoh
 
     if settings.config_file:
-        config = zenoh.Config.from_file(settings.config_file)
-        secure_unset_defaults(config, settings)
+        try:
+            config = zenoh.Config.from_file(settings.config_file)
+        except Exception as error:  # zenoh raises its own error type
+            raise ConfigError(f"zenoh.config_file {settings.config_file!r}: {error}") from None
+        replaced = secure_unset_defaults(config, settings)
+        if replaced:
+            import logging
+
+            logging.getLogger(__name__).info(
+                "zenoh: %s leaves unset what would expose it; using %s",
+                settings.config_file,
+                ", ".join(replaced),
+            )
     else:
         config = zenoh.Config()
         config.insert_json5("mode", json.dumps(settings.session_mode))
@@ -98,10 +109,6 @@ def zenoh_config(settings: ZenohSettings) -> Any:
         except Exception as error:  # zenoh raises its own error type
             raise ConfigError(f"zenoh.extra[{path!r}] = {value!r} is refused: {error}") from None
     return config
-
-
-LOOPBACK_HOSTS = ("127.", "[::1]", "localhost")
-"""Endpoint hosts that only this machine can reach."""
 
 
 def secure_unset_defaults(config: Any, settings: ZenohSettings) -> list[str]:
@@ -131,14 +138,27 @@ def network_view(config: Any) -> tuple[list[str], bool]:
     return [str(endpoint) for endpoint in listen], multicast is None or bool(multicast)
 
 
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
+"""Endpoint protocols that never leave the machine."""
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether a zenoh endpoint (PROTOCOL/HOST:PORT, maybe with ?config or #metadata) is
+    reachable only from this machine. The whole host is compared, so `localhost.example.com`
+    or `127.0.0.1.example.com` are not taken for loopback."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol in LOCAL_PROTOCOLS:
+        return True
+    host = address.split("?")[0].split("#")[0].rsplit(":", 1)[0].strip("[]").lower()
+    if host in {"localhost", "::1"}:
+        return True
+    parts = host.split(".")
+    return len(parts) == 4 and parts[0] == "127" and all(p.isdigit() for p in parts)
+
+
 def exposed_endpoints(listen: list[str]) -> list[str]:
     """The endpoints that listen beyond this machine."""
-    return [
-        endpoint
-        for endpoint in listen
-        if not endpoint.startswith("unixsock")
-        and not endpoint.split("/", 1)[-1].startswith(LOOPBACK_HOSTS)
-    ]
+    return [endpoint for endpoint in listen if not is_loopback(endpoint)]
 
 
 def log_network(config: Any) -> None:

