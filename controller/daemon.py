@@ -192,8 +192,12 @@ class Daemon:
 
     def _send(self, command: Twist2D) -> None:
         """Publish a command the moment the controller decides it (its status comes after)."""
-        self._command.put(wire.encode_twist_msg(command))
+        payload = wire.encode_twist_msg(command)
+        # Stamped as the put starts: a receiver can get the command before put returns (the
+        # daemon's thread is preempted on a loaded machine), and the bench's outbound part
+        # (this stamp -> the receiver's callback) must not come out negative then.
         self._sent_s = time.monotonic()
+        self._command.put(payload)
 
     def _publish_status(self, output: Output, started: float) -> None:
         """Publish the status of the output whose command `_send` published."""
