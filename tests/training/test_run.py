@@ -98,10 +98,13 @@ def test_a_killed_run_resumes_without_losing_a_completed_episode(tmp_path: Path)
     process = subprocess.Popen(
         _train_command(run_dir, 40), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not (run_dir / "checkpoint.pt").exists():
-        time.sleep(0.05)
-    time.sleep(0.5)
+    # Killed as soon as a round and a checkpoint are on disk (polled, not a fixed sleep after
+    # the first checkpoint): mid-run on any machine, fast or loaded, with 9 rounds still to go.
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and not (
+        (run_dir / "checkpoint.pt").exists() and any((run_dir / "episodes").glob("round-*.npz"))
+    ):
+        time.sleep(0.02)
     os.kill(process.pid, signal.SIGKILL)
     process.wait()
     collected = sum(len(r) for r in read_rounds(run_dir / "episodes"))
