@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-stack playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
+.PHONY: install demo test test-slow test-stack fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 # constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
 $(STAMP): pyproject.toml constraints.txt
@@ -37,6 +37,11 @@ pytest: $(STAMP)
 # Long checks (many-episode evaluations, training runs): not part of `make test`.
 test-slow: $(STAMP)
 	$(BIN)/pytest -m slow
+
+# Malformed payloads against the real controller and bridge processes (issue 18 part 7):
+# 10,000 per controller key, 2,000 per bridge key; `make test` runs a 150-per-key slice.
+fuzz: $(STAMP)
+	QNAV_FUZZ_PAYLOADS=10000 QNAV_FUZZ_BRIDGE_PAYLOADS=2000 $(BIN)/pytest tests/fuzz -s -p no:cacheprovider -o addopts="" --timeout 3600
 
 # The full stack (sim-car, controller, bridge, recorder as processes) against in-process eval.
 test-stack: $(STAMP)

@@ -2,13 +2,19 @@
 
 Defaults keep a session on this machine: listen on a loopback endpoint or connect to one, with
 multicast scouting off, so nothing is exposed or discovered by accident. A zenoh configuration
-file, when given, is used as is (TLS, access control, routers): mode, endpoints and scouting
-then come from it, and only `extra` is applied over it.
+file, when given, is used for everything it sets (TLS, access control, routers, mode,
+endpoints): only `extra` is applied over it. What it leaves unset is not zenoh's default where
+that default exposes the process: an unset listen list becomes `listen` (none by default, where
+zenoh would listen on every interface) and unset multicast scouting becomes
+`multicast_scouting` (off, where zenoh would scout). The daemon logs what it listens on and
+whether it scouts, and warns when it listens beyond loopback (`log_network`).
 """
 
 from __future__ import annotations
 
 import json
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -38,7 +44,9 @@ class ZenohSettings:
     namespace: str = ""
     """Prefix of every key, as zenoh-bridge-ros2dds's namespace (e.g. car1)."""
     config_file: str = ""
-    """A zenoh JSON5 configuration file used as is (mode, endpoints, scouting come from it)."""
+    """A zenoh JSON5 configuration file (TLS, access control...; `qnav certs` writes them) used
+    for all it sets; listening and multicast scouting it leaves unset come from the settings
+    above, not zenoh's defaults."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Further zenoh settings by path, e.g. {"transport/unicast/lowlatency" = true}."""
 
@@ -72,7 +80,19 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     import zenoh
 
     if settings.config_file:
-        config = zenoh.Config.from_file(settings.config_file)
+        try:
+            config = zenoh.Config.from_file(settings.config_file)
+        except Exception as error:  # zenoh raises its own error type
+            raise ConfigError(f"zenoh.config_file {settings.config_file!r}: {error}") from None
+        replaced = secure_unset_defaults(config, settings)
+        if replaced:
+            import logging
+
+            logging.getLogger(__name__).info(
+                "zenoh: %s leaves unset what would expose it; using %s",
+                settings.config_file,
+                ", ".join(replaced),
+            )
     else:
         config = zenoh.Config()
         config.insert_json5("mode", json.dumps(settings.session_mode))
@@ -91,8 +111,88 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     return config
 
 
-def open_session(settings: ZenohSettings) -> Any:
-    """An open zenoh session (close it, or use it in a `with` block)."""
+def secure_unset_defaults(config: Any, settings: ZenohSettings) -> list[str]:
+    """Replace the exposing zenoh defaults a user configuration left unset (listening on every
+    interface, multicast scouting) by our settings' values; returns what was replaced."""
+    import zenoh
+
+    default = zenoh.Config()
+    replaced = []
+    for path, ours in (
+        ("listen/endpoints", list(settings.listen)),
+        ("scouting/multicast/enabled", settings.multicast_scouting),
+    ):
+        if config.get_json(path) == default.get_json(path):
+            config.insert_json5(path, json.dumps(ours))
+            replaced.append(f"{path} = {json.dumps(ours)}")
+    return replaced
+
+
+def network_view(config: Any) -> tuple[list[str], bool]:
+    """(listen endpoints for the configured mode, multicast scouting on) of a zenoh config."""
+    mode = json.loads(config.get_json("mode")) or "peer"
+    listen = json.loads(config.get_json("listen/endpoints"))
+    if isinstance(listen, dict):
+        listen = listen.get(mode, [])
+    multicast = json.loads(config.get_json("scouting/multicast/enabled"))
+    return [str(endpoint) for endpoint in listen], multicast is None or bool(multicast)
+
+
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
+"""Endpoint protocols that never leave the machine."""
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether a zenoh endpoint (PROTOCOL/HOST:PORT, maybe with ?config or #metadata) is
+    reachable only from this machine. The whole host is compared, so `localhost.example.com`
+    or `127.0.0.1.example.com` are not taken for loopback."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol in LOCAL_PROTOCOLS:
+        return True
+    host = address.split("?")[0].split("#")[0].rsplit(":", 1)[0].strip("[]").lower()
+    if host in {"localhost", "::1"}:
+        return True
+    parts = host.split(".")
+    return len(parts) == 4 and parts[0] == "127" and all(p.isdigit() for p in parts)
+
+
+def exposed_endpoints(listen: list[str]) -> list[str]:
+    """The endpoints that listen beyond this machine."""
+    return [endpoint for endpoint in listen if not is_loopback(endpoint)]
+
+
+def log_network(config: Any) -> None:
+    """Log what a session listens on and whether it scouts; warn when it is exposed."""
+    import logging
+
+    logger = logging.getLogger(__name__)
+    listen, multicast = network_view(config)
+    logger.info(
+        "zenoh: listening on %s, multicast scouting %s",
+        ", ".join(listen) or "nothing",
+        "on" if multicast else "off",
+    )
+    exposed = exposed_endpoints(listen)
+    if exposed:
+        logger.warning(
+            "zenoh: listening beyond loopback on %s: any host that reaches it can join",
+            ", ".join(exposed),
+        )
+    if multicast:
+        logger.warning("zenoh: multicast scouting is on: peers on the network will find this one")
+
+
+class StoppedError(Exception):
+    """A stop was asked for before the zenoh session opened."""
+
+
+def open_session(settings: ZenohSettings, stop: threading.Event | None = None) -> Any:
+    """An open zenoh session (close it, or use it in a `with` block).
+
+    A client waits inside zenoh until something listens at its endpoint, where no Python signal
+    handler runs. With `stop` the wait happens in a helper thread instead and this one watches
+    `stop`: once it is set, `StoppedError` is raised at once (the helper is left to the
+    interpreter's exit), so a daemon stops on SIGTERM before it ever connects."""
     import logging
 
     import zenoh
@@ -102,10 +202,141 @@ def open_session(settings: ZenohSettings) -> Any:
             "zenoh: connecting to %s (waiting until something listens there)",
             ", ".join(settings.connect),
         )
+    config = zenoh_config(settings)
+    if settings.config_file:
+        log_network(config)
+    if stop is None:
+        return _opened(lambda: zenoh.open(config), settings)
+    outcome: dict[str, Any] = {}
+    lock = threading.Lock()
+    opened = threading.Event()
+
+    def opening() -> None:
+        try:
+            session = _opened(lambda: zenoh.open(config), settings)
+        except BaseException as error:
+            outcome["error"] = error
+            opened.set()
+            return
+        with lock:
+            if outcome.get("abandoned"):
+                session.close()  # opened too late: nobody will use it
+                return
+            outcome["session"] = session
+        opened.set()
+
+    threading.Thread(target=opening, name="zenoh-open", daemon=True).start()
+    while not opened.wait(0.05):
+        if stop.is_set():
+            with lock:
+                if "session" not in outcome and "error" not in outcome:
+                    outcome["abandoned"] = True
+                    raise StoppedError("stopped before the zenoh session opened")
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["session"]
+
+
+def _opened(open_: Callable[[], Any], settings: ZenohSettings) -> Any:
     try:
-        return zenoh.open(zenoh_config(settings))
+        return open_()
     except Exception as error:
         raise ConfigError(
             f"cannot open a zenoh session (listen {list(settings.listen)}, "
             f"connect {list(settings.connect)}): {error}"
         ) from None
+
+
+_SUBSCRIBE_MESSAGES = (
+    "declare_subscriber",
+    "declare_liveliness_subscriber",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_queryable",
+    "query",
+    "reply",
+)
+"""What every known identity may do on any key: subscribe, and the declarations around it."""
+
+
+def secure_hub_config(
+    cert_dir: str, listen: str, publishers: dict[str, tuple[str, ...]]
+) -> dict[str, Any]:
+    """The zenoh configuration of the hub every daemon connects to, with mutual TLS (a peer
+    needs a certificate from the CA in `cert_dir`) and access control: each identity (the
+    certificate's common name) may publish only its keys in `publishers` (ROS names, any
+    namespace); every identity may subscribe to everything; anything else is denied."""
+    identities = sorted(publishers)
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "subscribe",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": list(_SUBSCRIBE_MESSAGES),
+            "key_exprs": ["**"],
+        },
+        {
+            "id": "receive",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put", "delete"],
+            "key_exprs": ["**"],
+        },
+    ]
+    policies: list[dict[str, Any]] = [{"rules": ["subscribe", "receive"], "subjects": identities}]
+    for identity in identities:
+        keys = [form for name in publishers[identity] for form in (name, f"*/{name}")]
+        if not keys:
+            continue
+        rules.append(
+            {
+                "id": f"publish-{identity}",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put"],
+                "key_exprs": keys,
+            }
+        )
+        policies.append({"rules": [f"publish-{identity}"], "subjects": [identity]})
+    return {
+        "mode": "peer",
+        "listen": {"endpoints": [listen]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": f"{cert_dir}/ca.pem",
+                    "listen_certificate": f"{cert_dir}/hub.pem",
+                    "listen_private_key": f"{cert_dir}/hub-key.pem",
+                    "enable_mtls": True,
+                }
+            }
+        },
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": [{"id": i, "cert_common_names": [i]} for i in identities],
+            "policies": policies,
+        },
+    }
+
+
+def secure_client_config(cert_dir: str, identity: str, connect: str) -> dict[str, Any]:
+    """The zenoh configuration of a daemon (`identity`) that connects to the secure hub."""
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [connect], "timeout_ms": -1},
+        "listen": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": f"{cert_dir}/ca.pem",
+                    "connect_certificate": f"{cert_dir}/{identity}.pem",
+                    "connect_private_key": f"{cert_dir}/{identity}-key.pem",
+                    "enable_mtls": True,
+                }
+            }
+        },
+    }

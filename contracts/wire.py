@@ -5,19 +5,18 @@ puts it on the wire, 4-byte encapsulation header included, so a ROS 2 system can
 us through the bridge. Keys follow that bridge: the ROS topic name without its leading slash,
 with an optional namespace prefix (`/scan` -> `scan`, or `car1/scan`).
 
-The functions here turn payloads into small typed values of ours and back. Decoding never
-returns a half-read message: a payload that does not parse raises `WireError`. rosbags
-(de)serialises every message; the ones the controller handles per scan (LaserScan and
-PoseStamped in, Twist and the status String out) go through `contracts.cdr` directly, which
-gives the same bytes and values in a fraction of the time and leaves anything it does not take
-plainly to rosbags.
+The functions here turn payloads into small typed values of ours and back. Every decoder reads
+with `contracts.cdr`'s strict reader (its docstring has the rules) and nothing else: a payload
+that is not exactly one well-formed message of the type, with finite numbers, raises
+`WireError`; there is no fallback to a more lenient decoder. rosbags is the reference the tests
+check the bytes and values against, and still builds the messages nobody reads on a hot path.
+JSON strings are parsed strictly too (`decode_json_msg`).
 """
 
 from __future__ import annotations
 
 import json
 import math
-import struct
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -27,9 +26,18 @@ from numpy.typing import NDArray
 
 from contracts import cdr
 
+WireError = cdr.WireError
+"""A payload is not a well-formed message (raised by the reader; imported from here)."""
 
-class WireError(ValueError):
-    """A payload is not a well-formed message of the expected type."""
+MAX_FRAME_ID_BYTES = 256
+"""Longest header frame_id taken (NUL included); a longer one is malformed."""
+
+MAX_JSON_BYTES = 65_536
+"""Longest JSON string message taken (NUL included); a longer one is malformed."""
+
+QUATERNION_NORM_TOLERANCE = 0.1
+"""How far from 1 a pose's orientation quaternion's norm may be (drivers round; a zero or
+garbled quaternion is far off)."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +76,17 @@ TOPICS = (
 )
 """Every topic of the project (what `qnav record` subscribes to)."""
 
+PUBLISHERS: dict[str, tuple[Topic, ...]] = {
+    "controller": (COMMAND, CONTROLLER_STATUS, ESTOP),
+    "bridge": (VEHICLE_STATE, ESTOP),
+    "sensors": (SCAN, POSE, ESTOP),
+    "operator": (TARGET_POSE, TARGET_POINT, ESTOP, ESTOP_RELEASE, VEHICLE_REQUEST),
+    "recorder": (),
+}
+"""Who may publish what, by certificate identity (config/zenoh-secure.json5's access control):
+only the controller commands the car, only the bridge reports the vehicle, only the operator
+sets targets, releases the stop or asks to arm; anyone known may press the stop."""
+
 
 def key(topic: Topic | str, namespace: str = "") -> str:
     """The zenoh key of a topic: `name`, or `namespace/name` (slashes trimmed)."""
@@ -84,12 +103,13 @@ def _typestore() -> Any:
 
 
 def serialize(message: Any, ros_type: str) -> bytes:
-    """CDR bytes of a rosbags message object."""
+    """CDR bytes of a rosbags message object (the reference the tests check ours against)."""
     return bytes(_typestore().serialize_cdr(message, ros_type))
 
 
 def deserialize(payload: bytes, ros_type: str) -> Any:
-    """A rosbags message object from CDR bytes; `WireError` if they do not parse."""
+    """A rosbags message object from CDR bytes; `WireError` if they do not parse. Lenient (it
+    ignores the options bytes and what follows the message): never used to take an input."""
     try:
         return _typestore().deserialize_cdr(bytes(payload), ros_type)
     except Exception as error:  # rosbags raises several types for truncated or odd input
@@ -101,31 +121,26 @@ def _time(stamp_s: float) -> tuple[int, int]:
     return sec, min(round((stamp_s - sec) * 1e9), 999_999_999)
 
 
-def _header(stamp_s: float, frame_id: str) -> Any:
-    types = _typestore().types
-    sec, nanosec = _time(stamp_s)
-    return types["std_msgs/msg/Header"](
-        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
-    )
-
-
 def _seconds(sec: int, nanosec: int) -> float:
     return float(sec) + float(nanosec) * 1e-9
-
-
-def _stamp_s(header: Any) -> float:
-    return _seconds(header.stamp.sec, header.stamp.nanosec)
 
 
 def _read_header(reader: cdr.Reader) -> tuple[float, str]:
     """std_msgs/msg/Header: (stamp in seconds, frame_id)."""
     sec, nanosec = reader.unpack(cdr.TIME, 4)
-    return _seconds(sec, nanosec), reader.string()
+    if nanosec > 999_999_999:
+        raise WireError(f"header stamp has nanosec {nanosec} (at most 999999999)")
+    return _seconds(sec, nanosec), reader.string(MAX_FRAME_ID_BYTES)
 
 
 def _write_header(writer: cdr.Writer, stamp_s: float, frame_id: str) -> None:
     writer.pack(cdr.TIME, 4, *_time(stamp_s))
     writer.string(frame_id)
+
+
+def _finite(what: str, *values: float) -> None:
+    if not all(math.isfinite(v) for v in values):
+        raise WireError(f"{what} has NaN or infinite values")
 
 
 @dataclass(frozen=True)
@@ -148,7 +163,7 @@ class Scan:
     """The readings."""
 
 
-_SCAN_FLOATS = struct.Struct("<7f")
+_SCAN_FLOATS = cdr.Layout("7f")
 """LaserScan's angle_min, angle_max, angle_increment, time_increment, scan_time, range_min,
 range_max."""
 
@@ -176,38 +191,22 @@ def encode_scan_msg(scan: Scan) -> bytes:
 
 
 def decode_scan_msg(payload: bytes) -> Scan:
-    """A LaserScan; `WireError` if malformed, empty or with a zero or non-finite increment."""
-    try:
-        scan = _read_scan(cdr.Reader(payload))
-    except cdr.NotDirectError:
-        scan = _scan_of(deserialize(payload, SCAN.ros_type))
-    if scan.ranges_m.size == 0:
-        raise WireError("LaserScan has no ranges")
-    increment = scan.angle_increment_rad
-    if not math.isfinite(increment) or increment == 0.0 or not math.isfinite(scan.angle_min_rad):
-        raise WireError(f"LaserScan has an unusable angle_increment {increment}")
-    return scan
+    """A LaserScan; `WireError` if malformed, empty or with a zero or non-finite increment.
 
-
-def _read_scan(reader: cdr.Reader) -> Scan:
+    The readings may be anything (NaN and infinities have meanings, REP 117); whether the scan
+    is plausible for the lidar is the controller's to judge (`[lidar]` settings).
+    """
+    reader = cdr.Reader(payload)
     stamp_s, frame_id = _read_header(reader)
     angle_min, _, increment, _, _, range_min, range_max = reader.unpack(_SCAN_FLOATS, 4)
     ranges = reader.float32_sequence()
     reader.float32_sequence()  # intensities: unused, but they must be there
     reader.finish()
+    if ranges.size == 0:
+        raise WireError("LaserScan has no ranges")
+    if not math.isfinite(increment) or increment == 0.0 or not math.isfinite(angle_min):
+        raise WireError(f"LaserScan has an unusable angle_increment {increment}")
     return Scan(stamp_s, frame_id, angle_min, increment, range_min, range_max, ranges)
-
-
-def _scan_of(message: Any) -> Scan:
-    return Scan(
-        stamp_s=_stamp_s(message.header),
-        frame_id=str(message.header.frame_id),
-        angle_min_rad=float(message.angle_min),
-        angle_increment_rad=float(message.angle_increment),
-        range_min_m=float(message.range_min),
-        range_max_m=float(message.range_max),
-        ranges_m=np.asarray(message.ranges, dtype=np.float32),
-    )
 
 
 @dataclass(frozen=True)
@@ -226,64 +225,66 @@ class Pose2D:
     """Heading about z, counter-clockwise from x (0 for a point)."""
 
 
-def encode_pose_msg(pose: Pose2D) -> bytes:
-    """CDR of a PoseStamped with the yaw as a rotation about z."""
-    types = _typestore().types
-    message = types[POSE.ros_type](
-        header=_header(pose.stamp_s, pose.frame_id),
-        pose=types["geometry_msgs/msg/Pose"](
-            position=types["geometry_msgs/msg/Point"](x=pose.x_m, y=pose.y_m, z=0.0),
-            orientation=types["geometry_msgs/msg/Quaternion"](
-                x=0.0, y=0.0, z=math.sin(pose.yaw_rad / 2), w=math.cos(pose.yaw_rad / 2)
-            ),
-        ),
-    )
-    return serialize(message, POSE.ros_type)
-
-
-_POSE_FLOATS = struct.Struct("<7d")
+_POSE_FLOATS = cdr.Layout("7d")
 """geometry_msgs/msg/Pose: position x, y, z and orientation x, y, z, w."""
+
+_POINT_FLOATS = cdr.Layout("3d")
+"""geometry_msgs/msg/Point: x, y, z."""
+
+
+def encode_pose_msg(pose: Pose2D) -> bytes:
+    """CDR of a PoseStamped with the yaw as a rotation about z (the bytes rosbags writes)."""
+    writer = cdr.Writer()
+    _write_header(writer, pose.stamp_s, pose.frame_id)
+    half = pose.yaw_rad / 2
+    writer.pack(_POSE_FLOATS, 8, pose.x_m, pose.y_m, 0.0, 0.0, 0.0, math.sin(half), math.cos(half))
+    return writer.payload()
 
 
 def decode_pose_msg(payload: bytes) -> Pose2D:
-    """A PoseStamped as a planar pose; `WireError` if malformed or not finite."""
-    try:
-        reader = cdr.Reader(payload)
-        stamp_s, frame_id = _read_header(reader)
-        x, y, _, qx, qy, qz, qw = reader.unpack(_POSE_FLOATS, 8)
-        reader.finish()
-    except cdr.NotDirectError:
-        message = deserialize(payload, POSE.ros_type)
-        p, q = message.pose.position, message.pose.orientation
-        stamp_s, frame_id = _stamp_s(message.header), str(message.header.frame_id)
-        x, y, qx, qy, qz, qw = p.x, p.y, q.x, q.y, q.z, q.w
-    if not all(math.isfinite(v) for v in (x, y, qx, qy, qz, qw)):
-        raise WireError("PoseStamped has NaN or infinite values")
+    """A PoseStamped as a planar pose; `WireError` if malformed, not finite, or its quaternion
+    is not a unit quaternion (within `QUATERNION_NORM_TOLERANCE`)."""
+    reader = cdr.Reader(payload)
+    stamp_s, frame_id = _read_header(reader)
+    x, y, z, qx, qy, qz, qw = reader.unpack(_POSE_FLOATS, 8)
+    reader.finish()
+    _finite("PoseStamped", x, y, z, qx, qy, qz, qw)
     norm = math.sqrt(qx**2 + qy**2 + qz**2 + qw**2)
-    if norm < 1e-6:
-        raise WireError("PoseStamped has a zero quaternion")
+    if not abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE:
+        raise WireError(f"PoseStamped has a quaternion of norm {norm:.6g}, not a unit quaternion")
     yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy**2 + qz**2))
     return Pose2D(stamp_s, frame_id, x, y, yaw)
 
 
 def encode_point_msg(point: Pose2D) -> bytes:
     """CDR of a PointStamped (the yaw is dropped)."""
-    types = _typestore().types
-    message = types[TARGET_POINT.ros_type](
-        header=_header(point.stamp_s, point.frame_id),
-        point=types["geometry_msgs/msg/Point"](x=point.x_m, y=point.y_m, z=0.0),
-    )
-    return serialize(message, TARGET_POINT.ros_type)
+    writer = cdr.Writer()
+    _write_header(writer, point.stamp_s, point.frame_id)
+    writer.pack(_POINT_FLOATS, 8, point.x_m, point.y_m, 0.0)
+    return writer.payload()
 
 
 def decode_point_msg(payload: bytes) -> Pose2D:
     """A PointStamped as a planar point; `WireError` if malformed or not finite."""
-    message = deserialize(payload, TARGET_POINT.ros_type)
-    if not (math.isfinite(message.point.x) and math.isfinite(message.point.y)):
-        raise WireError("PointStamped has NaN or infinite values")
-    return Pose2D(
-        _stamp_s(message.header), str(message.header.frame_id), message.point.x, message.point.y
-    )
+    reader = cdr.Reader(payload)
+    stamp_s, frame_id = _read_header(reader)
+    x, y, z = reader.unpack(_POINT_FLOATS, 8)
+    reader.finish()
+    _finite("PointStamped", x, y, z)
+    return Pose2D(stamp_s, frame_id, x, y)
+
+
+def check_position(
+    what: str, pose: Pose2D, max_position_m: float, setting: str = "max_position_m"
+) -> None:
+    """`WireError` unless the pose (or point) is finite and within `max_position_m` of the
+    frame's origin (a position beyond it is no place the car can be); the error names
+    `setting`."""
+    _finite(what, pose.x_m, pose.y_m, pose.yaw_rad)
+    if math.hypot(pose.x_m, pose.y_m) > max_position_m:
+        raise WireError(
+            f"{what} at ({pose.x_m:.6g}, {pose.y_m:.6g}) m is beyond {setting} = {max_position_m}"
+        )
 
 
 @dataclass(frozen=True)
@@ -300,7 +301,7 @@ STOP = Twist2D(0.0, 0.0)
 """The command that stops the car."""
 
 
-_TWIST = struct.Struct("<6d")
+_TWIST = cdr.Layout("6d")
 """geometry_msgs/msg/Twist: linear x, y, z and angular x, y, z."""
 
 
@@ -312,22 +313,29 @@ def encode_twist_msg(twist: Twist2D) -> bytes:
 
 
 def decode_twist_msg(payload: bytes) -> Twist2D:
-    """A Twist as a planar command; `WireError` if malformed or not finite."""
-    message = deserialize(payload, COMMAND.ros_type)
-    linear, angular = float(message.linear.x), float(message.angular.z)
-    if not (math.isfinite(linear) and math.isfinite(angular)):
-        raise WireError("Twist has NaN or infinite values")
-    return Twist2D(linear, angular)
+    """A Twist as a planar command; `WireError` if malformed or any of its six numbers is not
+    finite (the four we do not use included: a NaN anywhere is no command anyone meant)."""
+    reader = cdr.Reader(payload)
+    values = reader.unpack(_TWIST, 8)
+    reader.finish()
+    _finite("Twist", *values)
+    return Twist2D(values[0], values[5])
 
 
 def encode_bool_msg(value: bool) -> bytes:
-    """CDR of a std_msgs/Bool."""
-    return serialize(_typestore().types[ESTOP.ros_type](data=value), ESTOP.ros_type)
+    """CDR of a std_msgs/Bool (the bytes rosbags writes: no padding)."""
+    writer = cdr.Writer()
+    writer.boolean(value)
+    return writer.payload()
 
 
 def decode_bool_msg(payload: bytes) -> bool:
-    """A std_msgs/Bool; `WireError` if malformed."""
-    return bool(deserialize(payload, ESTOP.ros_type).data)
+    """A std_msgs/Bool; `WireError` unless it is exactly one: a value byte of 0 or 1 and
+    nothing after it but zero padding (`contracts.cdr`). Releasing a stop hangs on this."""
+    reader = cdr.Reader(payload)
+    value = reader.boolean()
+    reader.finish()
+    return value
 
 
 def encode_json_msg(value: dict[str, Any]) -> bytes:
@@ -337,13 +345,34 @@ def encode_json_msg(value: dict[str, Any]) -> bytes:
     return writer.payload()
 
 
+def _no_constant(name: str) -> Any:
+    raise WireError(f"JSON holds {name}, which is not JSON")
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    result: dict[str, Any] = {}
+    for name, field in pairs:
+        if name in result:
+            raise WireError(f"JSON object has the key {name!r} twice")
+        result[name] = field
+    return result
+
+
 def decode_json_msg(payload: bytes) -> dict[str, Any]:
-    """The JSON object inside a std_msgs/String; `WireError` if either is malformed."""
-    text = deserialize(payload, "std_msgs/msg/String").data
+    """The JSON object inside a std_msgs/String; `WireError` if either is malformed.
+
+    Strict JSON: NaN, Infinity and -Infinity are refused, and so is an object with a key twice
+    (which of the two counts differs between parsers); the string is at most `MAX_JSON_BYTES`.
+    """
+    reader = cdr.Reader(payload)
+    text = reader.string(MAX_JSON_BYTES)
+    reader.finish()
     try:
-        value = json.loads(text)
+        value = json.loads(text, parse_constant=_no_constant, object_pairs_hook=_no_duplicates)
     except json.JSONDecodeError as error:
         raise WireError(f"String payload is not JSON: {error}") from None
+    except RecursionError:
+        raise WireError("String payload nests JSON too deeply") from None
     if not isinstance(value, dict):
         raise WireError("String payload is not a JSON object")
     return value

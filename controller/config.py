@@ -65,15 +65,22 @@ class LidarSettings:
     max_invalid_fraction: float = 0.5
     """A scan with a larger fraction of invalid readings is malformed (not used), so a failing
     lidar stops the car through the scan timeout."""
+    min_readings: int = 50
+    """A scan with fewer readings is malformed: no lidar the policy can use has so few (a
+    single reading would be stretched over every beam)."""
+    min_field_of_view_rad: float = math.pi
+    """A scan covering less than this angle (readings times abs(angle_increment)) is malformed."""
 
     def __post_init__(self) -> None:
         check_range(self, "mount_yaw_rad", self.mount_yaw_rad, -2 * math.pi, 2 * math.pi)
+        check_range(self, "min_readings", self.min_readings, 1, 100_000)
         if math.isnan(self.uncovered_range_m) or self.uncovered_range_m < 0:
             raise ConfigError(
                 f"lidar.uncovered_range_m = {self.uncovered_range_m!r} is out of range: "
                 "allowed [0, inf]"
             )
         check_range(self, "max_invalid_fraction", self.max_invalid_fraction, 0.0, 1.0)
+        check_range(self, "min_field_of_view_rad", self.min_field_of_view_rad, 0.0, 2 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -96,8 +103,12 @@ class SafetySettings:
     name one); a pose or target in another frame is malformed."""
     estop_start_latched: bool = False
     """Start with the emergency stop latched, so that the car moves only after a release."""
+    max_position_m: float = 1000.0
+    """A pose or target farther than this from the frame's origin is malformed: no room the car
+    drives in is that large, and 1e308 is a broken message, not a place."""
 
     def __post_init__(self) -> None:
+        check_range(self, "max_position_m", self.max_position_m, 0.0, 1e7, exclusive_low=True)
         check_range(self, "scan_timeout_s", self.scan_timeout_s, 0.0, 60.0)
         check_range(self, "pose_timeout_s", self.pose_timeout_s, 0.0, 60.0)
         check_range(

@@ -36,7 +36,7 @@ from typing import Any
 from contracts import wire
 from contracts.health import Heartbeat
 from contracts.settings import to_toml
-from contracts.transport import open_session
+from contracts.transport import StoppedError, open_session
 from contracts.wire import Twist2D
 from controller.config import DaemonConfig, load_config
 from controller.decision import Controller, Input, Output, Reason
@@ -146,7 +146,12 @@ class Daemon:
         self.controller.warm_up()
         wire.decode_twist_msg(wire.encode_twist_msg(wire.STOP))
         wire.decode_json_msg(wire.encode_json_msg({}))
-        session = open_session(self.config.zenoh)
+        try:
+            session = open_session(self.config.zenoh, self.stopping)
+        except StoppedError:
+            log.info("stopped before zenoh connected: no command was ever published")
+            self.heartbeat.close()
+            return
         try:
             self._command = session.declare_publisher(
                 self.command_key,
@@ -193,9 +198,8 @@ class Daemon:
     def _send(self, command: Twist2D) -> None:
         """Publish a command the moment the controller decides it (its status comes after)."""
         payload = wire.encode_twist_msg(command)
-        # Stamped as the put starts: a receiver can get the command before put returns (the
-        # daemon's thread is preempted on a loaded machine), and the bench's outbound part
-        # (this stamp -> the receiver's callback) must not come out negative then.
+        # Stamped as it is handed to zenoh: stamped after `put` returned, a listener on a loaded
+        # machine could hold the command before the stamp (a negative outbound time).
         self._sent_s = time.monotonic()
         self._command.put(payload)
 

@@ -16,9 +16,10 @@ Safety rules, checked in this order by `decide` (the first that applies names th
 `status.reason`; every stop also restarts the policy's window, so a resumed run starts a fresh
 episode):
 
-1. `estop_latched`: an emergency stop was pressed (Bool true on the estop topic), and has not
-   been released on purpose: a release request (Bool true on the release topic) is honoured only
-   while the last estop message says false (the button is out); one that comes while the
+1. `estop_latched`: an emergency stop was pressed (Bool true on the estop topic, or any
+   malformed payload there: someone tried to press it), and has not been released on purpose:
+   a release request (a canonical Bool true on the release topic) is honoured only while the
+   last estop message is a well-formed false (the button is out); one that comes while the
    button is still pressed is refused and counted.
 2. `no_scan` / `scan_stale`: the policy reads a lidar and no scan has arrived, or the newest
    arrived longer than the scan timeout ago (default two control periods).
@@ -31,9 +32,12 @@ episode):
    above, but it never moves the car).
 
 Otherwise the policy decides (`policy`) and the command is its action's velocity from the policy
-file's contract. A malformed payload (bad CDR, NaN, wrong frame, a scan with too many invalid
+file's contract. A malformed payload (not exactly one well-formed message, NaN, wrong frame, a
+pose beyond `safety.max_position_m` or with a non-unit quaternion, a scan that is no plausible
+scan of a planar lidar: range_min/range_max not finite and ordered, fewer than
+`lidar.min_readings` readings, less than `lidar.min_field_of_view_rad`, too many invalid
 readings) is counted and its error returned; it never replaces the last good input, so it can
-only make the car stop (through the timeouts), never move.
+only make the car stop (through the timeouts, or the emergency stop), never move.
 """
 
 from __future__ import annotations
@@ -259,9 +263,11 @@ class Controller:
                 return self._take_release(wire.decode_bool_msg(payload), now)
         except Exception as error:  # whatever a payload does, it is only ever refused
             self.counters.malformed[source.value] += 1
-            return (
-                str(error) if isinstance(error, WireError) else f"{type(error).__name__}: {error}"
-            )
+            why = str(error) if isinstance(error, WireError) else f"{type(error).__name__}: {error}"
+            if source is Input.ESTOP:
+                self._press_malformed()
+                return f"{why} (taken as a press: the emergency stop is latched)"
+            return why
         return None
 
     def on_scan(self, scan: Scan, now: float) -> str | None:
@@ -303,10 +309,29 @@ class Controller:
         if not self.uses_scan:
             return  # the lidar-less policy has no use for it
         count, increment = len(scan.ranges_m), abs(scan.angle_increment_rad)
+        if count < self.lidar.min_readings:
+            raise WireError(
+                f"scan of {count} readings (fewer than lidar.min_readings = "
+                f"{self.lidar.min_readings})"
+            )
+        if not (
+            math.isfinite(scan.range_min_m)
+            and math.isfinite(scan.range_max_m)
+            and 0.0 <= scan.range_min_m < scan.range_max_m
+        ):
+            raise WireError(
+                f"scan range_min {scan.range_min_m} / range_max {scan.range_max_m} are not "
+                "finite with 0 <= range_min < range_max"
+            )
         if count > MAX_SCAN_READINGS or increment > math.pi or count * increment > 4 * math.pi:
             raise WireError(
                 f"scan of {count} readings {increment:.4g} rad apart is not a planar scan of at "
                 f"most two turns and {MAX_SCAN_READINGS} readings"
+            )
+        if count * increment < self.lidar.min_field_of_view_rad:
+            raise WireError(
+                f"scan covers {count * increment:.4g} rad (less than lidar.min_field_of_view_rad "
+                f"= {self.lidar.min_field_of_view_rad:.4g})"
             )
         resampled = resample_scan(scan, self.scan_rules)
         if resampled.invalid_fraction > self.lidar.max_invalid_fraction:
@@ -318,8 +343,7 @@ class Controller:
         self._mark(Input.SCAN, None, now)
 
     def _check_frame(self, what: str, value: Pose2D) -> None:
-        if not all(math.isfinite(v) for v in (value.x_m, value.y_m, value.yaw_rad)):
-            raise WireError(f"{what} has NaN or infinite values")
+        wire.check_position(what, value, self.safety.max_position_m, "safety.max_position_m")
         wanted = self.safety.frame_id
         if wanted and value.frame_id != wanted:
             raise WireError(f"{what} in frame {value.frame_id!r}; safety.frame_id is {wanted!r}")
@@ -346,6 +370,14 @@ class Controller:
             self.estop_latched = True
             self.counters.estop_presses += 1
         self._mark(Input.ESTOP, pressed, now)
+
+    def _press_malformed(self) -> None:
+        """A malformed message on the estop topic is someone pressing the stop with a broken
+        sender: press and latch it, and hold it pressed until a well-formed false says the
+        button is out (its age stays that of the last well-formed message)."""
+        self.estop_pressed = True
+        self.estop_latched = True
+        self.counters.estop_presses += 1
 
     def _take_release(self, request: bool, now: float) -> str | None:
         if not request:

@@ -4,14 +4,23 @@ Files use MCAP's `ros2` profile: one `ros2msg` schema per message type (the type
 definition, as rosbag2 writes it) and `cdr` message encoding, with each payload stored exactly as
 it came off the wire. Foxglove and rosbag2's MCAP storage open them.
 
+Messages are written in log-time order: the recorder stamps each one under the writer's lock,
+never earlier than the one before, so readers that need order without a chunk index (rosbags'
+`AnyReader`) take the files as they are. A recording folder is also a rosbag2 bag: a
+`metadata.yaml` (rosbag2 format version 8, MCAP storage) lists its files and topics, written
+when the recording ends (and by `recover`).
+
 Nothing is lost to a crash: messages are written without chunking and flushed to the operating
-system after each one, so a recorder killed with SIGKILL leaves a file that `read_recording`
-reads up to its last complete record. Files rotate by size or duration; each is complete and
+system after each one, so a recorder killed with SIGKILL leaves a file holding every message up
+to its last complete record. `read_recording` (and so `qnav playback`) reads such a file as it
+is; other readers need its summary and footer, which `recover` (`qnav recover`) writes, keeping
+the cut original as `NAME.mcap.cut`. Files rotate by size or duration; each is complete and
 self-describing on its own.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import struct
 import threading
@@ -24,7 +33,7 @@ from typing import IO, Any, NamedTuple
 
 from contracts.errors import ConfigError
 from contracts.health import Heartbeat
-from contracts.transport import ZenohSettings, open_session
+from contracts.transport import StoppedError, ZenohSettings, open_session
 from contracts.wire import TOPICS, Topic, key
 
 log = logging.getLogger(__name__)
@@ -94,10 +103,20 @@ class McapWriter:
         self._stream: IO[bytes] | None = None
         self._channels: dict[tuple[str, str], int] = {}
         self._opened_at = 0.0
+        self._last_log_time_ns = 0
 
-    def write(self, topic: str, ros_type: str, payload: bytes, log_time_ns: int) -> None:
-        """Append one message (topic with its leading slash) and flush it to the OS."""
+    def write(
+        self, topic: str, ros_type: str, payload: bytes, log_time_ns: int | None = None
+    ) -> None:
+        """Append one message (topic with its leading slash) and flush it to the OS.
+
+        Without `log_time_ns` the message is stamped now, under the writer's lock and never
+        earlier than the previous one, so a file's messages are in log-time order whichever
+        thread delivers them."""
         with self._lock:
+            if log_time_ns is None:
+                log_time_ns = max(time.time_ns(), self._last_log_time_ns)
+            self._last_log_time_ns = max(self._last_log_time_ns, log_time_ns)
             if self._writer is None or self._due_for_rotation():
                 self._open_next()
             channel = self._channels.get((topic, ros_type))
@@ -119,9 +138,12 @@ class McapWriter:
             self.messages += 1
 
     def close(self) -> None:
-        """Finish the current file (summary and footer); safe to call twice."""
+        """Finish the current file (summary and footer) and write the folder's rosbag2
+        metadata.yaml; safe to call twice."""
         with self._lock:
             self._finish()
+            if self.files:
+                write_rosbag_metadata(self.folder)
 
     def __enter__(self) -> McapWriter:
         return self
@@ -192,6 +214,124 @@ def read_recording(path: Path) -> Iterator[RecordedMessage]:
                 yield RecordedMessage(topic, ros_type, record.log_time, bytes(record.data))
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+"""The bytes a complete MCAP file starts and ends with."""
+
+
+def is_complete(path: Path) -> bool:
+    """The file ends with MCAP's footer magic and its summary reads (it was closed properly)."""
+    from mcap.reader import make_reader
+
+    path = Path(path)
+    with path.open("rb") as stream:
+        if path.stat().st_size < 2 * len(MCAP_MAGIC):
+            return False
+        stream.seek(-len(MCAP_MAGIC), 2)
+        if stream.read() != MCAP_MAGIC:
+            return False
+        stream.seek(0)
+        try:
+            return make_reader(stream).get_summary() is not None
+        except Exception:  # a damaged summary is as bad as none
+            return False
+
+
+def recover(path: Path) -> int:
+    """Rewrite a cut MCAP file (a recorder killed mid-write) as a complete one holding every
+    complete message, in place; the original is kept beside it as `NAME.mcap.cut`. Returns the
+    messages kept. Run `write_rosbag_metadata` on the folder afterwards."""
+    path = Path(path)
+    messages = list(read_recording(path))
+    partial = path.with_name(path.name + ".recovering")
+    with partial.open("wb") as stream:
+        from mcap.writer import Writer
+
+        writer = Writer(stream)
+        writer.start(profile=PROFILE, library="qnav recover")
+        channels: dict[tuple[str, str], int] = {}
+        for index, message in enumerate(messages):
+            channel = channels.get((message.topic, message.ros_type))
+            if channel is None:
+                schema = writer.register_schema(
+                    message.ros_type, SCHEMA_ENCODING, message_definition(message.ros_type)
+                )
+                channel = writer.register_channel(message.topic, MESSAGE_ENCODING, schema)
+                channels[(message.topic, message.ros_type)] = channel
+            writer.add_message(
+                channel,
+                log_time=message.log_time_ns,
+                data=message.payload,
+                publish_time=message.log_time_ns,
+                sequence=index,
+            )
+        writer.finish()  # type: ignore[no-untyped-call]
+    path.replace(path.with_name(path.name + ".cut"))
+    partial.replace(path)
+    return len(messages)
+
+
+def write_rosbag_metadata(folder: Path) -> Path:
+    """The folder's `metadata.yaml` as rosbag2 writes it for MCAP storage (format version 8),
+    from its `*.mcap` files, so `rosbags.rosbag2.Reader(folder)` and `ros2 bag info` open it."""
+    folder = Path(folder)
+    files = sorted(folder.glob("*.mcap"))
+    per_file: list[dict[str, Any]] = []
+    topics: dict[str, dict[str, Any]] = {}
+    for path in files:
+        messages = list(read_recording(path))
+        times = [m.log_time_ns for m in messages]
+        per_file.append(
+            {
+                "path": path.name,
+                "starting_time": {"nanoseconds_since_epoch": min(times, default=0)},
+                "duration": {"nanoseconds": (max(times) - min(times)) if times else 0},
+                "message_count": len(messages),
+            }
+        )
+        for message in messages:
+            entry = topics.setdefault(message.topic, {"type": message.ros_type, "count": 0})
+            entry["count"] += 1
+    starts = [f["starting_time"]["nanoseconds_since_epoch"] for f in per_file if f["message_count"]]
+    ends = [
+        f["starting_time"]["nanoseconds_since_epoch"] + f["duration"]["nanoseconds"]
+        for f in per_file
+        if f["message_count"]
+    ]
+    start = min(starts, default=0)
+    info = {
+        "version": 8,
+        "storage_identifier": "mcap",
+        "duration": {"nanoseconds": (max(ends) - start) if ends else 0},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": sum(f["message_count"] for f in per_file),
+        "topics_with_message_count": [
+            {
+                "topic_metadata": {
+                    "name": name,
+                    "type": entry["type"],
+                    "serialization_format": MESSAGE_ENCODING,
+                    "offered_qos_profiles": "",
+                    "type_description_hash": "",
+                },
+                "message_count": entry["count"],
+            }
+            for name, entry in sorted(topics.items())
+        ],
+        "compression_format": "",
+        "compression_mode": "",
+        "relative_file_paths": [path.name for path in files],
+        "files": per_file,
+        "custom_data": {},
+        "ros_distro": "",
+    }
+    target = folder / "metadata.yaml"
+    partial = folder / "metadata.yaml.partial"
+    # JSON is YAML (1.2, flow style): every YAML reader takes it, with no YAML library here.
+    partial.write_text(json.dumps({"rosbag2_bagfile_information": info}, indent=2) + "\n")
+    partial.replace(target)
+    return target
+
+
 def read_recordings(paths: list[Path]) -> Iterator[RecordedMessage]:
     """Messages of several files (a rotated recording), in order of log time."""
     messages = [m for path in paths for m in read_recording(path)]
@@ -233,12 +373,7 @@ def record(
         def on_sample(sample: Any) -> None:
             nonlocal errors
             try:
-                writer.write(
-                    "/" + topic.name,
-                    topic.ros_type,
-                    bytes(sample.payload.to_bytes()),
-                    time.time_ns(),
-                )
+                writer.write("/" + topic.name, topic.ros_type, bytes(sample.payload.to_bytes()))
             except Exception:  # a full disk must not kill zenoh's thread silently
                 errors += 1
                 if errors <= 3 or errors % 1000 == 0:
@@ -246,7 +381,13 @@ def record(
 
         return on_sample
 
-    with open_session(settings.zenoh) as session:
+    try:
+        opened = open_session(settings.zenoh, stop)
+    except StoppedError:
+        log.info("stopped before zenoh connected: nothing recorded")
+        writer.close()
+        return writer
+    with opened as session:
         subscribers = [
             session.declare_subscriber(key(t, settings.zenoh.namespace), subscriber(t))
             for t in topics

@@ -45,7 +45,7 @@ from contracts.mavlink import (
     ned_to_enu,
 )
 from contracts.settings import parse_assignments, to_toml, with_overrides
-from contracts.transport import open_session
+from contracts.transport import StoppedError, open_session
 from contracts.wire import (
     COMMAND,
     POSE,
@@ -73,7 +73,7 @@ REQUEST_RETRY_S = 0.5
 """An arm or mode request not yet seen in the vehicle's heartbeat is sent again this often."""
 REQUEST_ATTEMPTS = 10
 """... this many times, then the bridge gives up and says so."""
-EXIT_ACK_WAIT_S = 0.3
+EXIT_ACK_WAIT_S = 0.2
 """On shutdown, how long to wait for the disarm to be acknowledged before sending it again."""
 
 
@@ -154,45 +154,72 @@ class Bridge:
         self._subscribers: list[Any] = []
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
+        self.error: ConfigError | None = None
+        """Why zenoh could not be joined (with `start(zenoh_in_background=True)`)."""
         self._heartbeat = Heartbeat.from_env("bridge")
 
     # -- life cycle ---------------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Open the MAVLink port and the zenoh session, subscribe, start the bridge thread."""
+    def start(self, zenoh_in_background: bool = False) -> None:
+        """Open the MAVLink port, start the bridge thread (heartbeat, failsafe stops, vehicle
+        state), then join zenoh and subscribe.
+
+        With `zenoh_in_background` (the daemon) zenoh is joined by a helper thread, so the
+        vehicle side runs and stops the car whether or not zenoh is reachable: no zenoh is no
+        command. A failure to open the session is then kept in `error`."""
         try:
             self.link.open()
         except OSError as error:
             raise ConfigError(
                 f"mavlink.connection {self.settings.mavlink.connection!r} cannot be opened: {error}"
             ) from None
-        namespace = self.settings.zenoh.namespace
-        try:
-            self._session = open_session(self.settings.zenoh)
-        except ConfigError:
-            self.link.close()
-            raise
-        self._state_publisher = self._session.declare_publisher(key(VEHICLE_STATE, namespace))
-        self._subscribers.append(
-            self._session.declare_subscriber(key(COMMAND, namespace), self._on_command)
-        )
-        self._subscribers.append(
-            self._session.declare_subscriber(key(VEHICLE_REQUEST, namespace), self._on_request)
-        )
-        if self._guided and self.settings.vision.forward_pose:
-            self._subscribers.append(
-                self._session.declare_subscriber(key(POSE, namespace), self._on_pose)
-            )
         self._thread = threading.Thread(target=self._loop, name="bridge", daemon=True)
         self._thread.start()
         log.info(
-            "bridge up: zenoh %s -> MAVLink %s (%s output%s), command timeout %.3f s",
-            key(COMMAND, namespace),
+            "bridge up: MAVLink %s (%s output%s), command timeout %.3f s",
             self.settings.mavlink.connection,
             self.settings.output.mode,
             ", signed" if self.link.signing else "",
             self.settings.failsafe.command_timeout_s,
         )
+        if zenoh_in_background:
+            threading.Thread(target=self._join_zenoh, name="bridge-zenoh", daemon=True).start()
+            return
+        try:
+            self._join_zenoh(raise_errors=True)
+        except ConfigError:
+            self.close()
+            raise
+
+    def _join_zenoh(self, raise_errors: bool = False) -> None:
+        namespace = self.settings.zenoh.namespace
+        try:
+            session = open_session(self.settings.zenoh, self._stopping)
+        except StoppedError:
+            return
+        except ConfigError as error:
+            if raise_errors:
+                raise
+            log.error("%s", error)
+            self.error = error
+            return
+        with self._lock:
+            if self._gate.closed:  # closed while connecting
+                session.close()
+                return
+            self._session = session
+            self._state_publisher = session.declare_publisher(key(VEHICLE_STATE, namespace))
+            self._subscribers.append(
+                session.declare_subscriber(key(COMMAND, namespace), self._on_command)
+            )
+            self._subscribers.append(
+                session.declare_subscriber(key(VEHICLE_REQUEST, namespace), self._on_request)
+            )
+            if self._guided and self.settings.vision.forward_pose:
+                self._subscribers.append(
+                    session.declare_subscriber(key(POSE, namespace), self._on_pose)
+                )
+        log.info("zenoh joined: commands from %s", key(COMMAND, namespace))
 
     def close(self) -> None:
         """Refuse further commands, send stop, then disarm (if configured), and close."""
@@ -213,7 +240,8 @@ class Bridge:
         if failsafe.disarm_on_exit:
             self._disarm_on_exit()
         self._publish_state(self._clock(), bridge="stopped")
-        self._session.close()
+        if self._session is not None:
+            self._session.close()
         self.link.close()
         self._heartbeat.close()
         log.info("bridge closed")
@@ -320,6 +348,15 @@ class Bridge:
         except WireError as error:
             self._malformed("command", error)
             return
+        absurd = mapping.implausible(
+            twist, self.settings.output, self.settings.failsafe.implausible_factor
+        )
+        if absurd is not None:
+            # Nobody meant this: count it, and stop rather than keep the last command.
+            self._malformed("command", ValueError(absurd))
+            with self._lock:
+                self.link.send(self._stop_message, as_gcs=self._as_gcs)
+            return
         message = self._command_message(twist)
         with self._lock:
             if not self._gate.accept_command(now):
@@ -352,6 +389,13 @@ class Bridge:
             arm, mode = _parse_request(request)
         except (WireError, ValueError) as error:
             self._malformed("request", error)
+            return
+        if arm is True and not self.settings.vehicle.remote_arming:
+            with self._lock:
+                self.counters["refused"] += 1
+            self._rate_log.warning(
+                "remote arming", "refused an arm request: vehicle.remote_arming is off"
+            )
             return
         log.info("request: %s", request)
         with self._lock:
@@ -580,13 +624,20 @@ class Bridge:
     def _publish_state(self, now: float, bridge: str = "running") -> None:
         self._state_dirty = False
         self._next_state_s = now + self.settings.vehicle.state_period_s
+        if self._state_publisher is None:
+            return  # zenoh not joined yet: nobody to tell
         try:
             self._state_publisher.put(encode_json_msg(self.state(now, bridge)))
         except Exception as error:  # zenoh errors must not stop the failsafe loop
             self._rate_log.warning("state", "could not publish the vehicle state: %s", error)
 
     def _disarm_on_exit(self) -> None:
-        """Send disarm until acknowledged (or a few tries), reading replies here."""
+        """Send disarm until acknowledged (or a few tries), reading replies here. With the link
+        down nobody would answer: one disarm is sent, and the bridge does not wait."""
+        if not self._link_up:
+            self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
+            log.warning("disarm on exit: sent once; the vehicle's link is down")
+            return
         for _ in range(3):
             self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
             deadline = self._clock() + EXIT_ACK_WAIT_S
@@ -643,10 +694,15 @@ def run(args: argparse.Namespace) -> int:
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    bridge = Bridge(settings)
     try:
-        with Bridge(settings):
-            while not stop.wait(0.5):
-                pass
+        bridge.start(zenoh_in_background=True)
+        try:
+            while not stop.wait(0.1):
+                if bridge.error is not None:
+                    raise bridge.error
+        finally:
+            bridge.close()
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -7,6 +7,7 @@ above trim, MANUAL_CONTROL y > 0 and a NED yaw rate > 0 all turn right (clockwis
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 from contracts.mavlink import enu_to_ned
@@ -60,7 +61,29 @@ class VisionPose(NamedTuple):
 
 
 def _clip(value: float, limit: float) -> float:
+    """`value` clipped to [-limit, limit]; a non-finite value is neutral (0), never a limit."""
+    if not math.isfinite(value):
+        return 0.0
     return max(-limit, min(limit, value))
+
+
+def full_scale(output: OutputSettings) -> tuple[float, float]:
+    """The speed (m/s) and turn rate (rad/s) that the output mode maps to its limits."""
+    if output.mode == "guided":
+        return output.guided_max_speed_mps, output.guided_max_turn_rate_radps
+    return output.speed_at_full_throttle_mps, output.turn_rate_at_full_steering_radps
+
+
+def implausible(twist: Twist2D, output: OutputSettings, factor: float) -> str | None:
+    """Why a command is too far beyond the output's full scale to be meant, or None."""
+    speed, turn_rate = full_scale(output)
+    for name, value, scale, unit in (
+        ("linear.x", twist.linear_mps, speed, "m/s"),
+        ("angular.z", twist.angular_radps, turn_rate, "rad/s"),
+    ):
+        if not math.isfinite(value) or abs(value) > factor * max(scale, 1e-9):
+            return f"{name} = {value} {unit} is beyond {factor} x the full scale {scale} {unit}"
+    return None
 
 
 def sticks(twist: Twist2D, output: OutputSettings) -> Sticks:

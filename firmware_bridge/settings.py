@@ -157,8 +157,13 @@ class FailsafeSettings:
     """On SIGINT or SIGTERM, stop is sent this many times (UDP may drop one)."""
     disarm_on_exit: bool = True
     """On SIGINT or SIGTERM, disarm after sending stop."""
+    implausible_factor: float = 10.0
+    """A command beyond this many times the output's full scale (speed or turn rate) is not
+    one anyone meant: it is refused as malformed and the car is stopped; closer overshoot is
+    clipped."""
 
     def __post_init__(self) -> None:
+        check_range(self, "implausible_factor", self.implausible_factor, 1.0, 1e6)
         check_range(self, "command_timeout_s", self.command_timeout_s, 0.01, 10.0)
         check_range(self, "stop_period_s", self.stop_period_s, 0.005, 2.0)
         check_range(self, "stop_repeats_on_exit", self.stop_repeats_on_exit, 1, 100)
@@ -174,6 +179,10 @@ class VehicleSettings:
     """Arm when the link first comes up (later arming: a request on qnav/vehicle_request)."""
     set_mode_on_connect: bool = True
     """Switch to the output mode's Rover mode (MANUAL or GUIDED) when the link first comes up."""
+    remote_arming: bool = False
+    """Take arm requests from zenoh (qnav/vehicle_request); off, anyone on the network could
+    arm the car, so only arm_on_connect, the RC or a ground station arm it (disarm and mode
+    requests are always taken)."""
     state_period_s: float = 0.2
     """Period of the vehicle state message on zenoh (also sent at once on any change)."""
 

@@ -189,9 +189,18 @@ def build_parser() -> argparse.ArgumentParser:
     export.set_defaults(handler=_lazy("qnav.commands:export"))
 
     calibrate = verbs.add_parser(
-        "calibrate", help="random agent in each of the paper's scenarios, beside the paper's rows"
+        "calibrate",
+        help="random, go-to-target and oracle agents in the paper's scenarios, beside its rows",
     )
-    calibrate.add_argument("--episodes", type=int, default=2000, help="episodes per scenario")
+    calibrate.add_argument(
+        "--episodes", type=int, default=2000, help="random and go-to-target episodes (2000)"
+    )
+    calibrate.add_argument(
+        "--oracle-episodes",
+        type=int,
+        default=1000,
+        help="oracle episodes per obstacle scenario (1000; about 4 CPU-minutes each)",
+    )
     calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
     calibrate.add_argument("--json", action="store_true", help="print one JSON object")
     calibrate.set_defaults(handler=_lazy("sim.cli:calibrate"))
@@ -222,6 +231,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--fresh-episodes", type=int, default=64, help="fresh episodes to measure on (64)"
     )
     diagnose.set_defaults(handler=_lazy("qnav.commands:diagnose"))
+
+    gauge = verbs.add_parser(
+        "gauge",
+        help="decisive-state gauge: how often a policy avoids a doomed action where it matters",
+    )
+    _world_options(gauge, "obstacles-inertia")
+    gauge.add_argument(
+        "runs", nargs="*", type=Path, help="training run folders to score (each in its own world)"
+    )
+    gauge.add_argument(
+        "--episodes", type=int, default=400, help="episodes per driver behind the state set (400)"
+    )
+    gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
+    gauge.set_defaults(handler=_lazy("qnav.commands:gauge"))
 
     imitate = verbs.add_parser(
         "imitate",
@@ -372,6 +395,34 @@ def build_parser() -> argparse.ArgumentParser:
     _zenoh_options(record)
     record.set_defaults(handler=_lazy("qnav.recording:record_verb"))
 
+    certs = verbs.add_parser(
+        "certs", help="a test CA and a certificate per identity, for zenoh's mutual TLS"
+    )
+    certs.add_argument("folder", type=Path, help="where to write them (e.g. certs/)")
+    certs.add_argument(
+        "--names",
+        nargs="+",
+        help="identities (default: hub controller bridge recorder sensors operator)",
+    )
+    certs.add_argument(
+        "--endpoint",
+        default="tls/127.0.0.1:7447",
+        help="the hub's TLS endpoint written into the zenoh configs (tls/127.0.0.1:7447)",
+    )
+    certs.add_argument(
+        "--print-commands", action="store_true", help="print the openssl commands, run nothing"
+    )
+    certs.set_defaults(handler=_lazy("qnav.certs:certs_verb"))
+
+    recover = verbs.add_parser(
+        "recover",
+        help="make a killed recording whole: every complete message, indexed, with metadata.yaml",
+    )
+    recover.add_argument(
+        "paths", nargs="+", type=Path, help="recording folders or .mcap files (cut or not)"
+    )
+    recover.set_defaults(handler=_lazy("qnav.recording:recover_verb"))
+
     playback = verbs.add_parser(
         "playback",
         help="publish MCAP recordings back onto zenoh at their recorded timing, or feed them "
@@ -422,8 +473,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim_car.add_argument("--seed", type=int, default=12345, help="layout seed (the test seed)")
     sim_car.add_argument(
         "--vehicle",
-        default="udpin:127.0.0.1:14550",
-        help="MAVLink connection the simulated autopilot serves (udpin:127.0.0.1:14550)",
+        default="udpout:127.0.0.1:14550",
+        help="MAVLink connection of the simulated autopilot (udpout:127.0.0.1:14550, where "
+        "`qnav bridge` listens by default)",
     )
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
@@ -565,7 +617,8 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--config", type=Path, metavar="FILE", help="TOML file of vehicle settings"
     )
     vehicle.add_argument(
-        "--connection", help="MAVLink connection string it serves (udpin:127.0.0.1:14550)"
+        "--connection",
+        help="MAVLink connection string (default udpout:127.0.0.1:14550, to the bridge)",
     )
     vehicle.add_argument(
         "--signing-key-file", metavar="FILE", help="sign, and accept only signed messages"

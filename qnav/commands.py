@@ -202,6 +202,57 @@ def diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
+def gauge(args: argparse.Namespace) -> int:
+    """The decisive states of a world with the baselines' scores, or each run's score on its
+    own world's states beside its test success."""
+    from sim.decisive import GaugeSettings, cached, go_to_target_choices, random_expectation
+    from sim.decisive import score as judge
+
+    rows: list[dict[str, object]] = []
+    if not args.runs:
+        world = load_world(args.scenario, args.world_config, args.assignments)
+        if not world.obstacles.count:
+            raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
+        states = cached(world, GaugeSettings(episodes_per_driver=args.episodes), progress=True)
+        if len(states.doomed) == 0:
+            raise ConfigError(
+                f"no decisive states in {states.visited.sum()} visited: raise --episodes"
+            )
+        for name, result in (
+            ("random", random_expectation(states)),
+            ("go-to-target", judge(states, go_to_target_choices(states))),
+        ):
+            rows.append({"policy": name, "safe": result.safe, **result.by_driver})
+        visited = dict(zip(("planner", "go-to-target"), states.visited.tolist(), strict=True))
+        print(
+            f"{len(states.doomed)} decisive states in {sum(visited.values())} visited "
+            f"(planner {visited['planner']}, go-to-target {visited['go-to-target']})"
+        )
+    for run in args.runs:
+        from training.diagnose import decisive_report
+        from training.policy import load_network
+        from training.run import decisive_states
+
+        network, settings = load_network(run)
+        train = replace(settings.train, gauge_episodes=args.episodes)
+        world = replace(settings.world, max_episode_steps=train.max_episode_steps)
+        report = decisive_report(network, decisive_states(world, train, progress=True))
+        results = run / "results.json"
+        test = json.loads(results.read_text())["test"]["success"] if results.exists() else None
+        rows.append(
+            {"policy": str(run), "safe": report.safe, **report.by_driver, "test_success": test}
+        )
+    for row in rows:
+        if args.json:
+            print(json.dumps(row))
+        else:
+            shares = ", ".join(
+                f"{key} {value:.3f}" for key, value in row.items() if isinstance(value, float)
+            )
+            print(f"{row['policy']}: {shares}")
+    return 0
+
+
 def imitate(args: argparse.Namespace) -> int:
     """Copy the oracle planner with the learner's network; test the copy."""
     from training.imitate import ImitationSettings

@@ -7,6 +7,7 @@ import dataclasses
 import logging
 import signal
 import threading
+from pathlib import Path
 from typing import Any
 
 from contracts.errors import ConfigError
@@ -48,6 +49,29 @@ def record_verb(args: argparse.Namespace) -> int:
         threading.Timer(args.duration_s, stop.set).start()
     writer = record(settings, stop, folder=args.folder)
     print(f"recorded {writer.messages} messages into {', '.join(map(str, writer.files)) or '-'}")
+    return 0
+
+
+def recover_verb(args: argparse.Namespace) -> int:
+    """Rewrite every cut MCAP file of the given folders (or files) as a complete one, and write
+    each folder's rosbag2 metadata.yaml."""
+    from controller.recording import is_complete, recover, write_rosbag_metadata
+
+    folders: dict[Path, None] = {}
+    for path in args.paths:
+        files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
+        if not files or not all(f.is_file() for f in files):
+            raise ConfigError(f"{path}: no MCAP file there")
+        for file in files:
+            if is_complete(file):
+                print(f"{file}: complete")
+            else:
+                kept = recover(file)
+                print(f"{file}: recovered {kept} messages (the cut original is {file}.cut)")
+        for file in files:
+            folders[file.parent] = None
+    for folder in folders:
+        print(f"wrote {write_rosbag_metadata(folder)}")
     return 0
 
 

@@ -57,8 +57,8 @@ class SimCarSettings:
     """Index of the first episode."""
     max_episode_steps: int = EvalSettings().max_episode_steps
     """Control periods before an episode counts as unfinished (paper: 500)."""
-    vehicle_connection: str = "udpin:127.0.0.1:14550"
-    """MAVLink connection the simulated autopilot serves (the bridge connects to it)."""
+    vehicle_connection: str = "udpout:127.0.0.1:14550"
+    """MAVLink connection of the simulated autopilot (default: to `qnav bridge`'s default)."""
     full_throttle_speed_mps: float = 1.0
     """Speed at full throttle (and turn rate in rad/s at full steering); set the bridge's
     speed_at_full_throttle_mps and turn_rate_at_full_steering_radps to the same."""

@@ -10,9 +10,9 @@ from dataclasses import asdict
 from contracts.errors import ConfigError
 from contracts.settings import to_markdown, to_toml
 from sim import paper
+from sim.calibrate import Calibration
 from sim.config import SCENARIOS, IncrementDynamics, WorldConfig, load_world, scenario
-from sim.evaluate import EvalSettings, RandomAgent
-from sim.evaluate import evaluate as run_evaluation
+from sim.evaluate import EvalResult, RandomAgent
 
 
 def _world(args: argparse.Namespace) -> WorldConfig:
@@ -67,35 +67,44 @@ def settings_reference() -> str:
 
 
 def calibrate(args: argparse.Namespace) -> int:
-    """The random agent under the test protocol in each paper scenario, beside the paper."""
-    rows = {}
-    for name in paper.RANDOM:
-        settings = EvalSettings(episodes=args.episodes, num_worlds=250, seed=args.seed)
-        result = run_evaluation(
-            scenario(name), RandomAgent(250, seed=args.seed), settings, progress=not args.json
-        )
-        rows[name] = {k: v for k, v in asdict(result).items() if k != "mean_steps"}
+    """Random, go-to-target and oracle agents in each paper scenario, beside the paper's rows."""
+    from sim.calibrate import calibrate as measure
+    from sim.calibrate import table
+
+    worlds = {name: scenario(name) for name in paper.RANDOM}
+    rows = measure(
+        worlds,
+        episodes=args.episodes,
+        oracle_episodes=args.oracle_episodes,
+        seed=args.seed,
+        progress=not args.json,
+    )
     if args.json:
-        print(json.dumps(rows))
+        print(json.dumps([_calibration_dict(row) for row in rows]))
         return 0
     print(
-        f"Random agent, {args.episodes} episodes of up to 500 steps per scenario "
-        f"(sampling error about +-{(0.25 / args.episodes) ** 0.5:.3f} at most)\n"
+        f"{args.episodes} episodes of up to 500 steps per scenario for random and go-to-target, "
+        f"{args.oracle_episodes} for the oracle (seed {args.seed})\n"
     )
-    print(
-        "| table | scenario | paper success / collision / unfinished "
-        "| ours success / collision / unfinished | success difference |"
-    )
-    print("|---|---|---|---|---|")
-    for name, ours in rows.items():
-        theirs = paper.RANDOM[name]
-        print(
-            f"| {paper.TABLES[name]} | {name} "
-            f"| {theirs.success:.3f} / {theirs.collision:.3f} / {theirs.unfinished:.3f} "
-            f"| {ours['success']:.3f} / {ours['collision']:.3f} / {ours['unfinished']:.3f} "
-            f"| {ours['success'] - theirs.success:+.3f} |"
-        )
+    print(table(rows))
     return 0
+
+
+def _calibration_dict(row: Calibration) -> dict[str, object]:
+    def fractions(result: EvalResult | None) -> dict[str, float] | None:
+        if result is None:
+            return None
+        return {k: v for k, v in asdict(result).items() if k != "mean_steps"}
+
+    return {
+        "scenario": row.scenario,
+        "random": fractions(row.random),
+        "go_to_target": fractions(row.goto),
+        "oracle": fractions(row.oracle),
+        "doomed_at_start": row.doomed_at_start,
+        "random_within_two_errors": row.random_within_two_errors(),
+        "oracle_reaches_best_seed": row.oracle_reaches_best_seed(),
+    }
 
 
 def render(args: argparse.Namespace) -> int:

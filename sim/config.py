@@ -145,8 +145,9 @@ class ObstacleConfig:
 
     count: int = 0
     """Number of moving obstacles (paper: 0 or 5)."""
-    radius_m: float = 0.4
-    """Sphere radius; the lidar plane cuts it at its centre (paper: not given)."""
+    radius_m: float = 0.2
+    """Sphere radius; the lidar plane cuts it at its centre (paper: not given; 0.2 m lets the
+    oracle reach the paper's best seeds, docs/simulator.md)."""
     speed_mean_mps: float = 1.0
     """Mean of the speed's normal distribution (paper: 1.0 m/s)."""
     speed_std_mps: float = 0.3
@@ -191,8 +192,9 @@ class SpawnConfig:
     """Least initial distance from robot to target (paper: not given)."""
     target_max_distance_m: float = 3.0
     """Greatest initial distance from robot to target (paper: not given; 20 m = no limit)."""
-    obstacle_clearance_m: float = 1.0
-    """Least initial gap between an obstacle's surface and the robot's centre (not given)."""
+    obstacle_clearance_m: float = 2.0
+    """Least initial gap between an obstacle's surface and the robot's centre (not given; 2 s
+    of the mean obstacle speed, so no layout is lost before the robot can act)."""
 
     def __post_init__(self) -> None:
         check_range(self, "wall_margin_m", self.wall_margin_m, 0.0, 500.0)
@@ -323,8 +325,13 @@ SCENARIOS: dict[str, WorldConfig] = {
     "walls-inertia": WorldConfig(name="walls-inertia"),
     "obstacles-inertia": WorldConfig(name="obstacles-inertia", obstacles=ObstacleConfig(count=5)),
     "walls-increment": WorldConfig(name="walls-increment", dynamics=IncrementDynamics()),
+    # 0.5 s per step: 0.4 m/s, slower than the inertia robot's 0.5 m/s as the paper says (at
+    # its stated 0.2 s the increment robot would run at 1 m/s); docs/simulator.md.
     "obstacles-increment": WorldConfig(
-        name="obstacles-increment", dynamics=IncrementDynamics(), obstacles=ObstacleConfig(count=5)
+        name="obstacles-increment",
+        dynamics=IncrementDynamics(),
+        obstacles=ObstacleConfig(count=5),
+        control_period_s=0.5,
     ),
     # The paper's toy car: motion-capture pose only, no lidar, so no obstacles it could see.
     "toycar-inertia": WorldConfig(name="toycar-inertia", lidar=None),

@@ -16,8 +16,11 @@ progress report it.
 
 from __future__ import annotations
 
+import hashlib
+import math
+import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -26,7 +29,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.observation import FrameWindow, distance_scale_m, encode_frame
-from contracts.settings import check_range
+from contracts.settings import check_range, to_toml
 from sim.config import WorldConfig
 from sim.evaluate import go_to_target
 from sim.oracle import OracleDriver, doomed_actions
@@ -106,6 +109,35 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
     return DecisiveStates(windows, doomed, driver, np.array(visited, dtype=np.int64))
 
 
+def cache_dir() -> Path:
+    """Where collected state sets are kept: `$QNAV_CACHE`, else `$XDG_CACHE_HOME/qnav`, else
+    `~/.cache/qnav`; each file is named by a hash of the world's and the gauge's settings."""
+    if "QNAV_CACHE" in os.environ:
+        return Path(os.environ["QNAV_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "qnav"
+
+
+def cached(
+    config: WorldConfig,
+    settings: GaugeSettings = GaugeSettings(),
+    progress: bool = False,
+    directory: Path | None = None,
+) -> DecisiveStates:
+    """The decisive states of this world, collected once and then read from the cache (about
+    a minute of CPU for the default 800 episodes; a changed setting makes a new set)."""
+    # The world's own episode length plays no part: the settings' governs collection.
+    config = replace(config, max_episode_steps=settings.max_episode_steps)
+    key = hashlib.sha256((to_toml(config) + to_toml(settings)).encode()).hexdigest()[:16]
+    path = (directory or cache_dir()) / "decisive" / f"{config.name}-{key}.npz"
+    if path.exists():
+        return DecisiveStates.load(path)
+    states = collect(config, settings, progress)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    states.save(path)
+    return states
+
+
 def _drive_and_keep(
     config: WorldConfig, settings: GaugeSettings, act: StateAct, index: int, progress: bool
 ) -> tuple[tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.int8]], int]:
@@ -162,6 +194,8 @@ class GaugeResult(NamedTuple):
 
 def score(states: DecisiveStates, actions: NDArray[np.integer]) -> GaugeResult:
     """Judge one action per decisive state (a policy's greedy choices on `states.windows`)."""
+    if actions.size == 0:
+        return GaugeResult(math.nan, {}, 0)
     safe = ~states.doomed[np.arange(actions.size), actions]
     by_driver = {
         name: float(safe[states.driver == i].mean())
@@ -171,11 +205,20 @@ def score(states: DecisiveStates, actions: NDArray[np.integer]) -> GaugeResult:
     return GaugeResult(float(safe.mean()), by_driver, int(actions.size))
 
 
-def choose_in_batches(
-    windows: NDArray[np.float32],
-    q_values: Callable[[NDArray[np.float32]], NDArray[np.floating]],
-    batch: int = 512,
-) -> NDArray[np.int64]:
-    """Greedy actions of a Q function over many windows, a batch at a time."""
-    parts = [q_values(windows[i : i + batch]).argmax(axis=1) for i in range(0, len(windows), batch)]
-    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+def random_expectation(states: DecisiveStates) -> GaugeResult:
+    """What a uniformly random choice scores on average (the share of safe actions)."""
+    if len(states.doomed) == 0:
+        return GaugeResult(math.nan, {}, 0)
+    safe = (~states.doomed).mean(axis=1)
+    by_driver = {
+        name: float(safe[states.driver == i].mean())
+        for i, name in enumerate(DRIVERS)
+        if np.any(states.driver == i)
+    }
+    return GaugeResult(float(safe.mean()), by_driver, len(safe))
+
+
+def go_to_target_choices(states: DecisiveStates) -> NDArray[np.int64]:
+    """The blind go-to-target controller's choice in each state, from the newest frame's target
+    features (sin and cos of the bearing are encoded as they are)."""
+    return go_to_target(states.windows[:, -1, -3:])

@@ -23,7 +23,8 @@ skid-steered rover does. Disarmed, HOLD and any other mode command zero. The pos
 is its true simulated pose (it plays a perfect EKF), in our frame converted to NED.
 
 Use it as a class (`with MavlinkVehicle(settings) as car: car.pose()`), or as a process:
-`qnav fake-vehicle --connection udpin:127.0.0.1:14550`.
+`qnav fake-vehicle` (it sends to udpout:127.0.0.1:14550, where `qnav bridge` listens by
+default).
 """
 
 from __future__ import annotations
@@ -89,8 +90,10 @@ class MavlinkVehicleSettings:
 
     SECTION = ""
 
-    connection: str = "udpin:127.0.0.1:14550"
-    """pymavlink connection string the vehicle serves (udpin: it answers whoever sends)."""
+    connection: str = "udpout:127.0.0.1:14550"
+    """pymavlink connection string of the vehicle: udpout sends to a bridge that listens there
+    (as ArduPilot SITL's --out; the default pairs with `qnav bridge`'s default udpin), udpin
+    serves a port and answers whoever sends."""
     baud_rate: int = 115200
     """Serial baud rate (serial devices only)."""
     system_id: int = 1

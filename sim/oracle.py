@@ -185,7 +185,7 @@ def doomed_actions(
         axis=2,
     )
     collided = simulate(config, state, sequences).outcome == Outcome.COLLISION
-    return collided.reshape(worlds, NUM_ACTIONS, tail_count).all(axis=2)
+    return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).all(axis=2), dtype=bool)
 
 
 class OracleDriver:

@@ -18,6 +18,19 @@ def observation_frames(observation: Observation, max_range_m: float) -> NDArray[
     return encode_frame(observation.scan_m, observation.target_features(), max_range_m)
 
 
+def greedy_actions(
+    network: QNetwork, windows: NDArray[np.float32], batch: int = 512
+) -> NDArray[np.int64]:
+    """The network's greedy action for each of many windows (K, k, F), a batch at a time."""
+    device = next(network.parameters()).device
+    parts = []
+    with torch.no_grad():
+        for start in range(0, len(windows), batch):
+            chunk = torch.from_numpy(windows[start : start + batch]).to(device)
+            parts.append(network(chunk).argmax(dim=1).cpu().numpy())
+    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+
+
 class TorchAgent:
     """Keeps each world's window of k frames and picks actions from the network's Q values.
 

@@ -56,6 +56,13 @@ class TrainSettings:
     """Steps a random choice is held (paper: 5)."""
     relabel: Relabel = "paper"
     """Target of a sampled transition: fresh random (paper), a later pose (hindsight), own."""
+    priority_exponent: float = 0.0
+    """Prioritized replay (Schaul et al. 2016): draw stored steps in proportion to their last
+    |TD error| to this power (0: uniformly, as the paper; its future work). Targets and
+    obstacles are still re-drawn per sample, so a priority says how hard the step is under
+    some target, not under the next one."""
+    priority_correction_start: float = 0.4
+    """Importance-weight exponent at the first iteration, annealed linearly to 1 at the last."""
     mirror_probability: float = 0.0
     """Chance that a sampled transition is seen in a mirror through the robot's heading (scan
     reversed, target bearing and turns swapped side; `training.replay.mirror_batch`): twice
@@ -106,6 +113,9 @@ class TrainSettings:
     """Episodes between greedy evaluations during training (0: none)."""
     eval_episodes: int = 100
     """Episodes of each greedy evaluation during training (episodes as long as in training)."""
+    gauge_episodes: int = 400
+    """Episodes per driver behind the decisive-state gauge reported with each evaluation in
+    obstacle worlds (`sim.decisive`; collected once per world and cached; 0: none)."""
     snapshot_every_episodes: int = 0
     """Save the online network every this many episodes, for the action-map figure (0: never)."""
     final_eval_episodes: int = 200
@@ -148,6 +158,9 @@ class TrainSettings:
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
         check_range(self, "eval_every_episodes", self.eval_every_episodes, 0, 10**7)
+        check_range(self, "gauge_episodes", self.gauge_episodes, 0, 10**7)
+        check_range(self, "priority_exponent", self.priority_exponent, 0.0, 10.0)
+        check_range(self, "priority_correction_start", self.priority_correction_start, 0.0, 1.0)
         check_range(self, "eval_episodes", self.eval_episodes, 1, 10**7)
         check_range(self, "snapshot_every_episodes", self.snapshot_every_episodes, 0, 10**7)
         check_range(self, "final_eval_episodes", self.final_eval_episodes, 1, 10**7)
@@ -164,6 +177,12 @@ class TrainSettings:
             near_probability=self.obstacle_near_probability,
             bootstrap_within_m=self.obstacle_bootstrap_within_m,
         )
+
+    def priority_correction(self, iteration: int) -> float:
+        """Importance-weight exponent at an iteration: from the start value to 1 over the run."""
+        total = max(1.0, self.iterations_per_episode * (self.episodes - self.warmup_episodes))
+        start = self.priority_correction_start
+        return start + (1.0 - start) * min(1.0, iteration / total)
 
     def epsilon(self, episode: int) -> float:
         """Exploration probability of the given (0-based) training episode."""

@@ -11,6 +11,9 @@
   against the lidar features, and whether the greedy action follows the target's bearing on
   fixed scans (the share of probe scans on which it turns towards the target).
 - **Action mix** of the greedy policy in test episodes, with its outcome.
+- **Decisive states** (obstacle worlds): the share of the gauge's decisive states
+  (`sim.decisive`) where the greedy action is safe, beside what a random choice and the blind
+  go-to-target controller score there.
 """
 
 from __future__ import annotations
@@ -26,19 +29,57 @@ from torch.nn import functional
 from contracts.actions import NUM_ACTIONS, Action
 from contracts.observation import distance_scale_m, encode_frame
 from contracts.policy_file import CONV_CHANNELS
+from sim.decisive import DecisiveStates, go_to_target_choices, random_expectation, score
 from sim.evaluate import EvalSettings, evaluate
 from sim.world import Observation, observe, reset
-from training.agent import TorchAgent
+from training.agent import TorchAgent, greedy_actions
 from training.collect import collect_round
 from training.episode_log import read_rounds
 from training.learner import bootstrap_windows, double_dqn_target
 from training.networks import QNetwork, channel_activity
 from training.policy import load_network
 from training.replay import Batch, EpisodeReplay
-from training.run import RunSettings, first_scans, policy_agent
+from training.run import RunSettings, decisive_states, first_scans, policy_agent
 
 _FRESH_LAYOUT_SEED = 777_777
 """Layouts of the fresh episodes (neither training, validation nor test use it)."""
+
+
+@dataclass(frozen=True)
+class DecisiveReport:
+    """The network's greedy choices on the gauge's decisive states, beside two baselines."""
+
+    safe: float
+    """Share of the decisive states where the greedy action is safe."""
+    by_driver: dict[str, float]
+    """The same over the states each driver (planner, go-to-target) visited."""
+    random: float
+    """What a uniformly random choice scores on average."""
+    go_to_target: float
+    """What the blind go-to-target controller scores."""
+    states: int
+    """Decisive states judged."""
+
+    def render(self) -> str:
+        """One line for the terminal."""
+        drivers = ", ".join(f"{name} {share:.0%}" for name, share in self.by_driver.items())
+        return (
+            f"safe choices in {self.states} decisive states: {self.safe:.1%} ({drivers}); "
+            f"random {self.random:.1%}, go-to-target {self.go_to_target:.1%}"
+        )
+
+
+def decisive_report(network: QNetwork, states: DecisiveStates) -> DecisiveReport:
+    """Score the network's greedy choices on the decisive states."""
+    network.eval()
+    mine = score(states, greedy_actions(network, states.windows))
+    return DecisiveReport(
+        safe=mine.safe,
+        by_driver=mine.by_driver,
+        random=random_expectation(states).safe,
+        go_to_target=score(states, go_to_target_choices(states)).safe,
+        states=mine.states,
+    )
 
 
 @dataclass(frozen=True)
@@ -62,6 +103,8 @@ class Diagnosis:
     """Forward, left and right shares of greedy test actions."""
     test_success: float
     """Success of those test episodes."""
+    decisive: DecisiveReport | None = None
+    """The decisive-state gauge (obstacle worlds with `train.gauge_episodes` > 0)."""
 
     def render(self) -> str:
         """A few lines for the terminal."""
@@ -80,6 +123,7 @@ class Diagnosis:
                 f"greedy test actions: forward {forward:.0%}, left {left:.0%}, right {right:.0%}; "
                 f"success {self.test_success:.3f}",
             ]
+            + ([self.decisive.render()] if self.decisive is not None else [])
         )
 
 
@@ -105,6 +149,9 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
     fresh_batch = fresh.sample(samples, sample, train.relabel, train.n_step, train.gamma)
     target_std, lidar_std = _gate_inputs(network, replay_batch)
     actions, success = _test_actions(network, settings)
+    decisive = None
+    if settings.world.obstacles.count and train.gauge_episodes:
+        decisive = decisive_report(network, decisive_states(world, train, progress=True))
     return Diagnosis(
         replay_td_mse=_td_mse(network, replay_batch, train.window),
         fresh_td_mse=_td_mse(network, fresh_batch, train.window),
@@ -114,6 +161,7 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
         dead_channels=_dead_channels(network, settings),
         action_mix=actions,
         test_success=success,
+        decisive=decisive,
     )
 
 

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import numpy as np
 import torch
+from numpy.typing import NDArray
 from torch import Tensor
 from torch.nn import functional
 
@@ -74,6 +77,15 @@ class DemonstrationLoss:
     """The loss's weight against the TD loss (it is averaged over the whole batch)."""
 
 
+class Update(NamedTuple):
+    """What one gradient step measured."""
+
+    loss: float
+    """The batch's TD loss (importance-weighted where the batch carries weights)."""
+    td_error: NDArray[np.float32]
+    """(N,) y - Q(s, a) per transition, for the replay's priorities."""
+
+
 def td_update(
     online: QNetwork,
     target: QNetwork,
@@ -86,8 +98,8 @@ def td_update(
     bf16: bool = False,
     next_scan: NextScanLoss | None = None,
     demonstration: DemonstrationLoss | None = None,
-) -> float:
-    """One gradient step on a batch; returns its TD loss.
+) -> Update:
+    """One gradient step on a batch; returns its TD loss and per-transition TD errors.
 
     The step also follows the auxiliary next-scan loss when `next_scan` is given (its predictor
     must be in `optimizer`) and the large-margin loss on the batch's demonstrated transitions
@@ -120,9 +132,12 @@ def td_update(
         torch.from_numpy(batch.discount).to(device),
     )
     if loss_kind == "huber":
-        loss = functional.smooth_l1_loss(q_taken, y)
+        per_transition = functional.smooth_l1_loss(q_taken, y, reduction="none")
     else:
-        loss = functional.mse_loss(q_taken, y)
+        per_transition = functional.mse_loss(q_taken, y, reduction="none")
+    if batch.weight is not None:
+        per_transition = per_transition * torch.from_numpy(batch.weight).to(device)
+    loss = per_transition.mean()
     total = loss if auxiliary is None else loss + auxiliary
     if demonstration is not None and batch.demonstrated is not None:
         shown = torch.from_numpy(batch.demonstrated).to(device)
@@ -135,4 +150,5 @@ def td_update(
             [p for group in optimizer.param_groups for p in group["params"]], grad_clip_norm
         )
     optimizer.step()
-    return float(loss.item())
+    td_error = (y - q_taken).detach().cpu().numpy().astype(np.float32)
+    return Update(float(loss.item()), td_error)

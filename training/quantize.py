@@ -4,18 +4,13 @@ A paper-sized policy holds 6.9 MB of float32 weights in three products (the LSTM
 recurrent matrices, the hidden layer). A daemon deciding a few times a second finds them gone
 from its caches each time and reads them from memory; in int8 they are 1.7 MB. The products are
 quantised the way onnxruntime's dynamic quantisation does it: weights per output column,
-symmetric, stored in the file as int8 but within 7 bits ([-64, 64], `reduce_range`); each
-decision quantises its activations (per tensor, uint8) and runs integer products.
-
-Why 7 bits: on x86 without VNNI (AVX2: most AMD EPYC and older Intel) onnxruntime's u8 x s8
-integer product adds pairs of products in int16 with saturation (`vpmaddubsw`); two products of
-255 x 127 overflow it and the sum is clipped. With full 8-bit weights a trained walls-increment
-policy decided as float32 in only 84 % of steps through onnxruntime on such a CPU (numpy, which
-dequantises, 99 %; VNNI CPUs do not saturate); with 7-bit weights 255 x 64 x 2 = 32,640 fits
-and both backends agree in 98.5-98.8 % (`tests/training/test_quantize.py`, the agreement test).
-The cost is one bit of weight resolution, the same on every CPU, so the file decides alike
-everywhere. The lidar convolutions (8 KB) and the output layer (the Q values themselves) stay
-float32.
+symmetric int8, stored in the file; each decision quantises its activations (per tensor, uint8)
+and runs integer products. The weights use 7 of the 8 bits (`reduce_range`): on x86 CPUs
+without VNNI, onnxruntime multiplies uint8 by int8 with an instruction (VPMADDUBSW) whose
+16-bit sums of pairs saturate at full range; measured on an AVX2 machine with onnxruntime 1.32,
+full-range weights moved the Q values by up to 0.026 and changed 14 % of greedy choices, 7-bit
+ones by 0.008 (`tests/training/test_quantize.py`). The lidar convolutions (8 KB) and the output
+layer (the Q values themselves) stay float32.
 
 The graph as exported feeds each LSTM matrix through a Transpose, which the quantiser does not
 look through, so those are first folded into initializers named `P_Transposed`
@@ -68,7 +63,7 @@ def fold_weight_transposes(model: onnx.ModelProto) -> None:
 
 def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
     """`model` with the products over `INT8_PARAMETERS` in int8 (onnxruntime's dynamic
-    quantisation, 7-bit weights per column); metadata is not carried over."""
+    quantisation, weights per column); metadata is not carried over."""
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     folded = onnx.ModelProto()
@@ -98,7 +93,6 @@ def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
                 op_types_to_quantize=["MatMul", "Gemm"],
                 nodes_to_exclude=excluded,
                 per_channel=True,
-                # 7-bit weights: no int16 saturation on CPUs without VNNI (module docstring).
                 reduce_range=True,
                 weight_type=QuantType.QInt8,
             )

@@ -96,6 +96,11 @@ class Batch(NamedTuple):
     demonstrated: NDArray[np.bool_] | None = None
     """(N,) the transition is a demonstration's, with its own target and obstacles (None:
     none is)."""
+    stored: NDArray[np.int64] | None = None
+    """(N,) the stored frames the transitions leave (set by `EpisodeReplay.sample`), for
+    `EpisodeReplay.reprioritise`."""
+    weight: NDArray[np.float32] | None = None
+    """(N,) importance weights of a prioritized sample (None: uniform, all 1)."""
 
 
 class EpisodeReplay:
@@ -121,6 +126,10 @@ class EpisodeReplay:
         self.walls_clearance = np.zeros(capacity_frames if self.has_obstacles else 0)
         self.first = np.zeros(capacity_frames, dtype=np.int64)
         self.last = np.zeros(capacity_frames, dtype=np.int64)
+        # Proportional priorities (Schaul et al. 2016): a stored step's last |TD error|, the
+        # largest one seen for steps never sampled yet.
+        self.priority = np.zeros(capacity_frames)
+        self._max_priority = 1.0
         self.size = 0
         self.episodes = 0
         self._transitions: list[NDArray[np.int64]] = []
@@ -155,6 +164,7 @@ class EpisodeReplay:
         self.first[span] = self.size
         self.last[span] = self.size + frames - 1
         self._transitions.append(np.arange(self.size, self.size + frames - 1))
+        self.priority[self.size : self.size + frames - 1] = self._max_priority
         self._transition_index = np.zeros(0, dtype=np.int64)
         self.size += frames
         self.episodes += 1
@@ -169,16 +179,31 @@ class EpisodeReplay:
         *,
         mirror_probability: float = 0.0,
         obstacles: ObstacleRedraw | None = None,
+        priority_exponent: float = 0.0,
+        priority_correction: float = 1.0,
     ) -> Batch:
-        """Uniformly random transitions, each with its own target drawn by `relabel`, fresh
-        obstacles as `obstacles` says (none by default), and each seen in a mirror
-        (`mirror_batch`) with probability `mirror_probability`.
+        """Random transitions, each with its own target drawn by `relabel`, fresh obstacles as
+        `obstacles` says (none by default), and each seen in a mirror (`mirror_batch`) with
+        probability `mirror_probability`.
 
-        A demonstration's transitions keep their episode's target and obstacles: its actions
-        answer those, and the learner's margin loss holds them to it."""
+        Transitions are drawn uniformly, or with `priority_exponent` > 0 in proportion to their
+        priority to that power, with importance weights (N p)^-`priority_correction` scaled to
+        at most 1 in `Batch.weight`. A demonstration's transitions keep their episode's target
+        and obstacles: its actions answer those, and the learner's margin loss holds them to
+        it."""
         if not self._transition_index.size:
             self._transition_index = np.concatenate(self._transitions)
-        now = self._transition_index[rng.integers(0, self._transition_index.size, batch_size)]
+        stored = self._transition_index
+        weight = None
+        if priority_exponent > 0.0:
+            chance = self.priority[stored] ** priority_exponent
+            chance /= chance.sum()
+            picked = rng.choice(stored.size, batch_size, p=chance)
+            raw = (stored.size * chance[picked]) ** -priority_correction
+            weight = (raw / raw.max()).astype(np.float32)
+            now = stored[picked]
+        else:
+            now = stored[rng.integers(0, stored.size, batch_size)]
         demonstrated = self.demonstrated[now]
         redraw = None
         if obstacles is not None and self.has_obstacles:
@@ -198,7 +223,14 @@ class EpisodeReplay:
             batch = batch._replace(demonstrated=demonstrated)
         if mirror_probability > 0.0:
             batch = mirror_batch(batch, rng.random(batch_size) < mirror_probability, self.num_beams)
-        return batch
+        return batch._replace(stored=now, weight=weight)
+
+    def reprioritise(self, index: NDArray[np.int64], td_error: NDArray[np.floating]) -> None:
+        """Set the sampled steps' priorities to their new |TD error| (plus a floor, so that no
+        step is never drawn again)."""
+        priority = np.abs(td_error) + 1e-3
+        self.priority[index] = priority
+        self._max_priority = max(self._max_priority, float(priority.max()))
 
     def transitions_at(
         self,

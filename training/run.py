@@ -36,11 +36,12 @@ from contracts.errors import ConfigError
 from contracts.observation import distance_scale_m, encode_scan
 from contracts.settings import from_dict, to_dict, to_toml
 from sim.config import WorldConfig
+from sim.decisive import DecisiveStates, GaugeSettings, cached, score
 from sim.evaluate import EvalResult, EvalSettings, evaluate
 from sim.oracle import OracleDriver
 from sim.task import Outcome
 from sim.world import observe, reset
-from training.agent import TorchAgent
+from training.agent import TorchAgent, greedy_actions
 from training.collect import collect_round
 from training.config import TrainSettings
 from training.episode_log import read_rounds, write_round
@@ -183,6 +184,7 @@ def train(
     if logged_episodes < state.episodes:
         raise ConfigError(f"{run_dir}/episodes holds fewer episodes than its checkpoint")
 
+    decisive: DecisiveStates | None = None
     bar = tqdm(
         total=settings.episodes,
         initial=state.episodes,
@@ -220,21 +222,24 @@ def train(
                 settings.gamma,
                 mirror_probability=settings.mirror_probability,
                 obstacles=settings.obstacle_redraw(),
+                priority_exponent=settings.priority_exponent,
+                priority_correction=settings.priority_correction(state.iterations),
             )
-            losses.append(
-                td_update(
-                    online,
-                    target,
-                    optimizer,
-                    batch,
-                    window=settings.window,
-                    loss_kind=settings.loss,
-                    grad_clip_norm=settings.grad_clip_norm,
-                    bf16=bf16,
-                    next_scan=next_scan,
-                    demonstration=demonstration,
-                )
+            update = td_update(
+                online,
+                target,
+                optimizer,
+                batch,
+                window=settings.window,
+                loss_kind=settings.loss,
+                grad_clip_norm=settings.grad_clip_norm,
+                bf16=bf16,
+                next_scan=next_scan,
+                demonstration=demonstration,
             )
+            losses.append(update.loss)
+            if settings.priority_exponent > 0.0 and batch.stored is not None:
+                replay.reprioritise(batch.stored, update.td_error)
             state.iterations += 1
             if settings.target_smoothing:
                 soft_update(target, online, settings.target_smoothing)
@@ -268,7 +273,6 @@ def train(
                 seed=VALIDATION_SEED,
                 max_steps=settings.max_episode_steps,
             )
-            state.eval_s += time.perf_counter() - started
             if settings.keep_best and result.success >= state.best_success:
                 state.best_success = result.success
                 partial = run_dir / "best.pt.partial"
@@ -279,6 +283,12 @@ def train(
                 "eval_collision": result.collision,
                 "eval_unfinished": result.unfinished,
             }
+            if settings.gauge_episodes and world.obstacles.count:
+                if decisive is None:
+                    decisive = decisive_states(world, settings, progress)
+                chosen = greedy_actions(online, decisive.windows)
+                row["decisive_safe"] = round(score(decisive, chosen).safe, 4)
+            state.eval_s += time.perf_counter() - started
         state.history.append(row)
         _checkpoint(checkpoint, online, target, optimizer, state, next_scan=next_scan)
         _write_progress(
@@ -356,6 +366,18 @@ def cpu_has_bf16() -> bool:
     """Whether this CPU multiplies bfloat16 natively (otherwise autocast would be slower)."""
     checks = ("_is_amx_tile_supported", "_is_avx512_bf16_supported")
     return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+
+
+def decisive_states(
+    world: WorldConfig, settings: TrainSettings, progress: bool = False
+) -> DecisiveStates:
+    """The gauge's decisive states for this world, with the run's window and episode length."""
+    gauge = GaugeSettings(
+        episodes_per_driver=settings.gauge_episodes,
+        max_episode_steps=settings.max_episode_steps,
+        window=settings.window,
+    )
+    return cached(world, gauge, progress)
 
 
 def soft_update(target: QNetwork, online: QNetwork, rate: float) -> None:
@@ -461,6 +483,7 @@ def _write_progress(run_dir: Path, history: list[dict[str, float]], title: str) 
         "eval_success",
         "eval_collision",
         "eval_unfinished",
+        "decisive_safe",
     ]
     partial = run_dir / "progress.csv.partial"
     with partial.open("w", newline="") as handle:

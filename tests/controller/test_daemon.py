@@ -208,6 +208,19 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         listener.put(wire.ESTOP_RELEASE, wire.encode_bool_msg(True))
         listener.wait_for(reason_is("policy"))
 
+        # A malformed stop message presses the stop; a malformed release releases nothing.
+        listener.put(wire.ESTOP, bytes.fromhex("0001000002"))
+        pressed = listener.wait_for(reason_is("estop_latched"))
+        assert pressed["counters"]["malformed"]["estop"] == 1
+        assert pressed["estop"] == {"latched": True, "pressed": True}
+        listener.put(wire.ESTOP, wire.encode_bool_msg(False))
+        listener.wait_for(lambda s: s["estop"]["pressed"] is False)
+        listener.put(wire.ESTOP_RELEASE, bytes.fromhex("0001000001deadbe"))
+        refused = listener.wait_for(lambda s: s["counters"]["malformed"]["estop_release"] == 1)
+        assert refused["reason"] == "estop_latched"
+        listener.put(wire.ESTOP_RELEASE, wire.encode_bool_msg(True))
+        listener.wait_for(reason_is("policy"))
+
         # SIGTERM while driving: a stop goes out before the process ends.
         before = listener.mark()
         daemon.send_signal(signal.SIGTERM)
@@ -255,5 +268,45 @@ def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_
         time.sleep(0.1)
         with listener.lock:
             assert listener.commands[-1] == wire.STOP
+    finally:
+        listener.session.close()
+
+
+def test_the_scan_triggered_daemon_stops_the_car_when_scans_stop_coming(
+    tmp_path: Path,
+    endpoint: str,
+    make_policy: PolicyFactory,
+    processes: list[subprocess.Popen[str]],
+) -> None:
+    """With `trigger = "scan"` decisions ride on scans; when they stop, only the main loop's
+    periodic check of the safety rules can publish the stop."""
+    policy = make_policy("walls-inertia")
+    config = DaemonConfig(
+        controller=ControllerSettings(policy=str(policy), trigger="scan"),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+    )
+    daemon = start_daemon(tmp_path, config)
+    processes.append(daemon)
+    listener = Listener(endpoint)
+    try:
+        listener.wait_for(lambda s: True, timeout=30)
+        feeder = start_feeder(endpoint)
+        processes.append(feeder)
+        assert feeder.stdin is not None
+        driving = listener.wait_for(reason_is("policy"))
+        assert driving["loop"]["trigger"] == "scan"
+        feeder.stdin.write("scan off\n")
+        feeder.stdin.flush()
+        stale = listener.wait_for(reason_is("scan_stale"))
+        assert stale["command"] == {"linear_mps": 0.0, "angular_radps": 0.0}
+        assert stale["q_values"] is None
+        # It keeps publishing the stop every period while the scans stay away.
+        more = listener.mark()
+        listener.wait_for(reason_is("scan_stale"), since=more + 1)
+        with listener.lock:
+            assert listener.commands[-1] == wire.STOP
+        daemon.send_signal(signal.SIGTERM)
+        _, stderr = daemon.communicate(timeout=20)
+        assert daemon.returncode == 0, stderr
     finally:
         listener.session.close()

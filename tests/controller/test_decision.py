@@ -9,12 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts import wire
+from contracts import cdr, wire
 from contracts.wire import STOP, Pose2D, Scan, Twist2D
 from controller.config import LidarSettings, SafetySettings
 from controller.decision import Controller, Input, Output, Reason
 from controller.policy import PolicyRuntime
 from tests.conftest import PolicyFactory
+from tests.contracts.malformed import CANONICAL_TRUE
 
 PERIOD = 0.2  # the scenarios' control period
 
@@ -30,6 +31,26 @@ def pose_payload(x: float = 1.0, y: float = 1.0, yaw: float = 0.3, frame: str = 
 
 def target_payload(x: float = 8.0, y: float = 8.0, frame: str = "map") -> bytes:
     return wire.encode_pose_msg(Pose2D(0.0, frame, x, y))
+
+
+def odd_scan_payload(range_min: float, range_max: float, count: int = 1080) -> bytes:
+    ranges = np.full(count, 3.0, dtype=np.float32)
+    return wire.encode_scan_msg(
+        Scan(0.0, "laser", -math.pi, 2 * math.pi / count, range_min, range_max, ranges)
+    )
+
+
+def pose_with_quaternion(qx: float, qy: float, qz: float, qw: float) -> bytes:
+    writer = cdr.Writer()
+    writer.pack(cdr.TIME, 4, 0, 0)
+    writer.string("map")
+    writer.pack(cdr.Layout("7d"), 8, 1.0, 1.0, 0.0, qx, qy, qz, qw)
+    return writer.payload()
+
+
+def quaternion_payload(w: float) -> bytes:
+    """A PoseStamped whose orientation is (0, 0, 0, w)."""
+    return pose_with_quaternion(0.0, 0.0, 0.0, w)
 
 
 @pytest.fixture
@@ -146,12 +167,25 @@ def test_the_car_stops_at_the_target_until_a_different_target_arrives(policy: Pa
             Input.POSE, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, math.inf)), id="pose-inf"
         ),
         pytest.param(Input.POSE, b"\x00\x01", id="pose-truncated"),
+        pytest.param(Input.POSE, pose_payload(x=1e308), id="pose-absurd"),
+        pytest.param(Input.POSE, pose_payload(y=-1001.0), id="pose-beyond-max-position"),
+        pytest.param(Input.POSE, quaternion_payload(2.0), id="pose-quaternion-norm-2"),
+        pytest.param(Input.POSE, quaternion_payload(0.0), id="pose-zero-quaternion"),
+        pytest.param(Input.TARGET, target_payload(x=-1e308), id="target-absurd"),
+        pytest.param(Input.SCAN, odd_scan_payload(math.nan, 30.0), id="scan-range-min-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, math.nan), id="scan-range-max-nan"),
+        pytest.param(Input.SCAN, odd_scan_payload(5.0, 1.0), id="scan-range-min-above-max"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=1), id="scan-one-reading"),
+        pytest.param(Input.SCAN, odd_scan_payload(0.1, 30.0, count=49), id="scan-49-readings"),
         pytest.param(
             Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", math.nan, 1.0)), id="target-nan"
         ),
         pytest.param(Input.TARGET, scan_payload()[:30], id="target-garbage"),
-        pytest.param(Input.ESTOP, b"\xff", id="estop-garbage"),
         pytest.param(Input.ESTOP_RELEASE, b"", id="release-empty"),
+        pytest.param(Input.ESTOP_RELEASE, bytes.fromhex("0001000002"), id="release-bool-2"),
+        pytest.param(
+            Input.TARGET, wire.encode_pose_msg(Pose2D(0.0, "map", 1.0, -1001.0)), id="target-far"
+        ),
     ],
 )
 def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
@@ -165,9 +199,171 @@ def test_a_malformed_payload_is_counted_and_keeps_the_last_good_input(
     assert status.counters["received"][source.value] == received + 1
     assert status.counters["malformed"][source.value] == 1
     assert status.q_values == reference.decide(0.1).status.q_values
-    # The age is still that of the last good input (arrived at 0.0; estop never).
-    good_age = None if source in (Input.ESTOP, Input.ESTOP_RELEASE) else 0.1
+    # The age is still that of the last good input (arrived at 0.0; the release never).
+    good_age = None if source is Input.ESTOP_RELEASE else 0.1
     assert status.ages_s[source.value] == good_age
+
+
+@pytest.mark.parametrize(
+    "quaternion", [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0), (0.0, 0.0, 0.5, 0.5)]
+)
+def test_a_pose_whose_quaternion_is_not_a_unit_one_is_malformed(
+    policy: Path, quaternion: tuple[float, float, float, float]
+) -> None:
+    c = ready(policy)
+    assert "quaternion" in (c.receive(Input.POSE, pose_with_quaternion(*quaternion), 0.1) or "")
+    assert c.counters.malformed["pose"] == 1
+    assert c.receive(Input.POSE, pose_with_quaternion(0.0, 0.0, 0.0, 1.0), 0.1) is None
+
+
+def test_a_position_beyond_safety_max_position_m_is_malformed(policy: Path) -> None:
+    c = ready(policy, max_position_m=50.0)
+    assert c.receive(Input.POSE, pose_payload(x=30.0, y=-40.0), 0.1) is None
+    error = c.receive(Input.POSE, pose_payload(x=50.5), 0.15)
+    assert error is not None and "safety.max_position_m = 50.0" in error
+    assert "safety.max_position_m" in (c.receive(Input.TARGET, target_payload(y=-51.0), 0.15) or "")
+    assert c.counters.malformed["pose"] == 1 and c.counters.malformed["target"] == 1
+    assert c.decide(0.15).status.target_distance_m == pytest.approx(math.hypot(8 - 30, 8 + 40))
+
+
+def test_a_malformed_message_on_the_estop_topic_presses_the_stop(policy: Path) -> None:
+    for index, payload in enumerate(
+        [b"\xff", b"", bytes.fromhex("0001000002"), bytes.fromhex("0001ffff00"), scan_payload()]
+    ):
+        c = ready(policy)
+        assert c.decide(0.05).status.reason is Reason.POLICY
+        error = c.receive(Input.ESTOP, payload, 0.06)
+        assert error is not None and "taken as a press" in error, index
+        output = c.decide(0.07)
+        assert_stop(output, Reason.ESTOP_LATCHED)
+        assert (output.status.estop_latched, output.status.estop_pressed) == (True, True)
+        counters = output.status.counters
+        assert counters["malformed"]["estop"] == 1 and counters["estop_presses"] == 1
+        assert output.status.ages_s["estop"] is None  # no well-formed estop message yet
+        # Pressed: a release is refused until a well-formed false says the button is out.
+        assert c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 0.08)
+        assert c.counters.releases_refused == 1
+        assert c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.09) is None
+        assert_stop(c.decide(0.09), Reason.ESTOP_LATCHED)
+        assert c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 0.1) is None
+        feed(c, 0.1)
+        assert c.decide(0.11).status.reason is Reason.POLICY
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        "0001000002",
+        "00010000ff",
+        "0001000080000000",
+        "0001000001deadbe",
+        "0001ffff01",
+        "000100000101",
+        "0001000201000000",
+    ],
+)
+def test_a_malformed_release_never_releases(policy: Path, payload: str) -> None:
+    """Issue 18: each of these released a latched stop with the button out."""
+    c = ready(policy)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.01)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.02)
+    assert c.receive(Input.ESTOP_RELEASE, bytes.fromhex(payload), 0.03)
+    feed(c, 0.03)
+    assert_stop(c.decide(0.04), Reason.ESTOP_LATCHED)
+    assert c.counters.malformed["estop_release"] == 1
+    for canonical in ("0001000001", "0001000301000000"):  # padded as Cyclone DDS writes it
+        c = ready(policy, estop_start_latched=True)
+        assert c.receive(Input.ESTOP_RELEASE, bytes.fromhex(canonical), 0.03) is None
+        assert c.decide(0.04).status.reason is Reason.POLICY
+
+
+def scan_layout(
+    count: int = 720,
+    increment: float = 2 * math.pi / 720,
+    range_min: float = 0.1,
+    range_max: float = 30.0,
+) -> bytes:
+    ranges = np.full(count, 3.0, dtype=np.float32)
+    return wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, range_min, range_max, ranges))
+
+
+@pytest.mark.parametrize(
+    ("payload", "why"),
+    [
+        pytest.param(scan_layout(range_min=math.nan), "range_min", id="range-min-nan"),
+        pytest.param(scan_layout(range_max=math.nan), "range_min", id="range-max-nan"),
+        pytest.param(scan_layout(range_max=math.inf), "range_min", id="range-max-inf"),
+        pytest.param(scan_layout(range_min=5.0, range_max=5.0), "range_min", id="min-equals-max"),
+        pytest.param(scan_layout(range_min=-1.0), "range_min", id="range-min-negative"),
+        pytest.param(scan_layout(count=1, increment=0.01), "min_readings", id="one-reading"),
+        pytest.param(scan_layout(count=49, increment=0.1), "min_readings", id="49-readings"),
+        pytest.param(scan_layout(count=300, increment=0.01), "min_field_of_view", id="narrow"),
+    ],
+)
+def test_a_scan_that_no_planar_lidar_sends_is_malformed(
+    policy: Path, payload: bytes, why: str
+) -> None:
+    c = ready(policy)
+    error = c.receive(Input.SCAN, payload, 0.3)
+    assert error is not None and why in error
+    assert c.counters.malformed["scan"] == 1
+    assert_stop(c.decide(0.5), Reason.SCAN_STALE)
+
+
+def test_the_scan_plausibility_bounds_are_settings(policy: Path) -> None:
+    lidar = LidarSettings(min_readings=10, min_field_of_view_rad=1.0)
+    c = Controller(PolicyRuntime(policy), SafetySettings(), lidar)
+    assert c.receive(Input.SCAN, scan_layout(count=10, increment=0.1), 0.0) is None
+    assert c.receive(Input.SCAN, scan_layout(count=9, increment=0.2), 0.0)
+    assert c.receive(Input.SCAN, scan_layout(count=50, increment=0.0199), 0.0)
+    assert c.receive(Input.SCAN, scan_layout(count=180, increment=math.pi / 180), 0.0) is None
+    assert ready(policy).receive(Input.SCAN, scan_layout(181, math.pi / 180), 0.0) is None
+
+
+@pytest.mark.parametrize(
+    "payload", [b"\xff", b"", bytes.fromhex("0001000002"), bytes.fromhex("0001ffff00")]
+)
+def test_a_malformed_stop_message_presses_the_stop(policy: Path, payload: bytes) -> None:
+    c = ready(policy)
+    assert c.receive(Input.ESTOP, payload, 0.01)
+    assert c.counters.malformed["estop"] == 1
+    status = c.decide(0.02).status
+    assert (status.estop_latched, status.estop_pressed) == (True, True)
+    assert status.reason is not None and status.reason.name.startswith("ESTOP")
+
+
+RELEASE_LOOKALIKES = [
+    "0001000002",  # value byte 2
+    "00010000ff",
+    "0001000080000000",
+    "0001000001deadbe",  # garbage after the value
+    "0001ffff01",  # non-zero options
+    "0000000002",  # big-endian, value byte 2
+    "000100000100000000",  # more than alignment padding
+    "00010000",  # no value
+]
+
+
+def test_no_malformed_payload_releases_a_latched_stop(policy: Path) -> None:
+    rng = np.random.default_rng(11)
+    payloads = [bytes.fromhex(h) for h in RELEASE_LOOKALIKES]
+    for _ in range(3000):
+        size = int(rng.integers(0, 12))
+        body = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        payloads.append(b"\x00\x01\x00\x00" + body if rng.random() < 0.7 else body)
+    canonical = CANONICAL_TRUE  # written out independently of the reader
+    c = ready(policy)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(True), 0.0)
+    c.receive(Input.ESTOP, wire.encode_bool_msg(False), 0.0)
+    for i, payload in enumerate(payloads):
+        if payload in canonical:
+            continue
+        c.receive(Input.ESTOP_RELEASE, payload, 0.001 * i)
+        output = c.decide(0.001 * i)
+        assert output.command == STOP and output.status.estop_latched, payload.hex()
+    # ... and the canonical release still works afterwards.
+    c.receive(Input.ESTOP_RELEASE, wire.encode_bool_msg(True), 10.0)
+    assert not c.decide(10.0).status.estop_latched
 
 
 def test_payloads_in_the_wrong_frame_are_malformed_when_a_frame_is_configured(
@@ -318,7 +514,7 @@ def test_the_status_is_one_json_object_with_the_decision_and_its_reasons(policy:
 
 @pytest.mark.parametrize(
     ("count", "increment"),
-    [(200_000, 1e-5), (10, 4.0), (1000, 0.1), (5, -1e30)],
+    [(200_000, 1e-5), (60, 4.0), (1000, 0.1), (60, -1e30)],
 )
 def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     policy: Path, count: int, increment: float
@@ -328,3 +524,44 @@ def test_a_scan_that_is_no_planar_scan_is_refused_before_it_is_resampled(
     payload = wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, 0.1, 30, ranges))
     assert "not a planar scan" in (c.receive(Input.SCAN, payload, 0.1) or "")
     assert c.counters.malformed["scan"] == 1
+
+
+def test_a_policy_that_refuses_the_observation_stops_the_car(policy: Path) -> None:
+    """The `policy_input_error` rule: a runtime that refuses the observation (here one built
+    for two streams, whose single-stream step refuses) stops the car instead of raising."""
+    c = Controller(PolicyRuntime(policy, num_streams=2), SafetySettings())
+    assert c.receive(Input.TARGET, target_payload(), 0.0) is None
+    feed(c, 0.0)
+    output = c.decide(0.05)
+    assert_stop(output, Reason.POLICY_INPUT_ERROR)
+    assert c.counters.policy_steps == 0 and c.counters.stops == 1
+
+
+def test_a_target_that_only_changes_frame_is_a_new_target(policy: Path) -> None:
+    c = ready(policy, target_tolerance_m=0.3)
+    c.receive(Input.TARGET, target_payload(1.2, 1.1), 0.0)
+    assert_stop(c.decide(0.01), Reason.TARGET_REACHED)
+    c.receive(Input.POSE, pose_payload(x=3.0, frame="odom"), 0.02)  # away, in the new frame
+    c.receive(Input.TARGET, target_payload(1.2, 1.1, frame="odom"), 0.02)  # same place
+    assert c.decide(0.03).status.reason is Reason.POLICY
+
+
+def test_an_empty_frame_id_on_either_side_skips_the_frame_mismatch_stop(policy: Path) -> None:
+    for pose_frame, target_frame in [("", "odom"), ("map", ""), ("", "")]:
+        c = controller(policy)
+        assert c.receive(Input.TARGET, target_payload(frame=target_frame), 0.0) is None
+        feed(c, 0.0, pose=False)
+        assert c.receive(Input.POSE, pose_payload(frame=pose_frame), 0.0) is None
+        assert c.decide(0.01).status.reason is Reason.POLICY, (pose_frame, target_frame)
+    c = controller(policy)
+    c.receive(Input.TARGET, target_payload(frame="odom"), 0.0)
+    feed(c, 0.0)
+    assert_stop(c.decide(0.01), Reason.FRAME_MISMATCH)
+
+
+def test_the_periodic_check_stops_the_car_when_the_scans_stop(policy: Path) -> None:
+    c = ready(policy)
+    assert c.check(0.1) is None  # fresh inputs: nothing to stop for, the policy decides on scans
+    output = c.check(5.0)
+    assert output is not None
+    assert_stop(output, Reason.SCAN_STALE)

@@ -123,7 +123,13 @@ def test_a_recorder_killed_with_sigkill_keeps_every_message_it_received(tmp_path
             for _ in range(20):
                 session.put(wire.key(wire.SCAN), _scan(sent))
                 sent += 1
-            time.sleep(0.5)
+            # Wait (on a loaded machine, seconds) until the last one is in the file.
+            last = _scan(sent - 1)
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                if any(m.payload == last for m in read_recording(files[0])):
+                    break
+                time.sleep(0.05)
             assert check_health(health, max_age_s=3.0)[0], "the recording loop beats"
             os.kill(recorder.pid, signal.SIGKILL)
             recorder.wait(10)
@@ -137,6 +143,19 @@ def test_a_recorder_killed_with_sigkill_keeps_every_message_it_received(tmp_path
     # The first samples may predate the subscription; after that none is missing.
     first = next(i for i in range(sent) if _scan(i) == payloads[0])
     assert payloads == [_scan(i) for i in range(first, sent)]
+    # After `qnav recover`, other people's readers read every one of them too.
+    mended = subprocess.run(
+        [sys.executable, "-m", "qnav", "recover", str(folder)],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert mended.returncode == 0, mended.stderr
+    with files[0].open("rb") as stream:
+        theirs = [bytes(m.data) for _, _, m in make_reader(stream).iter_messages()]
+    assert theirs == payloads
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([folder]) as reader:
+        assert [bytes(raw) for _, _, raw in reader.messages()] == payloads
 
 
 def test_playback_publishes_the_recorded_bytes_in_order_at_the_recorded_pace(

@@ -11,8 +11,8 @@ from contextlib import ExitStack
 
 import pytest
 
-from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
-from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, key
+from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
+from contracts.wire import COMMAND, POSE, VEHICLE_REQUEST, Twist2D, encode_twist_msg, key
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from sim.mavlink_vehicle import MavlinkVehicle
@@ -74,17 +74,14 @@ def test_silence_stops_the_vehicle_within_the_timeout_and_keeps_stopping(
         what="a neutral override",
     )[0]
     timeout_s = 0.2  # failsafe.command_timeout_s of the rig
-    # The bridge took the last command after it was sent, so its stop cannot come sooner than
-    # the timeout after that (on any machine); the deadline is timeout + 50 ms, and the second
-    # above it is for a loaded machine, where threads wake late: a stop that never comes, or
-    # comes only on some much later timer, still fails.
+    # Never before the timeout. How soon after it is the gate's job on an exact clock
+    # (test_failsafe.py); here a loaded machine may add scheduling delay, so only a stop that
+    # never came in a second counts as a failure.
     assert timeout_s - 0.01 <= first_stop - last_command_s <= timeout_s + 1.0
-    wait_until(
-        lambda: len(_overrides(rig, last_command_s + 0.05)) >= 5,
-        what="the stop repeated while commands stay away",
-    )
+    time.sleep(0.5)
     after = _overrides(rig, last_command_s + 0.05)
     assert all(pwm == NEUTRAL for _, pwm in after), "an old command was replayed"
+    assert len(after) >= 5, "the stop is repeated while commands stay away"
     wait_until(lambda: abs(rig.vehicle.velocity()[0]) < 0.02, what="the car to stop")
 
 
@@ -114,11 +111,9 @@ def test_lost_heartbeat_reports_link_down_reconnects_and_waits_for_a_fresh_comma
     rig.vehicle.set_link_enabled(True)
     link_back_s = time.monotonic()
     wait_until(lambda: rig.state().get("link_up") is True, what="link reported up again")
-    wait_until(
-        lambda: len(_overrides(rig, link_back_s)) >= 3,
-        what=f"stops sent once the link is back ({dict(bridge.counters)})",
-    )
+    time.sleep(0.4)
     after = _overrides(rig, link_back_s)
+    assert after, f"stops are sent once the link is back ({dict(bridge.counters)})"
     moving = [item for item in after if item[1] != NEUTRAL]
     assert not moving, f"motion resumed without a fresh command: {moving}"
     fresh_s = time.monotonic()
@@ -145,6 +140,21 @@ def test_malformed_command_is_counted_and_never_moves_the_car(make_rig: MakeRig)
     assert rig.vehicle.pose()[0] > 0.01
 
 
+def test_an_absurd_command_is_refused_and_stops_a_moving_car(make_rig: MakeRig) -> None:
+    rig = make_rig()
+    bridge = rig.bridge
+    assert bridge is not None
+    rig.ready()
+    rig.drive(0.8, 0.0, 0.3)
+    time.sleep(0.1)  # the last forward command has arrived; it stands until the timeout
+    start_s = time.monotonic()
+    for linear, angular in ((0.0, -9.1e150), (1e308, 1e308), (20.0, 0.0)):
+        rig.publish(key(COMMAND), encode_twist_msg(Twist2D(linear, angular)))
+    wait_until(lambda: bridge.counters["malformed"] == 3, what="three absurd commands counted")
+    wait_until(lambda: len(_overrides(rig, start_s)) >= 3, what="stops after them")
+    assert all(pwm == NEUTRAL for _, pwm in _overrides(rig, start_s))
+
+
 def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeRig) -> None:
     rig = make_rig(bridge={"output": {"manual_message": "manual_control"}})
     rig.ready()
@@ -155,8 +165,17 @@ def test_manual_control_output_drives_from_the_ground_station_id(make_rig: MakeR
     assert any(r.fields["z"] == 500 and r.fields["y"] == 0 for r in sent)
 
 
-def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
+def test_an_arm_request_is_refused_unless_remote_arming_is_on(make_rig: MakeRig) -> None:
     rig = make_rig(bridge={"vehicle": {"arm_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"arm": True})
+    wait_until(lambda: rig.counters().get("refused") == 1, what="arm request refused")
+    time.sleep(0.2)
+    assert not rig.vehicle.armed
+
+
+def test_request_message_arms_disarms_and_sets_the_mode(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False, "remote_arming": True}})
     wait_until(lambda: rig.state().get("link_up"), what="link up")
     assert not rig.vehicle.armed
     rig.request({"arm": True})
@@ -277,7 +296,10 @@ def test_tcp_link_drives_and_recovers_after_the_vehicle_restarts() -> None:
         serve = {"connection": f"tcpin:127.0.0.1:{port}"}
         vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
         settings = bridge_settings(
-            rig.zenoh_port, 0, mavlink={"connection": f"tcp:127.0.0.1:{port}"}
+            rig.zenoh_port,
+            0,
+            mavlink={"connection": f"tcp:127.0.0.1:{port}"},
+            vehicle={"remote_arming": True},
         )
         bridge = stack.enter_context(Bridge(settings))
         rig.vehicle, rig.bridge = vehicle, bridge
@@ -315,3 +337,61 @@ def test_bridge_heartbeats_as_companion_computer_and_as_ground_station(
     )
     # Companion: the vehicle's id, component 191, MAV_TYPE_ONBOARD_CONTROLLER, autopilot invalid.
     assert heartbeats == {(1, 191, 18, 8), (255, 191, 6, 8)}
+
+
+def test_only_the_autopilots_own_heartbeat_brings_the_link_up() -> None:
+    from pymavlink import mavutil
+
+    with ExitStack() as stack:
+        rig = start_rig(stack, start_bridge=False)
+        port = free_port(socket.SOCK_DGRAM)
+        settings = bridge_settings(
+            rig.zenoh_port, 0, mavlink={"connection": f"udpin:127.0.0.1:{port}"}
+        )
+        stack.enter_context(Bridge(settings))
+        impostors = [
+            (1, 190, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA),  # the vehicle's id, a camera
+            (1, 1, mavutil.mavlink.MAV_AUTOPILOT_INVALID),  # the vehicle's id, not an autopilot
+            (2, 1, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA),  # another vehicle
+        ]
+        links = []
+        for system, component, _ in [*impostors, (1, 1, 0)]:
+            link = mavutil.mavlink_connection(
+                f"udpout:127.0.0.1:{port}", source_system=system, source_component=component
+            )
+            stack.callback(link.close)
+            links.append(link)
+
+        def beat(index: int, autopilot: int) -> None:
+            links[index].mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_GROUND_ROVER, autopilot, 0, 0, 0
+            )
+
+        wait_until(lambda: rig.state().get("link_up") is False, what="a state with the link down")
+        for _ in range(10):
+            for index, (_, _, autopilot) in enumerate(impostors):
+                beat(index, autopilot)
+            time.sleep(0.05)
+        assert rig.state().get("link_up") is False
+        beat(3, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+        wait_until(lambda: rig.state().get("link_up") is True, what="the autopilot's heartbeat")
+
+
+def test_a_request_the_vehicle_keeps_refusing_is_given_up_after_ten_tries(
+    make_rig: MakeRig,
+) -> None:
+    rig = make_rig(bridge={"vehicle": {"arm_on_connect": False, "set_mode_on_connect": False}})
+    wait_until(lambda: rig.state().get("link_up"), what="link up")
+    rig.request({"mode": "GUIDED"})  # refused: the vehicle has no position estimate
+
+    def set_mode_requests() -> int:
+        return sum(
+            1
+            for r in rig.vehicle.received("COMMAND_LONG")
+            if r.fields["command"] == MAV_CMD_DO_SET_MODE
+        )
+
+    wait_until(lambda: set_mode_requests() >= 10, timeout_s=30, what="ten tries")
+    time.sleep(1.5)  # three more retry periods: no eleventh try
+    assert set_mode_requests() == 10
+    assert rig.vehicle.mode != "GUIDED"

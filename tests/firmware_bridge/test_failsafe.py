@@ -84,3 +84,12 @@ def test_closed_gate_refuses_every_command() -> None:
     gate.close()
     assert not gate.accept_command(1.0)
     assert gate.stop_due(1.0)
+
+
+def test_a_fresh_command_does_not_keep_a_closed_gate_driving() -> None:
+    gate = _gate()
+    assert gate.accept_command(1.0)
+    assert gate.driving(1.1)
+    gate.close()
+    assert not gate.driving(1.1)  # still fresh, but the bridge is shutting down
+    assert gate.stop_due(1.1)

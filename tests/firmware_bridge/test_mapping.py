@@ -77,3 +77,20 @@ def test_facing_our_y_axis_is_facing_north() -> None:
 
 def test_origin_is_in_degrees_e7_and_millimetres() -> None:
     assert mapping.origin_e7(-35.363261, 149.16523, 584.0) == (-353632610, 1491652300, 584000)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_non_finite_value_maps_to_neutral_in_every_output(bad: float) -> None:
+    for twist in (Twist2D(bad, 0.0), Twist2D(0.0, bad), Twist2D(bad, bad)):
+        assert mapping.rc_override(twist, OUT) == (1500, 1500)
+        assert mapping.manual_control(twist, OUT) == (0, 0)
+        assert mapping.velocity_target(twist, OUT) == (0.0, 0.0)
+
+
+def test_commands_far_beyond_full_scale_are_implausible_and_overshoot_is_not() -> None:
+    assert mapping.implausible(Twist2D(1.5, -2.0), OUT, 10.0) is None  # clipped, not refused
+    assert mapping.implausible(Twist2D(9.9, 0.0), OUT, 10.0) is None
+    for twist in (Twist2D(10.1, 0.0), Twist2D(0.0, -9.1e150), Twist2D(1e308, 1e308)):
+        assert "beyond 10.0 x" in (mapping.implausible(twist, OUT, 10.0) or "")
+    guided = OutputSettings(mode="guided", guided_max_speed_mps=0.5)
+    assert mapping.implausible(Twist2D(5.5, 0.0), guided, 10.0) is not None

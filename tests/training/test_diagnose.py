@@ -25,6 +25,7 @@ TINY = replace(
     max_episode_steps=30,
     warmup_episodes=2,
     threads=1,
+    gauge_episodes=4,
 )
 
 
@@ -45,6 +46,8 @@ def test_a_diagnosis_measures_fractions_and_errors_and_repeats_exactly(tiny_run:
     assert sum(first.action_mix) == pytest.approx(1.0)
     assert first.lidar_gate_std > 0 and first.target_gate_std > 0
     assert len(first.dead_channels) == 3 and all(0 <= d <= 8 for d in first.dead_channels)
+    assert first.decisive is not None and first.decisive.states > 0
+    assert 0 <= first.decisive.safe <= 1 and 0 <= first.decisive.go_to_target <= 1
 
 
 def test_a_network_blind_to_the_target_never_seems_to_turn_towards_it(tiny_run: Path) -> None:

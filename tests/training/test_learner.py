@@ -40,9 +40,9 @@ def test_repeated_updates_fit_a_fixed_terminal_target() -> None:
         steps=np.ones(16, dtype=np.int64),
         discount=np.full(16, 0.97, dtype=np.float32),
     )
-    first = td_update(online, target, optimizer, batch, window=5)
+    first = td_update(online, target, optimizer, batch, window=5).loss
     for _ in range(150):
-        last = td_update(online, target, optimizer, batch, window=5)
+        last = td_update(online, target, optimizer, batch, window=5).loss
     assert last < first / 100
 
 

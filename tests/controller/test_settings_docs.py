@@ -1,0 +1,15 @@
+"""docs/controller.md's settings table is the one the settings classes give."""
+
+from pathlib import Path
+
+from contracts.settings import to_markdown
+from controller.config import DaemonConfig
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_settings_table_in_the_docs_is_current() -> None:
+    table = to_markdown(DaemonConfig())
+    assert table in (ROOT / "docs" / "controller.md").read_text(), (
+        "paste `to_markdown(DaemonConfig())` into docs/controller.md"
+    )

@@ -1,0 +1,103 @@
+"""The decisive-state gauge: states where the choice matters, and how a policy is judged there."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from contracts.actions import NUM_ACTIONS
+from sim.config import scenario
+from sim.decisive import (
+    DRIVERS,
+    DecisiveStates,
+    GaugeSettings,
+    cached,
+    collect,
+    go_to_target_choices,
+    random_expectation,
+    score,
+)
+from sim.oracle import doomed_actions
+from sim.world import reset
+
+SMALL = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6, seed=3)
+
+
+@pytest.fixture(scope="module")
+def states() -> DecisiveStates:
+    return collect(scenario("obstacles-increment"), SMALL)
+
+
+def test_every_kept_state_has_a_doomed_and_a_safe_action(states: DecisiveStates) -> None:
+    assert len(states.doomed) > 0
+    assert states.doomed.any(axis=1).all()
+    assert (~states.doomed).any(axis=1).all()
+    assert states.windows.shape == (len(states.doomed), SMALL.window, 720 + 3)
+    assert set(np.unique(states.driver)) <= set(range(len(DRIVERS)))
+    assert (states.visited >= np.bincount(states.driver, minlength=len(DRIVERS))).all()
+
+
+def test_safe_and_doomed_choices_score_one_and_zero(states: DecisiveStates) -> None:
+    safe_choice = np.argmin(states.doomed, axis=1)
+    doomed_choice = np.argmax(states.doomed, axis=1)
+    assert score(states, safe_choice).safe == 1.0
+    assert score(states, doomed_choice).safe == 0.0
+    expected = float((~states.doomed).sum()) / states.doomed.size
+    assert random_expectation(states).safe == pytest.approx(expected)
+
+
+def test_go_to_target_is_judged_on_the_newest_frames_bearing(states: DecisiveStates) -> None:
+    choices = go_to_target_choices(states)
+    assert choices.shape == (len(states.doomed),)
+    assert set(np.unique(choices)) <= set(range(NUM_ACTIONS))
+
+
+def test_a_layout_with_an_obstacle_on_the_robot_dooms_every_action() -> None:
+    config = scenario("obstacles-increment")
+    state = reset(config, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64))
+    ahead = state.pose[:, :2] + 0.3 * np.stack(
+        [np.cos(state.pose[:, 2]), np.sin(state.pose[:, 2])], 1
+    )
+    state = state._replace(
+        obstacle_xy=np.repeat(ahead[:, None], state.obstacle_xy.shape[1], axis=1),
+        obstacle_velocity=np.zeros_like(state.obstacle_velocity),
+    )
+    assert doomed_actions(config, state).all()
+
+
+def test_the_cache_returns_what_was_collected_and_keys_on_the_settings(tmp_path: Path) -> None:
+    world = scenario("obstacles-increment")
+    tiny = GaugeSettings(episodes_per_driver=2, max_episode_steps=10, num_worlds=2)
+    first = cached(world, tiny, directory=tmp_path)
+    again = cached(world, tiny, directory=tmp_path)
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+    cached(world, GaugeSettings(episodes_per_driver=1, max_episode_steps=10), directory=tmp_path)
+    assert len(list((tmp_path / "decisive").glob("*.npz"))) == 2
+
+
+def _qnav(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "qnav", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+
+
+def test_qnav_gauge_prints_the_baselines_of_a_world() -> None:
+    result = _qnav("gauge", "--scenario", "obstacles-increment", "--episodes", "10", "--json")
+    assert result.returncode == 0, result.stderr
+    rows = [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
+    assert [row["policy"] for row in rows] == ["random", "go-to-target"]
+    assert all(0.0 <= row["safe"] <= 1.0 for row in rows)
+
+
+def test_qnav_gauge_refuses_a_world_without_moving_obstacles() -> None:
+    result = _qnav("gauge", "--scenario", "walls-increment")
+    assert result.returncode != 0
+    assert "no moving obstacles" in result.stderr
