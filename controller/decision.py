@@ -35,9 +35,10 @@ Otherwise the policy decides (`policy`) and the command is its action's velocity
 file's contract. A malformed payload (not exactly one well-formed message, NaN, wrong frame, a
 pose beyond `safety.max_position_m` or with a non-unit quaternion, a scan that is no plausible
 scan of a planar lidar: range_min/range_max not finite and ordered, fewer than
-`lidar.min_readings` readings, less than `lidar.min_field_of_view_rad`, too many invalid
-readings) is counted and its error returned; it never replaces the last good input, so it can
-only make the car stop (through the timeouts, or the emergency stop), never move.
+`lidar.min_readings` readings, less than `lidar.min_field_of_view_rad`, an absurd
+angle_min or increment, too many invalid readings) is counted and its error returned; it never
+replaces the last good input, so it can only make the car stop (through the timeouts, or the
+emergency stop), never move.
 """
 
 from __future__ import annotations
@@ -62,6 +63,9 @@ from controller.scan import ScanRules, resample_scan
 
 MAX_SCAN_READINGS = 100_000
 """Scans with more readings are refused (no planar lidar has as many)."""
+
+MAX_ANGLE_MIN_RAD = 2 * math.pi
+"""Scans starting farther from 0 either way are refused (drivers start in [-pi, 2 pi))."""
 
 TARGET_MOVED_M = 1e-3
 """A target this far from the current one is a different target (new episode)."""
@@ -327,6 +331,13 @@ class Controller:
             raise WireError(
                 f"scan of {count} readings {increment:.4g} rad apart is not a planar scan of at "
                 f"most two turns and {MAX_SCAN_READINGS} readings"
+            )
+        if abs(scan.angle_min_rad) > MAX_ANGLE_MIN_RAD:
+            # Finite but absurd (1e30): every reading's angle rounds to one, and the resampled
+            # scan would read as open space all round.
+            raise WireError(
+                f"scan angle_min {scan.angle_min_rad:.4g} rad is not a planar scan's start angle "
+                f"(at most {MAX_ANGLE_MIN_RAD:.4g} rad either way)"
             )
         if count * increment < self.lidar.min_field_of_view_rad:
             raise WireError(

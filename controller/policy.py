@@ -23,6 +23,7 @@ Q values are never NaN; a non-finite target feature is refused.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, NamedTuple, Protocol
@@ -249,6 +250,7 @@ class PolicyRuntime:
         contents = read_onnx(self.path)
         self.contract = PolicyContract.from_metadata(contents.metadata, str(self.path))
         _check_fits(self.contract, expect or Expectation(), self.path)
+        _check_actions(self.contract, self.path)
         self.backend_name = backend
         self.step_function: StepFunction = (
             OnnxRuntimeBackend(self.path, self.contract)
@@ -363,6 +365,20 @@ class PolicyRuntime:
                 f"(expected ({n}, {beams}))"
             )
         return encode_frame(scan, features, self.contract.max_range_m)
+
+
+def _check_actions(contract: PolicyContract, path: Path) -> None:
+    """Every action's velocity is finite: the file's metadata is JSON, which Python reads with
+    NaN and Infinity, and a command that is not a number is no command anyone meant."""
+    bad = [
+        f"{action.name.lower()} = ({v.linear_mps}, {v.angular_radps})"
+        for action, v in zip(Action, contract.actions, strict=True)
+        if not (math.isfinite(v.linear_mps) and math.isfinite(v.angular_radps))
+    ]
+    if bad:
+        raise PolicyFileError(
+            f"{path}: qnav.actions has velocities that are not finite: {', '.join(bad)}"
+        )
 
 
 def _check_fits(contract: PolicyContract, expect: Expectation, path: Path) -> None:

@@ -198,10 +198,16 @@ def _structured(message: str, rng: Generator) -> Iterator[tuple[str, bytes]]:
         inc = 2 * math.pi / count
 
         def scan(
-            n: int = count, increment: float = inc, low: float = 0.1, high: float = 30.0
+            n: int = count,
+            increment: float = inc,
+            low: float = 0.1,
+            high: float = 30.0,
+            start: float = 0.0,
         ) -> bytes:
             values = ranges[:n] if n <= count else np.full(n, 3.0, dtype=np.float32)
-            return wire.encode_scan_msg(wire.Scan(1.0, "laser", 0.0, increment, low, high, values))
+            return wire.encode_scan_msg(
+                wire.Scan(1.0, "laser", start, increment, low, high, values)
+            )
 
         yield "scan-range-min-nonfinite", scan(low=pick)
         yield "scan-range-max-nonfinite", scan(high=pick)
@@ -212,6 +218,7 @@ def _structured(message: str, rng: Generator) -> Iterator[tuple[str, bytes]]:
         yield "scan-narrow", scan(n=100, increment=float(rng.uniform(0.001, 0.03)))
         yield "scan-increment-nonfinite", scan(increment=pick)
         yield "scan-increment-zero", scan(increment=0.0)
+        yield "scan-angle-min-absurd", scan(start=float(rng.choice([1e30, -1e30, 1e7, -13.0])))
         yield "scan-increment-absurd", scan(increment=float(rng.choice([1e6, -1e5, 4.0])))
         all_nan = wire.Scan(1.0, "laser", 0.0, inc, 0.1, 30.0, np.full(count, np.nan, np.float32))
         yield "scan-all-invalid", wire.encode_scan_msg(all_nan)

@@ -3,6 +3,7 @@ its streaming decisions are the window network's."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +76,24 @@ def test_an_unknown_weight_type_is_refused_naming_it(
     source = make_policy("walls-inertia")
     path = with_metadata(source, tmp_path / "int4.onnx", {"qnav.weight_type": "int4"})
     with pytest.raises(PolicyFileError, match=r"weight_type = 'int4'.*float32, int8"):
+        PolicyRuntime(path)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_policy_whose_action_velocity_is_not_finite_is_refused_at_load(
+    make_policy: PolicyFactory, tmp_path: Path, bad: float
+) -> None:
+    """JSON metadata read by Python takes NaN and Infinity: such a velocity would be published
+    as a command (the bridge refuses it, but the controller must not send it)."""
+    actions = [
+        {"linear_mps": 0.5, "angular_radps": 0.0},
+        {"linear_mps": 0.1, "angular_radps": bad},
+        {"linear_mps": 0.1, "angular_radps": -1.0},
+    ]
+    path = with_metadata(
+        make_policy("walls-inertia"), tmp_path / "nan.onnx", {"qnav.actions": actions}
+    )
+    with pytest.raises(PolicyFileError, match=r"qnav\.actions .*not finite: left = "):
         PolicyRuntime(path)
 
 
