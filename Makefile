@@ -8,9 +8,10 @@ STAMP := $(VENV)/.installed
 
 .PHONY: install demo test test-slow test-stack fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
-$(STAMP): pyproject.toml
+# constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
+$(STAMP): pyproject.toml constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev]'
 	@touch $(STAMP)
 
 install: $(STAMP)

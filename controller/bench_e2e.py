@@ -148,9 +148,9 @@ class Latencies(NamedTuple):
     inbound: list[float]
     """Scan stamped -> scan in the daemon's callback (encoding, zenoh, the daemon's wake-up)."""
     daemon: list[float]
-    """Scan in the daemon's callback -> command published (decode, decide, encode, put)."""
+    """Scan in the daemon's callback -> command put started (decode, decide, encode)."""
     outbound: list[float]
-    """Command published -> command in the receiver's callback."""
+    """Command put started -> command in the receiver's callback (the put, zenoh, wake-up)."""
 
 
 def latencies(events: list[tuple[str, float, bytes]], since: float) -> Latencies:

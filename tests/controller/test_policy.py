@@ -14,6 +14,7 @@ from contracts.errors import PolicyFileError, PolicyInputError
 from contracts.observation import FrameWindow
 from controller.policy import BACKENDS, Expectation, PolicyRuntime
 from tests.conftest import PolicyFactory, policy_network, with_metadata
+from tests.near_ties import assert_actions_match_but_near_ties
 
 BEAMS = 720
 
@@ -182,7 +183,7 @@ def test_streaming_decisions_with_resets_equal_the_window_networks(
     window = FrameWindow(streams, network.frame_size, 5)
     rng = np.random.default_rng(3)
     beams = world.lidar.num_beams if world.lidar else 0
-    worst, restarts = 0.0, 0
+    worst, restarts, near_ties = 0.0, 0, 0
     for t in range(steps):
         scans = rng.uniform(0.0, 25.0, size=(streams, beams)) if beams else None
         bearing = rng.uniform(-np.pi, np.pi, streams)
@@ -191,7 +192,7 @@ def test_streaming_decisions_with_resets_equal_the_window_networks(
         windows = window.advance(runtime.encode(scans, features))
         with torch.no_grad():
             expected = network(torch.from_numpy(windows)).numpy()
-        np.testing.assert_array_equal(actions, expected.argmax(axis=1), err_msg=f"step {t}")
+        near_ties += assert_actions_match_but_near_ties(actions, expected, f"step {t}")
         worst = max(worst, float(np.abs(q - expected).max()))
         restart = (
             np.arange(streams)
@@ -205,6 +206,7 @@ def test_streaming_decisions_with_resets_equal_the_window_networks(
         restarts += restart.size
     assert worst <= 1e-4
     assert restarts > 150
+    assert near_ties <= streams * steps // 100  # rare: exact equality but for rounding
 
 
 def test_the_lidarless_policy_takes_pose_and_target_only(make_policy: PolicyFactory) -> None:

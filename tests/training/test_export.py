@@ -26,6 +26,7 @@ from controller.policy import BACKENDS, PolicyRuntime, State
 from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 from sim.world import observe, reset, step
 from tests.conftest import PolicyFactory, policy_network
+from tests.near_ties import assert_actions_match_but_near_ties
 from training.agent import TorchAgent
 from training.export import (
     REEXPORT_KEY,
@@ -172,17 +173,19 @@ def test_the_file_picks_the_torch_action_at_every_step_of_recorded_episodes(
     state = reset(world, np.full(worlds, 7), np.arange(worlds))
     observation = observe(world, state)
     torch_agent.start(np.arange(worlds), np.arange(worlds))
-    steps = 0
-    for _ in range(60):
+    steps = near_ties = 0
+    for t in range(60):
         expected = torch_agent.act(observation)
-        actions, _ = runtime.step_batch(observation.scan_m, observation.target_features())
-        np.testing.assert_array_equal(actions, expected)
+        _, q = runtime.step_batch(observation.scan_m, observation.target_features())
+        # torch's action is the file's best, or within a near-tie of it (tests/near_ties.py).
+        near_ties += assert_actions_match_but_near_ties(expected, q, f"step {t}")
         steps += worlds
         state, observation, transition = step(world, state, expected)
         done = np.flatnonzero(transition.terminated | transition.truncated)
         torch_agent.start(done, done)
         runtime.reset(done)
     assert steps == 480
+    assert near_ties <= steps // 100  # rare: exact equality but for rounding
 
 
 def test_the_file_scores_what_the_torch_network_scores_with_the_same_seeds(

@@ -61,7 +61,10 @@ def test_every_large_product_but_the_output_layer_is_stored_in_int8(
     stored = read_onnx(_export(kind, 64, "int8", tmp_path)).initializers
     present = [p for p in INT8_PARAMETERS if kind == "recurrent" or not p.startswith("lstm")]
     for parameter in present:
-        assert stored[parameter + TRANSPOSED_SUFFIX + QUANTIZED_SUFFIXES[0]].dtype == np.int8
+        weights = stored[parameter + TRANSPOSED_SUFFIX + QUANTIZED_SUFFIXES[0]]
+        assert weights.dtype == np.int8
+        # 7 bits, so onnxruntime's int16 sums cannot saturate on CPUs without VNNI.
+        assert weights.min() >= -64 and weights.max() <= 64
         assert parameter not in stored
     quantized = {name for name in stored if name.endswith(QUANTIZED_SUFFIXES[0])}
     assert len(quantized) == len(present)
@@ -138,8 +141,10 @@ def test_int8_decides_as_float32_in_nearly_every_step_of_trained_episodes(
             fresh = reset(world, np.full(done.size, 3), done + streams * (t + 1))
             state = scatter(state, done, fresh)
             observation = scatter(observation, done, observe(world, fresh))
-    # Measured 0.979 (onnxruntime) and 0.979 (numpy), largest Q difference 0.015 where the
-    # float32 Q values of a step spread over 0.07 (median).
+    # Measured with 7-bit weights on an AVX2 CPU (no VNNI), onnxruntime 1.32: 0.985
+    # (onnxruntime) and 0.988 (numpy), largest Q difference 0.011 where the float32 Q values of
+    # a step spread over 0.07 (median). With 8-bit weights onnxruntime's int16 sums saturate on
+    # such a CPU and it agreed in 0.84 (training/quantize.py).
     assert agreed / decisions >= 0.95
     assert q_error <= 0.05
 
