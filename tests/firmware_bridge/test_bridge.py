@@ -117,8 +117,16 @@ def test_lost_heartbeat_reports_link_down_reconnects_and_waits_for_a_fresh_comma
     rig.vehicle.set_link_enabled(False)
     wait_until(lambda: rig.state().get("link_up") is False, what="link reported down")
     wait_until(lambda: bridge.counters["reconnects"] >= 1, what="a reconnection attempt")
-    rig.drive(0.8, 0.0, 0.2)  # commands while the link is down are dropped
-    wait_until(lambda: bridge.counters["dropped"] >= 1, what="commands dropped while down")
+    # Commands while the link is down are dropped. Wait until every one of them has arrived
+    # and been dropped, so none is still in flight when the link comes back.
+    dropped_before = bridge.counters["dropped"]
+    for _ in range(4):
+        rig.command(0.8, 0.0)
+        time.sleep(0.05)
+    wait_until(
+        lambda: bridge.counters["dropped"] >= dropped_before + 4,
+        what="the four commands sent while the link was down, dropped",
+    )
     rig.vehicle.set_link_enabled(True)
     link_back_s = time.monotonic()
     wait_until(lambda: rig.state().get("link_up") is True, what="link reported up again")
