@@ -76,9 +76,8 @@ def keyed_sequences(
     blocks = -(-horizon // _RANDOM_HOLD_STEPS)
     draw = rng.uniform(keys, _SEQUENCE_STREAM, (random_count, blocks))
     random = np.minimum((draw * NUM_ACTIONS).astype(np.int64), NUM_ACTIONS - 1)
-    structured = np.broadcast_to(
-        structured_sequences(horizon), (state.pose.shape[0], *structured_sequences(horizon).shape)
-    )
+    shared = structured_sequences(horizon)
+    structured = np.broadcast_to(shared, (state.pose.shape[0], *shared.shape))
     return np.concatenate([structured, _held(random, horizon)], axis=1)
 
 

@@ -1,8 +1,6 @@
 """The decisive-state gauge: states where the choice matters, and how a policy is judged there."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,7 @@ from sim.decisive import (
 )
 from sim.oracle import doomed_actions
 from sim.world import reset
+from tests.test_cli import _qnav
 
 SMALL = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6, seed=3)
 
@@ -77,16 +76,6 @@ def test_the_cache_returns_what_was_collected_and_keys_on_the_settings(tmp_path:
         np.testing.assert_array_equal(a, b)
     cached(world, GaugeSettings(episodes_per_driver=1, max_episode_steps=10), directory=tmp_path)
     assert len(list((tmp_path / "decisive").glob("*.npz"))) == 2
-
-
-def _qnav(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "qnav", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
 
 
 def test_qnav_gauge_prints_the_baselines_of_a_world() -> None:
