@@ -246,6 +246,24 @@ def build_parser() -> argparse.ArgumentParser:
     gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
     gauge.set_defaults(handler=_lazy("qnav.commands:gauge"))
 
+    probe = verbs.add_parser(
+        "probe",
+        help="perception ceiling: the Q-network fitted to the planner's doom labels, on the gauge",
+    )
+    _world_options(probe, "obstacles-inertia")
+    probe.add_argument(
+        "--probe-set",
+        dest="probe_assignments",
+        action="append",
+        default=[],
+        metavar="probe.FIELD=VALUE",
+        help="change one probe setting, e.g. probe.epochs=20 (repeatable; `qnav probe "
+        "--print-config` lists them)",
+    )
+    probe.add_argument("--print-config", action="store_true", help="print the probe settings")
+    probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")
+    probe.set_defaults(handler=_lazy("qnav.commands:probe"))
+
     imitate = verbs.add_parser(
         "imitate",
         help="behaviour-cloning ceiling: train the network to copy the oracle planner, test it",

@@ -274,6 +274,37 @@ def gauge(args: argparse.Namespace) -> int:
     return 0
 
 
+def probe(args: argparse.Namespace) -> int:
+    """Fit the paper's network to the planner's doom labels; print the gauge after each pass."""
+    from contracts.settings import to_toml
+    from training.probe import ProbeSettings
+    from training.probe import probe as fit
+
+    settings = ProbeSettings()
+    if args.probe_assignments:
+        overrides = parse_assignments(args.probe_assignments)
+        unknown = set(overrides) - {"probe"}
+        if unknown:
+            raise ConfigError(f"--probe-set takes probe.FIELD=VALUE, not {sorted(unknown)}")
+        settings = with_overrides(settings, overrides["probe"])
+    if args.print_config:
+        print(to_toml(settings))
+        return 0
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    if not world.obstacles.count:
+        raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
+    for epoch in fit(world, settings, progress=not args.json):
+        if args.json:
+            print(json.dumps(epoch._asdict()))
+        else:
+            print(
+                f"epoch {epoch.epoch}: loss {epoch.loss:.4f}, fit (balanced, training set) "
+                f"{epoch.train_balanced:.3f}, gauge safe {epoch.safe:.3f}, "
+                f"balanced {epoch.balanced:.3f} (blind choices 0.500)"
+            )
+    return 0
+
+
 def imitate(args: argparse.Namespace) -> int:
     """Copy the oracle planner with the learner's network; test the copy."""
     from training.imitate import ImitationSettings

@@ -54,12 +54,16 @@ class GaugeSettings:
     """Seed of the layouts (apart from training's, validation's and the test's)."""
     window: int = 5
     """Frames per window (the paper's k)."""
+    ordinary_share: float = 0.0
+    """Share of the other states (every action safe, or every one doomed) kept as well, drawn
+    from the seed: the gauge keeps none; a set to train on doom labels (`qnav probe`) some."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes_per_driver", self.episodes_per_driver, 1, 10**7)
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
         check_range(self, "num_worlds", self.num_worlds, 1, 100_000)
         check_range(self, "window", self.window, 1, 1000)
+        check_range(self, "ordinary_share", self.ordinary_share, 0.0, 1.0)
 
 
 DRIVERS = ("planner", "go-to-target")
@@ -67,7 +71,8 @@ DRIVERS = ("planner", "go-to-target")
 
 
 class DecisiveStates(NamedTuple):
-    """States where some action is doomed and another is not, with what a policy sees there."""
+    """States where some action is doomed and another is not, with what a policy sees there
+    (and, where `GaugeSettings.ordinary_share` asks, some where none or all are)."""
 
     windows: NDArray[np.float32]
     """(K, k, F) the last k encoded frames (scan and target features), oldest first."""
@@ -93,7 +98,7 @@ class DecisiveStates(NamedTuple):
 
 def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False) -> DecisiveStates:
     """Drive the settings' episodes with the planner and with go-to-target, keeping every
-    decisive state visited and its window."""
+    decisive state visited and its window (and `settings.ordinary_share` of the others)."""
     planner = OracleDriver(config, seed=settings.seed)
     drivers: list[StateAct] = [
         lambda state, _: planner.act(state),
@@ -139,9 +144,14 @@ def cached(
 
 
 def _drive_and_keep(
-    config: WorldConfig, settings: GaugeSettings, act: StateAct, index: int, progress: bool
+    config: WorldConfig,
+    settings: GaugeSettings,
+    act: StateAct,
+    index: int,
+    progress: bool,
 ) -> tuple[tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.int8]], int]:
     max_range_m = distance_scale_m(config.lidar)
+    chance = np.random.default_rng([settings.seed, index])
     windows, doomed = [], []
     visited = 0
     episodes = np.arange(settings.episodes_per_driver, dtype=np.int64)
@@ -156,9 +166,11 @@ def _drive_and_keep(
                 encode_frame(observation.scan_m, observation.target_features(), max_range_m)
             )
             doom = doomed_actions(config, state)
-            decisive = doom.any(axis=1) & ~doom.all(axis=1)
-            windows.append(frames[decisive].copy())
-            doomed.append(doom[decisive])
+            keep = doom.any(axis=1) & ~doom.all(axis=1)
+            if settings.ordinary_share:
+                keep |= chance.random(keep.size) < settings.ordinary_share
+            windows.append(frames[keep].copy())
+            doomed.append(doom[keep])
             visited += running.size
             state, observation, transition = step(config, state, act(state, observation))
             going = np.flatnonzero(~(transition.terminated | transition.truncated))
