@@ -61,6 +61,8 @@ COMMAND = Topic("cmd_vel", "geometry_msgs/msg/Twist")
 CONTROLLER_STATUS = Topic("qnav/controller_status", "std_msgs/msg/String")
 VEHICLE_STATE = Topic("qnav/vehicle_state", "std_msgs/msg/String")
 VEHICLE_REQUEST = Topic("qnav/vehicle_request", "std_msgs/msg/String")
+POLICY_ANNOUNCEMENT = Topic("qnav/policy_announcement", "std_msgs/msg/String")
+"""The policy `qnav serve` recommends (JSON, `contracts.delivery.Announcement`)."""
 
 TOPICS = (
     SCAN,
@@ -73,6 +75,7 @@ TOPICS = (
     CONTROLLER_STATUS,
     VEHICLE_STATE,
     VEHICLE_REQUEST,
+    POLICY_ANNOUNCEMENT,
 )
 """Every topic of the project (what `qnav record` subscribes to)."""
 
