@@ -161,9 +161,7 @@ def decode_announcement(payload: bytes) -> Announcement:
     if type(size) is not int or not 0 < size <= MAX_FILE_BYTES:
         raise wire.WireError(f"announcement size_bytes {size!r} is not in [1, {MAX_FILE_BYTES}]")
     if type(chunk) is not int or not 0 < chunk <= MAX_CHUNK_BYTES:
-        raise wire.WireError(
-            f"announcement chunk_bytes {chunk!r} is not in [1, {MAX_CHUNK_BYTES}]"
-        )
+        raise wire.WireError(f"announcement chunk_bytes {chunk!r} is not in [1, {MAX_CHUNK_BYTES}]")
     contract_json, evaluation = value.get("contract"), value.get("evaluation", {})
     if not isinstance(contract_json, dict) or not isinstance(evaluation, dict):
         raise wire.WireError("announcement contract or evaluation is not a JSON object")
@@ -212,7 +210,8 @@ def load_private_key(path: Path, setting: str) -> Any:
     try:
         key = serialization.load_pem_private_key(Path(path).read_bytes(), password=None)
     except (OSError, ValueError, TypeError) as error:
-        raise ConfigError(f"{setting} = {str(path)!r}: not a readable private key ({error})") from None
+        why = f"not a readable private key ({error})"
+        raise ConfigError(f"{setting} = {str(path)!r}: {why}") from None
     if not isinstance(key, Ed25519PrivateKey):
         raise ConfigError(f"{setting} = {str(path)!r}: not an Ed25519 key")
     return key
@@ -226,7 +225,8 @@ def load_public_key(path: Path, setting: str) -> Any:
     try:
         key = serialization.load_pem_public_key(Path(path).read_bytes())
     except (OSError, ValueError, TypeError) as error:
-        raise ConfigError(f"{setting} = {str(path)!r}: not a readable public key ({error})") from None
+        why = f"not a readable public key ({error})"
+        raise ConfigError(f"{setting} = {str(path)!r}: {why}") from None
     if not isinstance(key, Ed25519PublicKey):
         raise ConfigError(f"{setting} = {str(path)!r}: not an Ed25519 key")
     return key
@@ -285,5 +285,6 @@ def contract_mismatch(running: PolicyContract, candidate: PolicyContract) -> str
 
 def _brief(value: Any) -> str:
     if isinstance(value, tuple):
-        return "[" + ", ".join(f"({a.linear_mps:g} m/s, {a.angular_radps:g} rad/s)" for a in value) + "]"
+        pairs = (f"({a.linear_mps:g} m/s, {a.angular_radps:g} rad/s)" for a in value)
+        return "[" + ", ".join(pairs) + "]"
     return repr(value)

@@ -168,8 +168,7 @@ class PolicyServer:
             )
         chosen = best(list(self._by_path.values()))
         changed = chosen is not None and (
-            self.current is None
-            or chosen.announcement.version != self.current.announcement.version
+            self.current is None or chosen.announcement.version != self.current.announcement.version
         )
         self.current = chosen
         return changed
@@ -205,9 +204,7 @@ def run(settings: ServeSettings, stop: threading.Event) -> None:
     """Serve until `stop` is set."""
     import zenoh
 
-    server = PolicyServer(
-        settings, delivery.load_private_key(settings.private_key, "--key")
-    )
+    server = PolicyServer(settings, delivery.load_private_key(settings.private_key, "--key"))
     with open_session(settings.zenoh, stop) as session:
         queryable = session.declare_queryable(
             wire.key(delivery.POLICY_FILE, server.namespace) + "/**", server.on_query
