@@ -255,12 +255,17 @@ class PolicyFetcher:
     def _chunk(self, version: str, index: int, total: int, expected: int) -> bytes:
         where = f"{version}: transfer cut at chunk {index + 1} of {total}"
         key = delivery.chunk_key(version, index, self._namespace)
+        timeout = self.settings.chunk_timeout_s
+        late = f"no answer within policy.chunk_timeout_s = {timeout:g}"
+        asked = time.monotonic()
         try:
-            replies = self._session.get(key, timeout=self.settings.chunk_timeout_s)
+            replies = self._session.get(key, timeout=timeout)
             for reply in replies:
                 if reply.ok is None:
                     error = reply.err.payload.to_bytes()[:200].decode(errors="replace")
-                    raise TransferError(f"{where}: {error}")
+                    if time.monotonic() - asked >= timeout:  # zenoh's own error at its timeout
+                        raise TransferError(f"{where}: {late} (zenoh: {error})")
+                    raise TransferError(f"{where}: the server answered {error!r}")
                 data: bytes = reply.ok.payload.to_bytes()
                 if len(data) != expected:
                     raise TransferError(f"{where}: {len(data)} bytes, expected {expected}")
@@ -269,9 +274,7 @@ class PolicyFetcher:
             raise
         except Exception as error:  # zenoh raises its own types
             raise TransferError(f"{where}: {error}") from None
-        raise TransferError(
-            f"{where}: no answer within policy.chunk_timeout_s = {self.settings.chunk_timeout_s}"
-        )
+        raise TransferError(f"{where}: {late}")
 
     def _load(
         self, announcement: delivery.Announcement, data: bytes, contract: PolicyContract
@@ -297,7 +300,7 @@ class PolicyFetcher:
         if not for_good:
             self._failed_at[announcement.sha256] = time.monotonic()
         retry = "" if for_good else f" (tried again in {self.settings.retry_interval_s:g} s)"
-        log.warning("policy refused, the running one stays: %s%s", why, retry)
+        self.warn("delivery", f"policy refused, the running one stays: {why}{retry}")
 
     def refused(self, version: str, why: str) -> None:
         """The daemon refused a candidate at the swap."""
