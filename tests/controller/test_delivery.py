@@ -339,7 +339,7 @@ def refused_and_old_still_drives(car: Car, old: Path, match: str) -> dict[str, A
 
 
 @pytest.mark.parametrize("fault", ["tampered", "wrong_signature", "cut_halfway"])
-def test_a_bad_delivery_is_refused_with_the_old_policy_still_driving(
+def test_a_bad_delivery_is_refused_with_the_old_policy_still_driving(  # noqa: PLR0917
     fault: str,
     tmp_path: Path,
     endpoint: str,
