@@ -72,6 +72,11 @@ def version_of(name: str, sha256: str) -> str:
     return f"{stem}-{sha256[:12]}"
 
 
+def version_of_file(path: Path) -> str:
+    """The version of a local policy file (as `version_of` names it by the file's stem)."""
+    return version_of(Path(path).stem, sha256_of(Path(path).read_bytes()))
+
+
 def signed_bytes(version: str, sha256: str, size_bytes: int) -> bytes:
     """What the signature signs."""
     return f"{SIGNATURE_DOMAIN}\n{version}\n{sha256}\n{size_bytes}\n".encode()

@@ -52,7 +52,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts import wire
+from contracts import delivery, wire
 from contracts.actions import Action
 from contracts.errors import PolicyFileError, PolicyInputError
 from contracts.observation import target_features_of
@@ -227,8 +227,8 @@ class Controller:
         policy_version: str = "",
     ) -> None:
         self.runtime = runtime
-        self.policy_version = policy_version
-        """Reported in every status ("" unless the caller names it)."""
+        self.policy_version = policy_version or delivery.version_of_file(runtime.path)
+        """Reported in every status (by default the file's own: `version_of_file`)."""
         self.safety = safety or SafetySettings()
         self.lidar = lidar or LidarSettings()
         contract = runtime.contract

@@ -50,10 +50,6 @@ def contract_of(path: Path) -> PolicyContract:
     return PolicyContract.from_metadata(read_onnx(path).metadata, str(path))
 
 
-def version_of_file(path: Path) -> str:
-    return delivery.version_of(path.stem, delivery.sha256_of(path.read_bytes()))
-
-
 class Sensors:
     """The car's scan, pose and target, published every 50 ms; `target` can be moved."""
 
@@ -209,7 +205,7 @@ def test_a_delivered_policy_is_swapped_in_at_the_next_stop_and_decides_from_then
     listener = car.listener
     old_q, new_q = expected_q(old, car.sensors), expected_q(new, car.sensors)
     assert not np.allclose(old_q, new_q, atol=1e-4)
-    old_version = version_of_file(old)
+    old_version = delivery.version_of_file(old)
 
     driving = listener.wait_for(lambda s: s["reason"] == "policy", timeout=30)
     assert driving["policy_version"] == old_version
@@ -257,16 +253,18 @@ def test_a_car_with_no_server_reachable_drives_on_its_local_file_and_takes_a_lat
     car.sensors.target = HERE  # at rest: a verified policy would come in at once
     listener = car.listener
     at_rest = listener.wait_for(lambda s: s["reason"] == "target_reached", timeout=30)
-    assert at_rest["policy_version"] == version_of_file(old)
+    assert at_rest["policy_version"] == delivery.version_of_file(old)
     assert at_rest["delivery"]["announced"] is None
     car.sensors.target = FAR
     driving = listener.wait_for(lambda s: s["reason"] == "policy")
-    assert driving["policy_version"] == version_of_file(old)
+    assert driving["policy_version"] == delivery.version_of_file(old)
 
     car.sensors.target = HERE
     start_server((new,), keys[0])
-    swapped = listener.wait_for(lambda s: s["policy_version"] != version_of_file(old), timeout=30)
-    assert swapped["policy_version"] == version_of_file(new)
+    swapped = listener.wait_for(
+        lambda s: s["policy_version"] != delivery.version_of_file(old), timeout=30
+    )
+    assert swapped["policy_version"] == delivery.version_of_file(new)
     assert swapped["reason"] == "target_reached"
 
 
@@ -330,10 +328,10 @@ def refused_and_old_still_drives(car: Car, old: Path, match: str) -> dict[str, A
     assert refusal["delivery"]["pending"] is None
     car.sensors.target = FAR
     driving = listener.wait_for(lambda s: s["reason"] == "policy")
-    assert driving["policy_version"] == version_of_file(old)
+    assert driving["policy_version"] == delivery.version_of_file(old)
     assert np.allclose(driving["q_values"], expected_q(old, car.sensors), atol=1e-5)
     for status in car.statuses():
-        assert status["policy_version"] == version_of_file(old)
+        assert status["policy_version"] == delivery.version_of_file(old)
         assert status["counters"]["policy_swaps"] == 0
     return refusal
 
@@ -452,5 +450,5 @@ def test_a_slow_or_garbage_server_never_stops_the_car_running_its_policy(
     seen = car.statuses(mark)
     for status in seen:
         assert status["reason"] == "policy", status["reason"]
-        assert status["policy_version"] == version_of_file(old)
+        assert status["policy_version"] == delivery.version_of_file(old)
     assert car.thread.is_alive()
