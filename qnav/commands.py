@@ -205,7 +205,14 @@ def diagnose(args: argparse.Namespace) -> int:
 def gauge(args: argparse.Namespace) -> int:
     """The decisive states of a world with the baselines' scores, or each run's score on its
     own world's states beside its test success."""
-    from sim.decisive import GaugeSettings, cached, go_to_target_choices, random_expectation
+    from contracts.actions import Action
+    from sim.decisive import (
+        GaugeSettings,
+        cached,
+        constant_choice,
+        go_to_target_choices,
+        random_expectation,
+    )
     from sim.decisive import score as judge
 
     rows: list[dict[str, object]] = []
@@ -221,8 +228,16 @@ def gauge(args: argparse.Namespace) -> int:
         for name, result in (
             ("random", random_expectation(states)),
             ("go-to-target", judge(states, go_to_target_choices(states))),
+            *((f"always {a.name.lower()}", constant_choice(states, a)) for a in Action),
         ):
-            rows.append({"policy": name, "safe": result.safe, **result.by_driver})
+            rows.append(
+                {
+                    "policy": name,
+                    "safe": result.safe,
+                    "balanced": result.balanced,
+                    **result.by_driver,
+                }
+            )
         visited = dict(zip(("planner", "go-to-target"), states.visited.tolist(), strict=True))
         print(
             f"{len(states.doomed)} decisive states in {sum(visited.values())} visited "
@@ -240,7 +255,13 @@ def gauge(args: argparse.Namespace) -> int:
         results = run / "results.json"
         test = json.loads(results.read_text())["test"]["success"] if results.exists() else None
         rows.append(
-            {"policy": str(run), "safe": report.safe, **report.by_driver, "test_success": test}
+            {
+                "policy": str(run),
+                "safe": report.safe,
+                "balanced": report.balanced,
+                **report.by_driver,
+                "test_success": test,
+            }
         )
     for row in rows:
         if args.json:

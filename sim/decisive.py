@@ -186,8 +186,12 @@ class GaugeResult(NamedTuple):
 
     safe: float
     """Share of all decisive states where the chosen action is not doomed."""
+    balanced: float
+    """The safe share averaged over the doom patterns (which of the actions are doomed), each
+    pattern weighted alike: a choice that ignores the scan (random, or always the same action)
+    scores 1/2 here, whatever the mix of patterns, so only perception lifts it."""
     by_driver: dict[str, float]
-    """The same share over the states each driver visited."""
+    """The safe share over the states each driver visited."""
     states: int
     """Decisive states judged."""
 
@@ -195,27 +199,38 @@ class GaugeResult(NamedTuple):
 def score(states: DecisiveStates, actions: NDArray[np.integer]) -> GaugeResult:
     """Judge one action per decisive state (a policy's greedy choices on `states.windows`)."""
     if actions.size == 0:
-        return GaugeResult(math.nan, {}, 0)
+        return GaugeResult(math.nan, math.nan, {}, 0)
     safe = ~states.doomed[np.arange(actions.size), actions]
-    by_driver = {
-        name: float(safe[states.driver == i].mean())
-        for i, name in enumerate(DRIVERS)
-        if np.any(states.driver == i)
-    }
-    return GaugeResult(float(safe.mean()), by_driver, int(actions.size))
+    return _result(states, safe.astype(np.float64))
 
 
 def random_expectation(states: DecisiveStates) -> GaugeResult:
     """What a uniformly random choice scores on average (the share of safe actions)."""
     if len(states.doomed) == 0:
-        return GaugeResult(math.nan, {}, 0)
-    safe = (~states.doomed).mean(axis=1)
+        return GaugeResult(math.nan, math.nan, {}, 0)
+    return _result(states, (~states.doomed).mean(axis=1))
+
+
+def constant_choice(states: DecisiveStates, action: int) -> GaugeResult:
+    """What always taking one action scores: the gauge's plain share rewards a prior (in
+    obstacles-inertia, always driving forward is safe in four decisive states of five)."""
+    return score(states, np.full(len(states.doomed), action, dtype=np.int64))
+
+
+def doom_patterns(doomed: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """(K,) each state's set of doomed actions as a bit mask (bit a set where action a is)."""
+    return doomed.astype(np.int64) @ (1 << np.arange(doomed.shape[1], dtype=np.int64))
+
+
+def _result(states: DecisiveStates, safe: NDArray[np.float64]) -> GaugeResult:
     by_driver = {
         name: float(safe[states.driver == i].mean())
         for i, name in enumerate(DRIVERS)
         if np.any(states.driver == i)
     }
-    return GaugeResult(float(safe.mean()), by_driver, len(safe))
+    patterns = doom_patterns(states.doomed)
+    balanced = np.mean([safe[patterns == p].mean() for p in np.unique(patterns)])
+    return GaugeResult(float(safe.mean()), float(balanced), by_driver, len(safe))
 
 
 def go_to_target_choices(states: DecisiveStates) -> NDArray[np.int64]:
