@@ -85,10 +85,12 @@ PUBLISHERS: dict[str, tuple[Topic, ...]] = {
     "sensors": (SCAN, POSE, ESTOP),
     "operator": (TARGET_POSE, TARGET_POINT, ESTOP, ESTOP_RELEASE, VEHICLE_REQUEST),
     "recorder": (),
+    "server": (POLICY_ANNOUNCEMENT,),
 }
 """Who may publish what, by certificate identity (config/zenoh-secure.json5's access control):
 only the controller commands the car, only the bridge reports the vehicle, only the operator
-sets targets, releases the stop or asks to arm; anyone known may press the stop."""
+sets targets, releases the stop or asks to arm, only the policy server (`qnav serve`) announces
+policies; anyone known may press the stop."""
 
 
 def key(topic: Topic | str, namespace: str = "") -> str:

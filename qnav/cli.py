@@ -402,7 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.add_argument(
         "--names",
         nargs="+",
-        help="identities (default: hub controller bridge recorder sensors operator)",
+        help="identities (default: hub controller bridge recorder sensors operator server)",
     )
     certs.add_argument(
         "--endpoint",
@@ -450,6 +450,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     serve.add_argument(
         "--chunk-bytes", type=int, default=262144, help="chunk size of transfers (262144)"
+    )
+    serve.add_argument(
+        "--zenoh-config",
+        type=Path,
+        metavar="FILE",
+        help="a zenoh JSON5 configuration (TLS, access control: qnav certs writes "
+        "zenoh-server.json5)",
     )
     _zenoh_options(serve)
     serve.set_defaults(handler=_lazy("qnav.serve:serve_verb"))

@@ -248,6 +248,7 @@ def serve_verb(args: argparse.Namespace) -> int:
         listen=tuple(args.listen or ()),
         connect=tuple(args.connect or (() if args.listen else ZenohSettings().connect)),
         namespace=args.namespace or "",
+        config_file=str(args.zenoh_config or ""),
     )
     settings = ServeSettings(
         sources=tuple(args.sources),
