@@ -452,6 +452,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--chunk-bytes", type=int, default=262144, help="chunk size of transfers (262144)"
     )
     serve.add_argument(
+        "--export-runs",
+        type=int,
+        default=0,
+        metavar="EPISODES",
+        help="export each training run whose keep-best weights are newer than its policy.onnx, "
+        "testing it over EPISODES episodes (0: serve only exported files; needs torch)",
+    )
+    serve.add_argument(
         "--zenoh-config",
         type=Path,
         metavar="FILE",

@@ -54,6 +54,11 @@ class ServeSettings:
     """The current announcement is put again this often, for cars that join late."""
     chunk_bytes: int = delivery.DEFAULT_CHUNK_BYTES
     """Size of the chunks files are served in."""
+    export_runs: int = 0
+    """Episodes of the test protocol for exporting training runs found in the sources (0: do
+    not export, serve only the .onnx files there). A run folder whose keep-best weights
+    (model.pt when finished, else best.pt) are newer than its policy.onnx is exported to
+    it, tested, and then served like any file."""
 
     def __post_init__(self) -> None:
         if not self.sources:
@@ -67,6 +72,10 @@ class ServeSettings:
             raise ConfigError(
                 f"--announce-interval-s = {self.announce_interval_s} is out of range: "
                 "allowed [0.01, 3600]"
+            )
+        if not 0 <= self.export_runs <= 100_000:
+            raise ConfigError(
+                f"--export-runs = {self.export_runs} is out of range: allowed [0, 100000]"
             )
         if not 1024 <= self.chunk_bytes <= delivery.MAX_CHUNK_BYTES:
             raise ConfigError(
@@ -105,6 +114,61 @@ def find_policy_files(sources: tuple[Path, ...]) -> list[Path]:
     return sorted(found)
 
 
+EXPORTED_NAME = "policy.onnx"
+"""What a run's export is called inside its folder (`--export-runs`)."""
+
+
+def runs_to_export(sources: tuple[Path, ...]) -> list[Path]:
+    """Run folders under the sources whose keep-best weights are newer than their export."""
+    runs = {
+        settings.parent
+        for source in sources
+        if source.is_dir()
+        for settings in [source / "settings.toml", *source.rglob("*/settings.toml")]
+        if settings.is_file()
+    }
+    stale = []
+    for run in sorted(runs):
+        weights = best_weights(run)
+        exported = run / EXPORTED_NAME
+        if weights is not None and (
+            not exported.exists() or exported.stat().st_mtime_ns < weights.stat().st_mtime_ns
+        ):
+            stale.append(run)
+    return stale
+
+
+def best_weights(run: Path) -> Path | None:
+    """The run's weights to ship: model.pt once finished (keep-best applied), else best.pt
+    (the best validation so far), else None."""
+    return next((run / n for n in ("model.pt", "best.pt") if (run / n).is_file()), None)
+
+
+def export_best(run: Path, episodes: int) -> Path:
+    """Export the run's keep-best weights to RUN/policy.onnx and test the file (`episodes`
+    of the test protocol); the file appears only once whole and tested (needs torch)."""
+    import torch
+
+    from training.export import evaluate_file, export_onnx, policy_contract
+    from training.run import make_network, read_settings, source_commit
+
+    settings = read_settings(run)
+    weights = best_weights(run)
+    if weights is None:
+        raise ConfigError(f"{run} has neither model.pt nor best.pt to export")
+    network = make_network(settings.world, settings.train)
+    network.load_state_dict(torch.load(weights, weights_only=False, map_location="cpu")["online"])
+    network.eval()
+    contract = policy_contract(
+        network, settings.world, settings.train.window, str(run), source_commit()
+    )
+    partial = run / (EXPORTED_NAME + ".partial")
+    export_onnx(network, contract, partial)
+    evaluate_file(partial, settings.world, episodes=episodes, backend="onnxruntime", progress=False)
+    partial.replace(run / EXPORTED_NAME)
+    return run / EXPORTED_NAME
+
+
 def contract_of(data: bytes, name: str) -> PolicyContract:
     """The contract in a policy file's bytes; `PolicyFileError` if it holds none."""
     return PolicyContract.from_metadata(parse_onnx(data, name).metadata, name)
@@ -127,6 +191,8 @@ class PolicyServer:
         self._by_path: dict[Path, Held] = {}
         self._by_version: dict[str, Held] = {}
         self._skipped: dict[Path, tuple[int, int]] = {}
+        self._export_failed: dict[Path, int] = {}
+        """Runs whose export failed, with the weights' mtime then (tried again once they change)."""
         self.current: Held | None = None
         self.announcements = 0
         """Announcements put so far."""
@@ -134,7 +200,11 @@ class PolicyServer:
         """Chunk queries answered with data."""
 
     def poll(self) -> bool:
-        """Read new and changed files; returns whether the best file changed."""
+        """Export runs with new best weights (`export_runs`), read new and changed files;
+        returns whether the best file changed."""
+        if self.settings.export_runs:
+            for run in runs_to_export(self.settings.sources):
+                self._export(run)
         for path in find_policy_files(self.settings.sources):
             try:
                 info = path.stat()
@@ -172,6 +242,20 @@ class PolicyServer:
         )
         self.current = chosen
         return changed
+
+    def _export(self, run: Path) -> None:
+        weights = best_weights(run)
+        stamp = weights.stat().st_mtime_ns if weights is not None else 0
+        if self._export_failed.get(run) == stamp:
+            return
+        log.info("exporting %s (its keep-best weights are newer than its export)", run)
+        try:
+            export_best(run, self.settings.export_runs)
+        except Exception as error:  # a run's files may be mid-write: tried again once changed
+            self._export_failed[run] = stamp
+            log.warning("cannot export %s: %s", run, error)
+        else:
+            self._export_failed.pop(run, None)
 
     def chunk(self, version: str, index: int) -> bytes | None:
         """Chunk `index` of `version`, or None if there is no such chunk."""
@@ -257,6 +341,7 @@ def serve_verb(args: argparse.Namespace) -> int:
         poll_s=args.poll_s,
         announce_interval_s=args.announce_interval_s,
         chunk_bytes=args.chunk_bytes,
+        export_runs=args.export_runs,
     )
     stop = threading.Event()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import signal
 import subprocess
@@ -151,3 +152,71 @@ def test_qnav_serve_refuses_a_missing_source_or_key_naming_it(tmp_path: Path, ke
                   "--connect", f"tcp/127.0.0.1:{free_port()}")  # fmt: skip
     assert wrong.returncode == 2 and "--key" in wrong.stderr
     assert "Traceback" not in wrong.stderr + missing.stderr
+
+
+def _run_folder(root: Path) -> Path:
+    """A training run's folder as keep-best leaves it mid-training: settings and best.pt."""
+    import torch
+
+    from contracts.settings import to_toml
+    from tests.conftest import policy_network
+    from training.config import TrainSettings
+    from training.run import RunSettings
+
+    run = root / "walls-inertia" / "recurrent-seed0"
+    run.mkdir(parents=True)
+    world, network = policy_network("walls-inertia", "recurrent", 64, 0)
+    (run / "settings.toml").write_text(to_toml(RunSettings(world, TrainSettings(hidden_size=64))))
+    torch.save({"online": network.state_dict(), "episodes": 10}, run / "best.pt")
+    return run
+
+
+def test_a_run_is_due_for_export_while_its_keep_best_weights_are_newer_than_its_file(
+    tmp_path: Path,
+) -> None:
+    from qnav.serve import runs_to_export
+
+    run = _run_folder(tmp_path / "runs")
+    (tmp_path / "runs" / "loose.onnx").write_bytes(b"")  # files beside runs are no runs
+    assert runs_to_export((tmp_path / "runs",)) == [run]
+    assert runs_to_export((run,)) == [run]  # a run folder named itself
+    (run / "policy.onnx").write_bytes(b"exported")
+    later = (run / "best.pt").stat().st_mtime_ns + 10**9
+    os.utime(run / "policy.onnx", ns=(later, later))
+    assert runs_to_export((tmp_path / "runs",)) == []
+    os.utime(run / "best.pt", ns=(later + 10**9, later + 10**9))  # keep-best saved a new best
+    assert runs_to_export((tmp_path / "runs",)) == [run]
+    os.utime(run / "policy.onnx", ns=(later + 2 * 10**9, later + 2 * 10**9))
+    (run / "model.pt").write_bytes(b"")  # the run finished: model.pt is what ships
+    os.utime(run / "model.pt", ns=(later + 3 * 10**9, later + 3 * 10**9))
+    assert runs_to_export((tmp_path / "runs",)) == [run]
+
+
+@pytest.mark.slow
+def test_the_server_exports_a_runs_keep_best_weights_tests_them_and_announces_the_file(
+    tmp_path: Path, keys: Path
+) -> None:
+    from qnav.serve import runs_to_export
+
+    run = _run_folder(tmp_path / "runs")
+
+    settings = ServeSettings(
+        sources=(tmp_path / "runs",),
+        private_key=keys / delivery.PRIVATE_KEY_FILE,
+        export_runs=10,
+    )
+    server = PolicyServer(settings, delivery.load_private_key(settings.private_key, "--key"))
+    assert server.poll()
+    assert server.current is not None and server.current.path == run / "policy.onnx"
+    announced = server.current.announcement
+    assert announced.evaluation["episodes"] == 10
+    assert announced.contract.training_run == str(run)
+    assert announced.version.startswith("recurrent-seed0-policy-")
+    assert not (run / "policy.onnx.partial").exists()
+    assert runs_to_export((tmp_path / "runs",)) == []  # up to date: no export at the next poll
+    assert not server.poll()
+
+    # A new best during training (keep-best rewrote best.pt): the run is exported again.
+    later = (run / "policy.onnx").stat().st_mtime_ns + 10**9
+    os.utime(run / "best.pt", ns=(later, later))
+    assert runs_to_export((tmp_path / "runs",)) == [run]
