@@ -452,3 +452,56 @@ def test_a_slow_or_garbage_server_never_stops_the_car_running_its_policy(
         assert status["reason"] == "policy", status["reason"]
         assert status["policy_version"] == delivery.version_of_file(old)
     assert car.thread.is_alive()
+
+
+def test_qnav_controller_takes_the_policy_qnav_serve_announces_with_keys_from_qnav_keys(
+    tmp_path: Path, endpoint: str, make_policy: PolicyFactory
+) -> None:
+    """The commands as a user runs them, each its own process; settings paths relative to the
+    settings file."""
+    import subprocess
+
+    from tests.controller.test_daemon import QNAV, ROOT, start_daemon
+
+    old, new = make_policy(seed=0), make_policy(seed=1)
+    made = subprocess.run(
+        [QNAV, "keys", str(tmp_path / "keys")], capture_output=True, text=True, check=False
+    )
+    assert made.returncode == 0, made.stderr
+    config = DaemonConfig(
+        controller=ControllerSettings(policy=str(old)),
+        safety=SafetySettings(frame_id="map"),
+        policy=PolicySourceSettings(
+            source="server", public_key="keys/policy-signing.pub", cache_dir="cache"
+        ),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+    )
+    daemon = start_daemon(tmp_path, config)
+    server = subprocess.Popen(
+        [QNAV, "serve", str(new), "--key", str(tmp_path / "keys" / "policy-signing.key"),
+         "--connect", endpoint, "--poll-s", "0.2", "--announce-interval-s", "0.3"],
+        cwd=ROOT, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    listener = Listener(endpoint)
+    sensors = Sensors(endpoint, contract_of(old).num_beams)
+    sensors.target = HERE
+    try:
+        swapped = listener.wait_for(
+            lambda s: s["policy_version"] == delivery.version_of_file(new), timeout=60
+        )
+        assert swapped["reason"] == "target_reached"
+        assert (tmp_path / "cache" / f"{swapped['policy_version']}.onnx").is_file()
+        sensors.target = FAR
+        driving = listener.wait_for(lambda s: s["reason"] == "policy")
+        assert np.allclose(driving["q_values"], expected_q(new, sensors), atol=1e-5)
+    finally:
+        sensors.close()
+        listener.session.close()
+        for process in (server, daemon):
+            process.terminate()
+            try:
+                process.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.communicate()
+    assert daemon.returncode == 0 and server.returncode == 0
