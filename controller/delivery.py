@@ -199,13 +199,28 @@ class PolicyFetcher:
         with self.lock:
             self.status.fetching = version
         try:
+            candidate = self._obtain(announcement, contract)
+        finally:
+            with self.lock:
+                self.status.fetching = None
+        if candidate is None:
+            return None
+        log.info("policy %s verified and tried; it is swapped in at the next stop", version)
+        with self.lock:
+            self.status.pending = version
+        self.offer(candidate)
+        return candidate
+
+    def _obtain(
+        self, announcement: delivery.Announcement, contract: PolicyContract
+    ) -> Candidate | None:
+        """Fetch, hash-check, load and try (`status.fetching` is set meanwhile)."""
+        version = announcement.version
+        try:
             data = self.fetch(announcement)
         except TransferError as error:
             self._refuse(announcement, str(error), for_good=False)
             return None
-        finally:
-            with self.lock:
-                self.status.fetching = None
         found = delivery.sha256_of(data)
         if found != announcement.sha256:
             self._refuse(
@@ -216,15 +231,10 @@ class PolicyFetcher:
             )
             return None
         try:
-            candidate = self._load(announcement, data, contract)
+            return self._load(announcement, data, contract)
         except PolicyFileError as error:
             self._refuse(announcement, f"{version}: {error}", for_good=True)
             return None
-        log.info("policy %s verified and tried; it is swapped in at the next stop", version)
-        with self.lock:
-            self.status.pending = version
-        self.offer(candidate)
-        return candidate
 
     def _refusal(self, announcement: delivery.Announcement, contract: PolicyContract) -> str | None:
         version = announcement.version
@@ -284,11 +294,15 @@ class PolicyFetcher:
         partial = path.with_suffix(".onnx.partial")
         partial.write_bytes(data)
         partial.replace(path)
-        runtime = PolicyRuntime(path, backend=self.backend)
-        mismatch = delivery.contract_mismatch(contract, runtime.contract)
-        if mismatch is not None:
-            raise PolicyFileError(f"the file's {mismatch}")
-        probe(runtime)
+        try:
+            runtime = PolicyRuntime(path, backend=self.backend)
+            mismatch = delivery.contract_mismatch(contract, runtime.contract)
+            if mismatch is not None:
+                raise PolicyFileError(f"the file's {mismatch}")
+            probe(runtime)
+        except PolicyFileError:
+            path.unlink(missing_ok=True)  # a refused file is not kept
+            raise
         return Candidate(runtime, announcement.version, announcement.sha256)
 
     def _refuse(self, announcement: delivery.Announcement, why: str, *, for_good: bool) -> None:
@@ -312,11 +326,15 @@ class PolicyFetcher:
         log.warning("policy %s refused at the swap, the running one stays: %s", version, why)
 
     def swapped(self, version: str) -> None:
-        """The daemon swapped `version` in."""
+        """The daemon swapped `version` in: the files of the versions before it go."""
         with self.lock:
             self.status.swaps += 1
             if self.status.pending == version:
                 self.status.pending = None
+            keep = {version, self.status.pending, self.status.fetching}
+        for path in self.cache_dir.glob("*.onnx"):
+            if path.stem not in keep:
+                path.unlink(missing_ok=True)
 
     def report(self) -> dict[str, Any]:
         """The status's `delivery` object."""
