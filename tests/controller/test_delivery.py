@@ -34,6 +34,7 @@ from controller.daemon import Daemon, build
 from controller.decision import Controller, Input
 from controller.onnx_file import read_onnx
 from controller.policy import PolicyRuntime
+from controller.recording import RecorderSettings, read_recordings, record
 from qnav.serve import ServeSettings
 from qnav.serve import run as run_server
 from tests.conftest import PolicyFactory
@@ -131,6 +132,11 @@ def keys(tmp_path: Path) -> tuple[Path, Path]:
     return paths
 
 
+def car_zenoh(car: Car) -> ZenohSettings:
+    """Settings of a session that joins the car's zenoh hub."""
+    return ZenohSettings(connect=car.daemon.config.zenoh.listen)
+
+
 def car_config(
     local: Path, endpoint: str, public_key: Path, tmp_path: Path, **policy: Any
 ) -> DaemonConfig:
@@ -203,6 +209,13 @@ def test_a_delivered_policy_is_swapped_in_at_the_next_stop_and_decides_from_then
     car = start_car(old)
     start_server((served,), keys[0])
     listener = car.listener
+    stop_recording = threading.Event()
+    recorder = threading.Thread(
+        target=record,
+        args=(RecorderSettings(zenoh=car_zenoh(car)), stop_recording, tmp_path / "rec"),
+        daemon=True,
+    )
+    recorder.start()
     old_q, new_q = expected_q(old, car.sensors), expected_q(new, car.sensors)
     assert not np.allclose(old_q, new_q, atol=1e-4)
     old_version = delivery.version_of_file(old)
@@ -239,6 +252,27 @@ def test_a_delivered_policy_is_swapped_in_at_the_next_stop_and_decides_from_then
     assert after["policy_version"] == new_version
     assert np.allclose(after["q_values"], new_q, atol=1e-5)
     assert (tmp_path / "cache" / f"{new_version}.onnx").read_bytes() == new.read_bytes()
+
+    # The recording holds the announcement and, in every status, the version that drove.
+    listener.wait_for(lambda s: s["reason"] == "policy", since=listener.mark() + 3)
+    stop_recording.set()
+    recorder.join(timeout=30)
+    messages = list(read_recordings(sorted((tmp_path / "rec").glob("*.mcap"))))
+    announced = [
+        delivery.decode_announcement(m.payload).version
+        for m in messages
+        if m.topic == "/" + wire.POLICY_ANNOUNCEMENT.name
+    ]
+    assert new_version in announced
+    recorded = [
+        wire.decode_json_msg(m.payload)
+        for m in messages
+        if m.topic == "/" + wire.CONTROLLER_STATUS.name
+    ]
+    versions = [status["policy_version"] for status in recorded]
+    assert versions[0] == old_version and versions[-1] == new_version
+    drove = {status["policy_version"] for status in recorded if status["reason"] == "policy"}
+    assert drove == {old_version, new_version}
 
 
 def test_a_car_with_no_server_reachable_drives_on_its_local_file_and_takes_a_late_servers_policy(
