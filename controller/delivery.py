@@ -37,6 +37,10 @@ from controller.policy import Backend, PolicyRuntime
 log = logging.getLogger("qnav.controller.delivery")
 
 
+STOP_WAIT_S = 0.2
+"""How long shutdown waits for the fetching thread (a daemon thread: it dies with the process)."""
+
+
 class Candidate(NamedTuple):
     """A verified, loaded, tried policy waiting for the car to stop."""
 
@@ -165,11 +169,12 @@ class PolicyFetcher:
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop the thread (a transfer in progress ends at its next chunk)."""
+        """Ask the thread to stop (a transfer in progress ends at its next chunk). Waits a
+        moment only: the daemon's shutdown must not wait for a slow server."""
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
-            self._thread.join(timeout=self.settings.chunk_timeout_s + 5.0)
+            self._thread.join(timeout=STOP_WAIT_S)
 
     def _work(self) -> None:
         while not self._stop.is_set():
@@ -234,7 +239,10 @@ class PolicyFetcher:
             return self._load(announcement, data, contract)
         except PolicyFileError as error:
             self._refuse(announcement, f"{version}: {error}", for_good=True)
-            return None
+        except OSError as error:  # a full disk, a cache folder removed at shutdown
+            self._refuse(announcement, f"{version}: cannot write it to policy.cache_dir: {error}",
+                         for_good=False)  # fmt: skip
+        return None
 
     def _refusal(self, announcement: delivery.Announcement, contract: PolicyContract) -> str | None:
         version = announcement.version
