@@ -103,6 +103,10 @@ class Held:
         return (self.announcement.evaluation.get("success", -1.0), self.stamp[0])
 
 
+KEEP_SUPERSEDED = 4
+"""Versions still served after their file was rewritten (a car may be in the middle of one)."""
+
+
 def find_policy_files(sources: tuple[Path, ...]) -> list[Path]:
     """Every .onnx file named in or found under the sources, sorted."""
     found: set[Path] = set()
@@ -229,7 +233,9 @@ class PolicyServer:
             held = Held(path, stamp, data, announcement)
             with self._lock:
                 self._by_path[path] = held
-                self._by_version[announcement.version] = held
+                self._by_version.pop(announcement.version, None)
+                self._by_version[announcement.version] = held  # the newest read last
+                self._forget_superseded()
             log.info(
                 "holding %s from %s (success %s)",
                 announcement.version,
@@ -256,6 +262,14 @@ class PolicyServer:
             log.warning("cannot export %s: %s", run, error)
         else:
             self._export_failed.pop(run, None)
+
+    def _forget_superseded(self) -> None:
+        """Keep the versions of the files as they are now and the `KEEP_SUPERSEDED` last read
+        before them (a car may be fetching one); forget older ones (their bytes are in memory)."""
+        current = {held.announcement.version for held in self._by_path.values()}
+        superseded = [v for v in self._by_version if v not in current]
+        for version in superseded[: max(0, len(superseded) - KEEP_SUPERSEDED)]:
+            del self._by_version[version]
 
     def chunk(self, version: str, index: int) -> bytes | None:
         """Chunk `index` of `version`, or None if there is no such chunk."""

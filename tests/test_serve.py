@@ -83,7 +83,7 @@ def test_the_server_announces_its_best_tested_file_and_a_better_one_when_it_appe
     )
     assert server.poll()
     assert server.current.path == runs / "c" / "policy.onnx"
-    # Every version held is still served by version, the superseded ones included.
+    # Every file held is served by version, the best and the others alike.
     for path in (runs / "a" / "policy.onnx", runs / "b" / "policy.onnx"):
         data = path.read_bytes()
         version = delivery.version_of(path.parent.name + "-policy", delivery.sha256_of(data))
@@ -220,3 +220,23 @@ def test_the_server_exports_a_runs_keep_best_weights_tests_them_and_announces_th
     later = (run / "policy.onnx").stat().st_mtime_ns + 10**9
     os.utime(run / "best.pt", ns=(later, later))
     assert runs_to_export((tmp_path / "runs",)) == [run]
+
+
+def test_a_rewritten_file_is_served_anew_and_only_the_last_superseded_versions_are_kept(
+    tmp_path: Path, make_policy: PolicyFactory, keys: Path
+) -> None:
+    from qnav.serve import KEEP_SUPERSEDED
+
+    path = tmp_path / "policy.onnx"
+    server = _server((tmp_path,), keys)
+    versions = []
+    for rewrite in range(KEEP_SUPERSEDED + 2):
+        success = 0.5 + rewrite / 100
+        with_metadata(make_policy(seed=0), path, {"qnav.evaluation": {"success": success}})
+        os.utime(path, ns=(10**18 + rewrite * 10**9, 10**18 + rewrite * 10**9))
+        assert server.poll()
+        assert server.current is not None
+        versions.append(server.current.announcement.version)
+    assert len(set(versions)) == len(versions)
+    served = [v for v in versions if server.chunk(v, 0) is not None]
+    assert served == versions[-(KEEP_SUPERSEDED + 1) :]
