@@ -72,10 +72,6 @@ log = logging.getLogger("firmware_bridge")
 
 LOOP_MAX_WAIT_S = 0.1
 """The bridge thread looks at its clocks at least this often (requests from zenoh wait for it)."""
-REQUEST_RETRY_S = 0.5
-"""An arm or mode request not yet seen in the vehicle's heartbeat is sent again this often."""
-REQUEST_ATTEMPTS = 10
-"""... this many times, then the bridge gives up and says so."""
 EXIT_ACK_WAIT_S = 0.2
 """On shutdown, how long to wait for the disarm to be acknowledged before sending it again."""
 
@@ -145,6 +141,9 @@ class Bridge:
         self._want_mode: int | None = None
         self._want_armed: bool | None = None
         self._request_attempts = 0
+        self._request_since_s = -math.inf
+        self._request_status: str | None = None
+        self._vehicle_text: str | None = None
         self._next_request_s = -math.inf
         self._pose_since_link_up = False
         self._waiting_for_pose_logged = False
@@ -416,6 +415,7 @@ class Bridge:
             if mode is not None:
                 self._want_mode = mode
             self._request_attempts = 0
+            self._request_since_s = self._clock()
             self._next_request_s = -math.inf
             self.counters["requests"] += 1
 
@@ -501,6 +501,8 @@ class Bridge:
                     self._want_mode = self.settings.rover_mode
                 if vehicle.arm_on_connect:
                     self._want_armed = True
+                self._request_attempts = 0
+                self._request_since_s = now
                 self._next_request_s = -math.inf
         self._ever_up = True
         self._state_dirty = True
@@ -514,7 +516,8 @@ class Bridge:
     def _send_requests(self, now: float) -> None:
         if not self._link_up or now < self._next_request_s:
             return
-        self._next_request_s = now + REQUEST_RETRY_S
+        vehicle = self.settings.vehicle
+        self._next_request_s = now + vehicle.request_retry_s
         # GUIDED needs a position estimate: ask for it only once a pose went to the autopilot.
         needs_pose = self._guided and self.settings.vision.forward_pose
         with self._lock:
@@ -529,16 +532,29 @@ class Bridge:
                     self._waiting_for_pose_logged = True
                 want_mode = None
             if want_mode is None and want_armed is None:
+                if (self._request_status or "").startswith("asking"):
+                    self._set_request_status(None)  # done (a give-up stays reported)
                 return
-            if self._request_attempts >= REQUEST_ATTEMPTS:
+            waited_s = now - self._request_since_s
+            if 0 < vehicle.request_timeout_s <= waited_s:
                 self._want_mode = self._want_armed = None
+                self._set_request_status(
+                    f"gave up on {_describe(want_mode, want_armed)} after "
+                    f"{self._request_attempts} tries in {waited_s:.1f} s"
+                )
                 log.warning(
-                    "vehicle did not take %s after %d attempts; giving up",
+                    "vehicle did not take %s in %.1f s (%d tries; vehicle.request_timeout_s); "
+                    "giving up",
                     _describe(want_mode, want_armed),
-                    REQUEST_ATTEMPTS,
+                    waited_s,
+                    self._request_attempts,
                 )
                 return
             self._request_attempts += 1
+            self._set_request_status(
+                f"asking for {_describe(want_mode, want_armed)} "
+                f"(try {self._request_attempts}, {waited_s:.1f} s)"
+            )
         if want_mode is not None:
             self._send_command_long(
                 MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, want_mode
@@ -546,6 +562,12 @@ class Bridge:
         if want_armed is not None:
             self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 1.0 if want_armed else 0.0)
         log.info("asked the vehicle for %s", _describe(want_mode, want_armed))
+
+    def _set_request_status(self, status: str | None) -> None:
+        """What the bridge is asking of the vehicle (called under the lock)."""
+        if status != self._request_status:
+            self._request_status = status
+            self._state_dirty = True
 
     def _on_mavlink(self, message: Any, now: float) -> None:
         kind = message.get_type()
@@ -604,7 +626,11 @@ class Bridge:
                 self._last_ack = {"command": int(message.command), "result": int(message.result)}
             log.info("vehicle answered command %d with result %d", message.command, message.result)
         elif kind == "STATUSTEXT":
-            log.info("vehicle says: %s", message.text)
+            text = str(message.text)
+            log.info("vehicle says: %s", text)
+            with self._lock:
+                self._vehicle_text = text  # arming refusals say why: users see it in the state
+            self._state_dirty = True
 
     # -- state on zenoh -----------------------------------------------------------------------
 
@@ -630,6 +656,8 @@ class Bridge:
                 "position": position,
                 "battery": self._battery,
                 "last_ack": self._last_ack,
+                "request": self._request_status,
+                "vehicle_text": self._vehicle_text,
                 "counters": dict(self.counters),
             }
 

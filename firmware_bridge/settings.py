@@ -185,9 +185,17 @@ class VehicleSettings:
     requests are always taken)."""
     state_period_s: float = 0.2
     """Period of the vehicle state message on zenoh (also sent at once on any change)."""
+    request_retry_s: float = 0.5
+    """An arm or mode request not yet shown by the vehicle's heartbeat is sent again this often
+    (each refusal's text goes out on the vehicle state topic)."""
+    request_timeout_s: float = 120.0
+    """Give up on an arm or mode request after this long (0: never). An autopilot refuses to
+    arm until its pre-arm checks pass, which takes tens of seconds after it boots."""
 
     def __post_init__(self) -> None:
         check_range(self, "state_period_s", self.state_period_s, 0.01, 60.0)
+        check_range(self, "request_retry_s", self.request_retry_s, 0.01, 60.0)
+        check_range(self, "request_timeout_s", self.request_timeout_s, 0.0, 86400.0)
 
 
 @dataclass(frozen=True)

@@ -80,6 +80,9 @@ POS_IGNORE = 0x7
 VEL_IGNORE = 0x38
 YAW_IGNORE = 0x400
 YAW_RATE_IGNORE = 0x800
+NOT_READY = b"Arm: System not initialised"
+"""What Rover says when asked to arm before its sensors are up (AP_Arming)."""
+MAV_SEVERITY_CRITICAL = 2
 HEADING_GAIN_PER_S = 2.0
 """Turn rate per radian of heading error when a guided target gives velocity without yaw rate."""
 
@@ -118,6 +121,9 @@ class MavlinkVehicleSettings:
     """GUIDED needs an EKF origin and a fresh vision position estimate, as on a real Rover."""
     position_timeout_s: float = 1.0
     """A vision position estimate older than this no longer counts as a position."""
+    arming_delay_s: float = 0.0
+    """Arming is refused for this long after boot, with Rover's STATUSTEXT "Arm: System not
+    initialised", as an autopilot whose sensors and EKF are still starting (a cold start)."""
     x_m: float = 0.0
     """Start position x, our frame (x_ned = y, y_ned = x)."""
     y_m: float = 0.0
@@ -143,6 +149,7 @@ class MavlinkVehicleSettings:
             check_range(self, name, getattr(self, name), 0.001, 10.0)
         for name in ("rc_override_timeout_s", "guided_timeout_s", "position_timeout_s"):
             check_range(self, name, getattr(self, name), 0.01, 60.0)
+        check_range(self, "arming_delay_s", self.arming_delay_s, 0.0, 600.0)
         if self.signing_key_file and not Path(self.signing_key_file).is_file():
             raise ConfigError(f"signing_key_file {self.signing_key_file!r} does not exist")
 
@@ -452,7 +459,10 @@ class MavlinkVehicle:
         command = int(message.command)
         if command == MAV_CMD_COMPONENT_ARM_DISARM:
             arm = message.param1 >= 0.5
-            if arm and self._mode == ROVER_MODES["GUIDED"] and not self._guided_allowed(now):
+            if arm and now - self._boot_s < self.settings.arming_delay_s:
+                result = MAV_RESULT_FAILED
+                self._send(self._conn.mav.statustext_encode(MAV_SEVERITY_CRITICAL, NOT_READY))
+            elif arm and self._mode == ROVER_MODES["GUIDED"] and not self._guided_allowed(now):
                 result = MAV_RESULT_FAILED
             else:
                 result = MAV_RESULT_ACCEPTED
