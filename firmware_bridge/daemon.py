@@ -134,6 +134,14 @@ class Bridge:
         self._armed: bool | None = None
         self._custom_mode: int | None = None
         self._position_ned: tuple[float, float, float] | None = None
+        self._speed_mps: float | None = None
+        """Ground speed from the newest LOCAL_POSITION_NED (None before the first)."""
+        self._speed_s = -math.inf
+        self._braking = False
+        """True from a stop that switched to `failsafe.brake_mode` until the next command."""
+        self._brake_mode = (
+            mode_number(settings.failsafe.brake_mode) if settings.failsafe.brake_mode else None
+        )
         self._yaw_ned: float | None = None
         self._battery: dict[str, float] | None = None
         self._last_ack: dict[str, Any] | None = None
@@ -244,7 +252,13 @@ class Bridge:
         for _ in range(failsafe.stop_repeats_on_exit):
             self._send_stop(self._clock())
         log.info("sent stop %d times on exit", failsafe.stop_repeats_on_exit)
+        if self._brake_mode is not None and self._link_up:
+            self._send_command_long(
+                MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, self._brake_mode
+            )
+            log.info("exit: switching to %s to brake", mode_name(self._brake_mode))
         if failsafe.disarm_on_exit:
+            self._wait_for_rest()
             self._disarm_on_exit()
         self._publish_state(self._clock(), bridge="stopped")
         if self._session is not None:
@@ -310,6 +324,18 @@ class Bridge:
                 self.counters["stops"] += 1
             self._gate.stop_sent(now_s)
 
+    def _brake(self, now: float) -> None:
+        """A moving car was just stopped: switch to the braking mode, if one is set."""
+        if self._brake_mode is None or self._brake_mode == self.settings.rover_mode:
+            return
+        with self._lock:
+            self._braking = True
+            self._want_mode = self._brake_mode
+            self._request_since_s = now
+            self._request_attempts = 0
+            self._next_request_s = -math.inf
+        log.info("stopped: switching to %s to brake", mode_name(self._brake_mode))
+
     def _send_command_long(self, command: int, *params: float) -> None:
         target = self.settings.mavlink
         padded = (list(params) + [0.0] * 7)[:7]
@@ -369,6 +395,16 @@ class Bridge:
             if not self._gate.accept_command(now):
                 self.counters["dropped"] += 1
                 return
+            if self._braking:
+                # Back to the output's mode at once: the command below takes effect with it.
+                self._braking = False
+                self._want_mode = self.settings.rover_mode
+                self._request_since_s = now
+                self._request_attempts = 0
+                self._next_request_s = now + self.settings.vehicle.request_retry_s
+                self._send_command_long(
+                    MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, self._want_mode
+                )
             if self.link.send(message, as_gcs=self._as_gcs):
                 self.counters["commands"] += 1
 
@@ -456,9 +492,12 @@ class Bridge:
 
     def _duties(self, now: float) -> None:
         with self._lock:
+            was_driving = self._gate.was_driving
             stop_due = self._gate.stop_due(now)
         if stop_due:
             self._send_stop(now)
+            if was_driving:
+                self._brake(now)
         if now >= self._next_heartbeat_s:
             self._send_heartbeat()
             self._next_heartbeat_s = now + self.settings.mavlink.heartbeat_period_s
@@ -608,6 +647,8 @@ class Bridge:
         elif kind == "LOCAL_POSITION_NED":
             with self._lock:
                 self._position_ned = (float(message.x), float(message.y), float(message.z))
+                self._speed_mps = math.hypot(float(message.vx), float(message.vy))
+                self._speed_s = now
         elif kind == "ATTITUDE":
             with self._lock:
                 self._yaw_ned = float(message.yaw)
@@ -670,6 +711,35 @@ class Bridge:
             self._state_publisher.put(encode_json_msg(self.state(now, bridge)))
         except Exception as error:  # zenoh errors must not stop the failsafe loop
             self._rate_log.warning("state", "could not publish the vehicle state: %s", error)
+
+    def _wait_for_rest(self) -> None:
+        """Keep stopping until the vehicle reports rest (or `rest_timeout_s`): a car disarmed
+        while moving loses its brakes and coasts. Without speed reports there is nothing to
+        wait for."""
+        failsafe = self.settings.failsafe
+        start = self._clock()
+        deadline = start + failsafe.rest_timeout_s
+        next_stop = start + failsafe.stop_period_s
+        while self._link_up and self._speed_mps is not None:
+            now = self._clock()
+            fresh = now - self._speed_s < 1.0
+            if fresh and self._speed_mps < failsafe.rest_speed_mps:
+                log.info("exit: vehicle at rest after %.2f s", now - start)
+                return
+            if now >= deadline:
+                log.warning(
+                    "exit: vehicle not reported at rest within %g s (failsafe.rest_timeout_s)",
+                    failsafe.rest_timeout_s,
+                )
+                return
+            if now >= next_stop:
+                self._send_stop(now)
+                next_stop = now + failsafe.stop_period_s
+            for message in self.link.poll(min(deadline, next_stop) - now):
+                try:
+                    self._on_mavlink(message, self._clock())
+                except Exception:
+                    log.debug("handler error", exc_info=True)
 
     def _disarm_on_exit(self) -> None:
         """Send disarm until acknowledged (or a few tries), reading replies here. With the link

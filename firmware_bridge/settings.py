@@ -16,6 +16,7 @@ from contracts.mavlink import (
     COMPANION_COMPONENT_ID,
     GCS_SYSTEM_ID,
     ROVER_MODES,
+    mode_number,
 )
 from contracts.settings import check_range, from_dict, load_toml
 from contracts.transport import ZenohSettings
@@ -156,7 +157,18 @@ class FailsafeSettings:
     stop_repeats_on_exit: int = 3
     """On SIGINT or SIGTERM, stop is sent this many times (UDP may drop one)."""
     disarm_on_exit: bool = True
-    """On SIGINT or SIGTERM, disarm after sending stop."""
+    """On SIGINT or SIGTERM, disarm after sending stop, once the vehicle reports it is at rest
+    (`rest_speed_mps`, or `rest_timeout_s` passed): disarming a moving car removes its brakes."""
+    brake_mode: str = ""
+    """A Rover mode that brakes, switched to when the bridge stops a moving car (command
+    silence, exit) and left for the output's mode on the next fresh command; e.g. GUIDED
+    (it brakes to a stop, and needs a position estimate). Empty: stay in the output's mode,
+    where a manual stop is neutral sticks, on which Rover coasts (GUIDED's zero velocity
+    target brakes by itself)."""
+    rest_speed_mps: float = 0.05
+    """The vehicle is at rest when its LOCAL_POSITION_NED speed is below this."""
+    rest_timeout_s: float = 5.0
+    """On exit, disarm after this long even if the vehicle never reported rest."""
     implausible_factor: float = 10.0
     """A command beyond this many times the output's full scale (speed or turn rate) is not
     one anyone meant: it is refused as malformed and the car is stopped; closer overshoot is
@@ -167,6 +179,13 @@ class FailsafeSettings:
         check_range(self, "command_timeout_s", self.command_timeout_s, 0.01, 10.0)
         check_range(self, "stop_period_s", self.stop_period_s, 0.005, 2.0)
         check_range(self, "stop_repeats_on_exit", self.stop_repeats_on_exit, 1, 100)
+        if self.brake_mode:
+            try:
+                mode_number(self.brake_mode)
+            except ValueError as error:
+                raise ConfigError(f"failsafe.brake_mode: {error}") from None
+        check_range(self, "rest_speed_mps", self.rest_speed_mps, 0.0, 10.0, exclusive_low=True)
+        check_range(self, "rest_timeout_s", self.rest_timeout_s, 0.0, 600.0)
 
 
 @dataclass(frozen=True)

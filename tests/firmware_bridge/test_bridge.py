@@ -500,3 +500,48 @@ def test_bridge_and_fake_vehicle_pair_with_their_defaults() -> None:
             lambda: any(r.src_component == 191 for r in vehicle.received("HEARTBEAT")),
             what="the bridge's heartbeat at the vehicle",
         )
+
+
+def test_a_stop_switches_to_the_brake_mode_and_the_next_command_switches_back(
+    make_rig: MakeRig,
+) -> None:
+    # Rover coasts on neutral sticks in MANUAL; in GUIDED it brakes (failsafe.brake_mode).
+    rig = make_rig(
+        bridge={"failsafe": {"brake_mode": "GUIDED"}},
+        vehicle={"require_position_for_guided": False},
+    )
+    rig.ready()
+    wait_until(lambda: rig.vehicle.mode == "MANUAL", what="MANUAL")
+    time.sleep(0.5)  # stops before any command: the car is at rest, no mode change
+    assert rig.vehicle.mode == "MANUAL"
+    rig.drive(0.8, 0.0, 0.4)
+    wait_until(lambda: rig.vehicle.mode == "GUIDED", what="the brake mode after silence")
+    wait_until(lambda: abs(rig.vehicle.velocity()[0]) < 0.02, what="the car at rest")
+    x_stopped = rig.vehicle.pose()[0]
+    rig.drive(0.8, 0.0, 0.6)
+    assert rig.vehicle.mode == "MANUAL"
+    assert rig.vehicle.pose()[0] > x_stopped + 0.02, "the command after the brake drives"
+
+
+def test_exit_disarms_only_once_the_vehicle_is_at_rest(make_rig: MakeRig) -> None:
+    # A slow car (1 s time constant): disarming at once would leave it rolling unbraked.
+    rig = make_rig(
+        bridge={"failsafe": {"rest_timeout_s": 10.0}},
+        vehicle={"dynamics": {"linear_time_constant_s": 1.0}},
+    )
+    rig.ready()
+    rig.drive(0.8, 0.0, 1.5)
+    assert rig.vehicle.velocity()[0] > 0.3
+    assert rig.bridge is not None
+    closed_s = time.monotonic()
+    rig.bridge.close()
+    assert not rig.vehicle.armed
+    disarm = next(
+        r
+        for r in rig.vehicle.received("COMMAND_LONG")
+        if r.fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM and r.fields["param1"] == 0.0
+    )
+    # The bridge saw a LOCAL_POSITION_NED at rest before the disarm went out: about 2.5 s of
+    # slowing down from 0.6 m/s with a 1 s time constant (the old bridge disarmed at once).
+    assert abs(rig.vehicle.velocity()[0]) < 0.05
+    assert disarm.time_s - closed_s > 1.0, "disarmed before the car could have slowed down"
