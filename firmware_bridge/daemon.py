@@ -65,7 +65,7 @@ from contracts.wire import (
 )
 from firmware_bridge import mapping
 from firmware_bridge.failsafe import CommandGate
-from firmware_bridge.link import MavlinkLink
+from firmware_bridge.link import MavlinkLink, serial0_warning
 from firmware_bridge.settings import BridgeSettings, load_settings
 
 log = logging.getLogger("firmware_bridge")
@@ -114,6 +114,15 @@ class Bridge:
                 log.warning(
                     "signing key file %s is readable by other users (chmod 600 it)",
                     settings.signing.key_file,
+                )
+            serial0 = serial0_warning(settings.mavlink.connection)
+            if serial0 is not None:
+                log.warning(
+                    "SIGNING PROTECTS NOTHING HERE: %s, where ArduPilot accepts unsigned "
+                    "packets from anyone (it treats it as the trusted USB link). Connect the "
+                    "bridge to a telemetry port (SERIAL1/TELEM1...; SITL: tcp 5762) and keep "
+                    "SERIAL0 for setting the key up (docs/bridge.md)",
+                    serial0,
                 )
         self.link = MavlinkLink(settings.mavlink, key_bytes)
         self._gate = CommandGate(
