@@ -103,7 +103,12 @@ class OutputSettings:
     throttle_pwm_trim_us: int = 1500
     """Throttle PWM for stop (RC3_TRIM)."""
     throttle_pwm_max_us: int = 1900
-    """Throttle PWM for full forward (RC3_MAX); lower it to cap the speed."""
+    """Throttle PWM for full forward (RC3_MAX); lower it to cap the speed (RC overrides only:
+    MANUAL_CONTROL carries no PWM; `max_throttle_fraction` caps both)."""
+    max_throttle_fraction: float = 1.0
+    """manual mode: the largest throttle sent, as a fraction of full travel, forward and
+    reverse, in both messages (RC_CHANNELS_OVERRIDE and MANUAL_CONTROL); e.g. 0.4 indoors.
+    With `throttle_pwm_min_us` = trim, reverse is forbidden in both too."""
     guided_max_speed_mps: float = 1.0
     """guided mode: forward speed targets are clipped to this magnitude."""
     guided_max_turn_rate_radps: float = 1.0
@@ -121,6 +126,9 @@ class OutputSettings:
             check_range(self, name, getattr(self, name), 0.0, 100.0, exclusive_low=True)
         for name in ("guided_max_speed_mps", "guided_max_turn_rate_radps"):
             check_range(self, name, getattr(self, name), 0.0, 100.0)
+        check_range(
+            self, "max_throttle_fraction", self.max_throttle_fraction, 0.0, 1.0, exclusive_low=True
+        )
         for channel in ("steering", "throttle"):
             low = getattr(self, f"{channel}_pwm_min_us")
             trim = getattr(self, f"{channel}_pwm_trim_us")
