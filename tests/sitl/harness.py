@@ -186,6 +186,8 @@ class Observer:
         self.texts: list[str] = []
         self.armed: bool | None = None
         self.mode: str | None = None
+        self.changes: list[tuple[float, bool, str]] = []
+        """(time, armed, mode) at each change the heartbeats showed."""
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._send_lock = threading.Lock()
@@ -230,8 +232,12 @@ class Observer:
                     with self._lock:
                         self.samples.append(Sample(now, kind, message.to_dict()))
                 elif kind == "HEARTBEAT":
-                    self.armed = bool(message.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
-                    self.mode = mode_name(message.custom_mode)
+                    armed = bool(message.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+                    mode = mode_name(message.custom_mode)
+                    if (armed, mode) != (self.armed, self.mode):
+                        with self._lock:
+                            self.changes.append((now, armed, mode))
+                    self.armed, self.mode = armed, mode
                 elif kind == "STATUSTEXT":
                     with self._lock:
                         self.texts.append(str(message.text))
