@@ -30,13 +30,17 @@ from contracts.mavlink import (
     drain,
     mode_name,
     open_connection,
+    wrap_pi,
 )
 from contracts.transport import ZenohSettings, open_session
 from contracts.wire import (
     COMMAND,
+    POSE,
     VEHICLE_STATE,
+    Pose2D,
     Twist2D,
     decode_json_msg,
+    encode_pose_msg,
     encode_twist_msg,
     key,
 )
@@ -54,7 +58,8 @@ OBSERVER_SYSTEM_ID = 250
 MESSAGE_INTERVAL_US = 50_000
 """The observer asks for its messages at 20 Hz."""
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
-OBSERVED = {"LOCAL_POSITION_NED": 32, "GLOBAL_POSITION_INT": 33, "ATTITUDE": 30}
+OBSERVED = {"LOCAL_POSITION_NED": 32, "GLOBAL_POSITION_INT": 33, "ATTITUDE": 30, "SIMSTATE": 164}
+"""SIMSTATE is SITL's true pose: the test's motion capture."""
 REST_SPEED_MPS = 0.05
 """Below this the vehicle is at rest."""
 
@@ -346,6 +351,42 @@ def _ground_distance_m(a: dict[str, Any], b: dict[str, Any]) -> float:
     north = (b["lat"] - a["lat"]) * 1e-7 * 111_319.5
     east = (b["lon"] - a["lon"]) * 1e-7 * 111_319.5 * math.cos(lat)
     return math.hypot(north, east)
+
+
+def true_pose(simstate: dict[str, Any], home: tuple[float, float]) -> tuple[float, float, float]:
+    """SITL's true pose as motion capture gives it: (x east m, y north m, yaw rad
+    counter-clockwise from x) around `home` (lat, lon degrees)."""
+    north = (simstate["lat"] * 1e-7 - home[0]) * 111_319.5
+    east = (simstate["lng"] * 1e-7 - home[1]) * 111_319.5 * math.cos(math.radians(home[0]))
+    return east, north, wrap_pi(math.pi / 2 - simstate["yaw"])
+
+
+class MotionCapture:
+    """Publishes SITL's true pose on zenoh's `pose` key at `rate_hz`, as a mocap system."""
+
+    def __init__(self, zenoh: Zenoh, observer: Observer, rate_hz: float = 30.0) -> None:
+        self._zenoh, self._observer, self._period_s = zenoh, observer, 1.0 / rate_hz
+        self._stopping = threading.Event()
+        self.published = 0
+        home = HOME.split(",")
+        self._home = (float(home[0]), float(home[1]))
+        self._publisher = zenoh.session.declare_publisher(key(POSE))
+        self._thread = threading.Thread(target=self._loop, name="mocap", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stopping.wait(self._period_s):
+            sample = self._observer.latest("SIMSTATE")
+            if sample is None:
+                continue
+            x, y, yaw = true_pose(sample.fields, self._home)
+            self._publisher.put(encode_pose_msg(Pose2D(time.time(), "map", x, y, yaw)))
+            self.published += 1
+
+    def close(self) -> None:
+        self._stopping.set()
+        self._thread.join(timeout=2)
+        self._publisher.undeclare()
 
 
 class Zenoh:

@@ -22,6 +22,7 @@ import pytest
 from contracts.mavlink import wrap_pi
 from tests.sitl.harness import (
     BridgeProcess,
+    MotionCapture,
     Observer,
     Sitl,
     StopMeasure,
@@ -191,4 +192,22 @@ def test_signing_on_a_telemetry_port_refuses_unsigned_and_wrongly_signed_senders
 def test_mocap_only_guided_drives_and_stops(
     start_sitl: StartSitl, start_bridge: StartBridge, zenoh: Zenoh, tmp_path: Path
 ) -> None:
-    pytest.skip("not written yet")
+    # Indoors: no GPS (SITL's simulated receiver off too), no compass; the EKF's position and
+    # yaw come only from the pose the bridge forwards (config/ardupilot-mocap.parm).
+    no_gps = tmp_path / "no-gps.parm"
+    no_gps.write_text("SIM_GPS1_ENABLE 0\n")
+    sitl, observer = start_sitl([ROOT / "config" / "ardupilot-mocap.parm", no_gps])
+    mocap = MotionCapture(zenoh, observer)
+    try:
+        bridge = start_bridge(sitl.serial1, 'output.mode="guided"')
+        _armed(zenoh, observer)
+        wait_until(lambda: observer.mode == "GUIDED", 30.0, "GUIDED on the mocap pose")
+        assert observer.since("GLOBAL_POSITION_INT", 0.0), "the EKF has a position"
+        last = _drive_and_check_motion(zenoh, observer)
+        silence = measure_stop(observer, last, timeout_s=30.0)
+        _report("mocap-only guided, command silence", silence)
+        assert silence.rested and silence.stop_time_s <= STOP_GOAL_S + 0.5
+        assert mocap.published > 100
+        assert "giving up" not in bridge.log()
+    finally:
+        mocap.close()
