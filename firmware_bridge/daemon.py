@@ -146,6 +146,8 @@ class Bridge:
         self._speed_mps: float | None = None
         """Ground speed from the newest LOCAL_POSITION_NED (None before the first)."""
         self._speed_s = -math.inf
+        self._velocity_ned: tuple[float, float] | None = None
+        self._yaw_rate_ned: float | None = None
         self._braking = False
         """True from a stop that switched to `failsafe.brake_mode` until the next command."""
         self._brake_mode = (
@@ -658,9 +660,11 @@ class Bridge:
                 self._position_ned = (float(message.x), float(message.y), float(message.z))
                 self._speed_mps = math.hypot(float(message.vx), float(message.vy))
                 self._speed_s = now
+                self._velocity_ned = (float(message.vx), float(message.vy))
         elif kind == "ATTITUDE":
             with self._lock:
                 self._yaw_ned = float(message.yaw)
+                self._yaw_rate_ned = float(message.yawspeed)
         elif kind == "SYS_STATUS":
             battery: dict[str, float] = {}
             if message.voltage_battery != 0xFFFF:
@@ -704,6 +708,7 @@ class Bridge:
                 "output": self.settings.output.mode,
                 "driving": self._gate.driving(now),
                 "position": position,
+                "velocity": _velocity(self._velocity_ned, self._yaw_ned, self._yaw_rate_ned),
                 "battery": self._battery,
                 "last_ack": self._last_ack,
                 "request": self._request_status,
@@ -769,6 +774,22 @@ class Bridge:
                         log.info("disarm on exit: vehicle answered %d", message.result)
                         return
         log.warning("disarm on exit: no answer from the vehicle")
+
+
+def _velocity(
+    velocity_ned: tuple[float, float] | None, yaw_ned: float | None, yaw_rate_ned: float | None
+) -> dict[str, float] | None:
+    """The vehicle's own velocity in our terms: forward speed along its heading (m/s, negative
+    backwards) and turn rate (rad/s, counter-clockwise), from LOCAL_POSITION_NED and ATTITUDE."""
+    if velocity_ned is None or yaw_ned is None or yaw_rate_ned is None:
+        return None
+    north, east = velocity_ned
+    forward = north * math.cos(yaw_ned) + east * math.sin(yaw_ned)
+    return {
+        "forward_mps": forward,
+        "speed_mps": math.hypot(north, east),
+        "turn_rate_radps": -yaw_rate_ned,
+    }
 
 
 def _parse_request(request: dict[str, Any]) -> tuple[bool | None, int | None]:
