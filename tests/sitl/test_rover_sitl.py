@@ -20,6 +20,9 @@ from pathlib import Path
 import pytest
 
 from contracts.mavlink import wrap_pi
+from contracts.settings import from_dict
+from firmware_bridge.calibrate import Calibrator, Pattern
+from firmware_bridge.settings import BridgeSettings
 from tests.sitl.harness import (
     BridgeProcess,
     MotionCapture,
@@ -211,3 +214,47 @@ def test_mocap_only_guided_drives_and_stops(
         assert "giving up" not in bridge.log()
     finally:
         mocap.close()
+
+
+def test_calibrate_car_makes_a_twist_drive_at_the_speed_it_asks(
+    start_sitl: StartSitl, start_bridge: StartBridge, zenoh: Zenoh
+) -> None:
+    # A wrong scale (1 m/s at full throttle: a 0.5 m/s Twist is half throttle, many m/s in
+    # SITL), then `qnav calibrate-car`'s pattern, then the fitted scale.
+    sitl, observer = start_sitl()
+    wrong = ['output.mode="manual"', "output.speed_at_full_throttle_mps=1.0"]
+    bridge = start_bridge(sitl.serial1, *wrong)
+    _armed(zenoh, observer)
+    settings = from_dict(
+        BridgeSettings,
+        {
+            "zenoh": {"connect": [f"tcp/127.0.0.1:{zenoh.port}"]},
+            "output": {"speed_at_full_throttle_mps": 1.0},
+        },
+    )
+    pattern = Pattern(throttle_fractions=(0.05, 0.1), steering_fractions=(0.5,), settle_s=4.0)
+    calibrator = Calibrator(settings, pattern)
+    try:
+        calibrator.wait_ready(30.0)
+        result = calibrator.calibrate()
+    finally:
+        calibrator.close()
+    speed_scale = result["speed_at_full_throttle_mps"]
+    turn_scale = result["turn_rate_at_full_steering_radps"]
+    print(f"\n[sitl] calibrate-car: {speed_scale:.2f} m/s, {turn_scale:.2f} rad/s at full travel")
+    for run in result["runs"]:
+        print(f"[sitl]   {run}")
+    bridge.signal(signal.SIGTERM)
+    bridge.wait(timeout_s=15.0)
+    calibrated = start_bridge(
+        sitl.serial1,
+        'output.mode="manual"',
+        f"output.speed_at_full_throttle_mps={speed_scale}",
+        f"output.turn_rate_at_full_steering_radps={turn_scale}",
+    )
+    _armed(zenoh, observer, timeout_s=30.0)
+    zenoh.drive(DRIVE_SPEED_MPS, 0.0, 8.0)  # SITL's rover reaches speed with a 2 s lag
+    speed = observer.speed()
+    print(f"[sitl] a {DRIVE_SPEED_MPS} m/s Twist after calibration: {speed:.2f} m/s")
+    assert speed == pytest.approx(DRIVE_SPEED_MPS, rel=0.2)
+    assert calibrated.process.poll() is None
