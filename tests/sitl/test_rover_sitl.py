@@ -232,7 +232,15 @@ def test_calibrate_car_makes_a_twist_drive_at_the_speed_it_asks(
             "output": {"speed_at_full_throttle_mps": 1.0},
         },
     )
-    pattern = Pattern(throttle_fractions=(0.05, 0.1), steering_fractions=(0.5,), settle_s=4.0)
+    # SITL's rover: 20 m/s at full throttle, reached with a 2 s time constant.
+    pattern = Pattern(
+        throttle_fractions=(0.03, 0.05, 0.08),
+        steering_fractions=(0.5,),
+        turn_throttle_fraction=0.05,
+        settle_s=6.0,
+        rest_timeout_s=20.0,
+        max_distance_m=150.0,
+    )
     calibrator = Calibrator(settings, pattern)
     try:
         calibrator.wait_ready(30.0)
