@@ -44,8 +44,8 @@ BOOT_TIMEOUT_S = 150.0
 """SITL's EKF needs GPS and a settled IMU before it may arm: tens of seconds after boot."""
 DRIVE_SPEED_MPS = 1.0
 """The toy car's top speed in the paper's use (the policy's largest forward command)."""
-SITL_FULL_THROTTLE_MPS = 10.0
-"""SITL's rover at full throttle in MANUAL (measured: docs/bridge.md), the manual scale."""
+SITL_FULL_THROTTLE_MPS = 20.0
+"""SITL's rover at full throttle in MANUAL (SIM_Rover: 20 m/s; `qnav calibrate-car` finds it)."""
 STOP_GOAL_S = 1.5
 """At rest within this long of silence or SIGTERM (issue 20)."""
 FAILSAFE_GOAL_S = 2.0
