@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from contracts.mavlink import wrap_pi
+from contracts.mavlink import signing_timestamp_now, wrap_pi
 from contracts.settings import from_dict
 from firmware_bridge.calibrate import Calibrator, Pattern
 from firmware_bridge.settings import BridgeSettings
@@ -76,7 +76,11 @@ def _report(what: str, measure: StopMeasure) -> None:
 
 def _armed(zenoh: Zenoh, observer: Observer, timeout_s: float = BOOT_TIMEOUT_S) -> None:
     wait_until(
-        lambda: zenoh.state().get("armed") and observer.armed,
+        lambda: (
+            zenoh.state().get("armed")
+            and zenoh.state().get("bridge") == "running"
+            and observer.armed
+        ),
         timeout_s,
         "the bridge to arm the rover",
     )
@@ -166,7 +170,9 @@ def test_signing_on_a_telemetry_port_refuses_unsigned_and_wrongly_signed_senders
     wrong_file.write_text(bytes(range(1, 33)).hex())
     wrong_file.chmod(0o600)
     # The key goes to the autopilot over SERIAL0, as MAVProxy's `signing setup` over USB.
-    observer.send(lambda mav: mav.setup_signing_send(1, 1, key, int(time.time() * 1e5)))
+    # Its timestamp in MAVLink's units (10 us since 2015): a later one would make the
+    # autopilot refuse every packet stamped now as a replay.
+    observer.send(lambda mav: mav.setup_signing_send(1, 1, key, signing_timestamp_now()))
     wait_until(lambda: observer.latest("ATTITUDE"), 30, "telemetry")
 
     # A bridge with the wrong key never hears a signed autopilot: no link, no arming.
