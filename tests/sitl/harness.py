@@ -196,10 +196,10 @@ class Observer:
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._send_lock = threading.Lock()
+        self._next_request_s = 0.0
         self.conn: Any = wait_until(self._connect, 20.0, f"a connection to {connection}")
         self._thread = threading.Thread(target=self._loop, name="observer", daemon=True)
         self._thread.start()
-        self._next_request_s = 0.0
 
     def _connect(self) -> Any:
         try:
