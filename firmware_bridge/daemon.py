@@ -581,8 +581,14 @@ class Bridge:
                     log.info("waiting for a motion-capture pose before asking for GUIDED")
                     self._waiting_for_pose_logged = True
                 want_mode = None
+            if self._custom_mode == ROVER_MODES["INITIALISING"]:
+                # Rover ends its boot by switching to INITIAL_MODE: a mode taken before that
+                # is undone (seen in SITL), so ask only once the vehicle is up.
+                if want_mode is not None or want_armed is not None:
+                    self._set_request_status("waiting for the vehicle to initialise")
+                return
             if want_mode is None and want_armed is None:
-                if (self._request_status or "").startswith("asking"):
+                if (self._request_status or "").startswith(("asking", "waiting")):
                     self._set_request_status(None)  # done (a give-up stays reported)
                 return
             waited_s = now - self._request_since_s

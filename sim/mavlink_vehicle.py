@@ -121,6 +121,9 @@ class MavlinkVehicleSettings:
     """GUIDED needs an EKF origin and a fresh vision position estimate, as on a real Rover."""
     position_timeout_s: float = 1.0
     """A vision position estimate older than this no longer counts as a position."""
+    initialising_s: float = 0.0
+    """The vehicle reports mode INITIALISING for this long after boot, then switches to
+    `initial_mode`, undoing any mode taken meanwhile, as Rover does at the end of its boot."""
     arming_delay_s: float = 0.0
     """Arming is refused for this long after boot, with Rover's STATUSTEXT "Arm: System not
     initialised", as an autopilot whose sensors and EKF are still starting (a cold start)."""
@@ -150,6 +153,7 @@ class MavlinkVehicleSettings:
         for name in ("rc_override_timeout_s", "guided_timeout_s", "position_timeout_s"):
             check_range(self, name, getattr(self, name), 0.01, 60.0)
         check_range(self, "arming_delay_s", self.arming_delay_s, 0.0, 600.0)
+        check_range(self, "initialising_s", self.initialising_s, 0.0, 600.0)
         if self.signing_key_file and not Path(self.signing_key_file).is_file():
             raise ConfigError(f"signing_key_file {self.signing_key_file!r} does not exist")
 
@@ -206,7 +210,12 @@ class MavlinkVehicle:
         self._pose = np.array([[settings.x_m, settings.y_m, settings.yaw_rad]], dtype=np.float64)
         self._velocity = np.zeros((1, 2), dtype=np.float64)
         self._armed = False
-        self._mode = mode_number(settings.initial_mode)
+        self._initialising = settings.initialising_s > 0
+        self._mode = (
+            ROVER_MODES["INITIALISING"]
+            if self._initialising
+            else mode_number(settings.initial_mode)
+        )
         self._override: _Override | None = None
         self._guided: _GuidedTarget | None = None
         self._origin: tuple[int, int, int] | None = None
@@ -329,6 +338,9 @@ class MavlinkVehicle:
                 next_telemetry = now + settings.telemetry_period_s
 
     def _step(self, period_s: float, now: float) -> None:
+        if self._initialising and now - self._boot_s >= self.settings.initialising_s:
+            self._initialising = False
+            self._mode = mode_number(self.settings.initial_mode)
         speed, rate = self._targets(now)
         with self._lock:
             self._pose, self._velocity = step_velocity_lag(

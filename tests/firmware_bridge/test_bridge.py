@@ -437,7 +437,12 @@ def test_cold_start_keeps_asking_to_arm_until_the_vehicle_is_ready(make_rig: Mak
     # give up after ten tries (5 s), long before a real autopilot is ready.
     rig = make_rig(
         bridge={"vehicle": {"request_retry_s": 0.05, "request_timeout_s": 30.0}},
-        vehicle={"arming_delay_s": 1.5},
+        vehicle={"initialising_s": 0.5, "arming_delay_s": 1.5},
+    )
+    # While Rover initialises it takes a mode and then undoes it (SITL): nothing is asked.
+    wait_until(
+        lambda: rig.state().get("request") == "waiting for the vehicle to initialise",
+        what="the bridge waiting for the vehicle's boot",
     )
     wait_until(
         lambda: rig.state().get("vehicle_text") == "Arm: System not initialised",
@@ -454,6 +459,7 @@ def test_cold_start_keeps_asking_to_arm_until_the_vehicle_is_ready(make_rig: Mak
     ]
     assert len(arms) > 10  # more than the old limit: it kept asking
     wait_until(lambda: rig.state().get("request") is None, what="the request reported done")
+    assert rig.vehicle.mode == "MANUAL"
     rig.drive(0.5, 0.0, 0.5)
     wait_until(lambda: rig.vehicle.pose()[0] > 0.05, what="the car driving once armed")
 

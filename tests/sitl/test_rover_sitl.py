@@ -118,6 +118,14 @@ def test_drive_and_every_stop(
     _armed(zenoh, observer)
     assert "giving up" not in bridge.log()
     goal = case != "manual-neutral"  # neutral sticks in MANUAL coast: measured, no goal
+    if goal:  # braking in GUIDED needs the EKF's position: GPS, some 20 s after boot
+        wait_until(
+            lambda: any("is using GPS" in text for text in observer.texts),
+            BOOT_TIMEOUT_S,
+            "the EKF using GPS",
+        )
+    if case == "guided":
+        wait_until(lambda: observer.mode == "GUIDED", BOOT_TIMEOUT_S, "GUIDED")
 
     # 1. Command silence: the bridge's own failsafe.
     last = _drive_and_check_motion(zenoh, observer)
