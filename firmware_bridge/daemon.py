@@ -72,6 +72,10 @@ log = logging.getLogger("firmware_bridge")
 
 LOOP_MAX_WAIT_S = 0.1
 """The bridge thread looks at its clocks at least this often (requests from zenoh wait for it)."""
+MODE_SETTLE_S = 1.5
+"""A requested mode counts as taken once the heartbeats showed it this long: Rover may undo a
+mode right after boot (INITIAL_MODE, the RC mode switch's first reading; seen in SITL), and the
+bridge asks again then."""
 EXIT_ACK_WAIT_S = 0.2
 """On shutdown, how long to wait for the disarm to be acknowledged before sending it again."""
 
@@ -160,6 +164,7 @@ class Bridge:
         self._want_mode: int | None = None
         self._want_armed: bool | None = None
         self._request_attempts = 0
+        self._mode_since_s = -math.inf
         self._request_since_s = -math.inf
         self._request_status: str | None = None
         self._vehicle_text: str | None = None
@@ -571,11 +576,14 @@ class Bridge:
         # GUIDED needs a position estimate: ask for it only once a pose went to the autopilot.
         needs_pose = self._guided and self.settings.vision.forward_pose
         with self._lock:
-            if self._want_mode is not None and self._custom_mode == self._want_mode:
+            mode_held = self._want_mode is not None and self._custom_mode == self._want_mode
+            if mode_held and now - self._mode_since_s >= MODE_SETTLE_S:
                 self._want_mode = None
             if self._want_armed is not None and self._armed == self._want_armed:
                 self._want_armed = None
             want_mode, want_armed = self._want_mode, self._want_armed
+            if mode_held:
+                want_mode = None  # there now: watch that it holds, without asking again
             if want_mode == ROVER_MODES["GUIDED"] and needs_pose and not self._pose_since_link_up:
                 if not self._waiting_for_pose_logged:
                     log.info("waiting for a motion-capture pose before asking for GUIDED")
@@ -655,12 +663,13 @@ class Bridge:
                         mode_name(message.custom_mode),
                     )
                     self._state_dirty = True
+                if int(message.custom_mode) != self._custom_mode:
+                    self._mode_since_s = now
                 self._armed, self._custom_mode = armed, int(message.custom_mode)
-                # Done is done: a request met once is not sent again after a reconnect.
+                # Done is done: a request met once is not sent again after a reconnect. A mode
+                # must hold for MODE_SETTLE_S first (`_send_requests`).
                 if self._want_armed == armed:
                     self._want_armed = None
-                if self._want_mode == self._custom_mode:
-                    self._want_mode = None
         elif kind == "LOCAL_POSITION_NED":
             with self._lock:
                 self._position_ned = (float(message.x), float(message.y), float(message.z))
