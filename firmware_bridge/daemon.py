@@ -165,6 +165,8 @@ class Bridge:
         self._want_armed: bool | None = None
         self._request_attempts = 0
         self._mode_since_s = -math.inf
+        self._origin_confirmed = False
+        """True once the vehicle reported GPS_GLOBAL_ORIGIN (its EKF has an origin)."""
         self._request_since_s = -math.inf
         self._request_status: str | None = None
         self._vehicle_text: str | None = None
@@ -386,7 +388,7 @@ class Bridge:
                 self.settings.mavlink.vehicle_system_id, lat, lon, alt, int(time.time() * 1e6)
             )
         )
-        log.info("EKF origin sent (%.6f, %.6f, %.1f m)", *_origin(self.settings))
+        log.debug("EKF origin sent (%.6f, %.6f, %.1f m)", *_origin(self.settings))
 
     # -- zenoh callbacks ----------------------------------------------------------------------
 
@@ -549,6 +551,7 @@ class Bridge:
         with self._lock:
             self._gate.set_link(True)
             self._link_up = True
+            self._origin_confirmed = False  # a rebooted autopilot lost it
             self._pose_since_link_up = False
             if not self._ever_up:
                 vehicle = self.settings.vehicle
@@ -575,6 +578,14 @@ class Bridge:
         self._next_request_s = now + vehicle.request_retry_s
         # GUIDED needs a position estimate: ask for it only once a pose went to the autopilot.
         needs_pose = self._guided and self.settings.vision.forward_pose
+        if (
+            needs_pose
+            and not self._origin_confirmed
+            and self._custom_mode not in (None, ROVER_MODES["INITIALISING"])
+        ):
+            # An origin sent while the EKF still starts is dropped ("AHRS: waiting for home"
+            # in SITL): again until the vehicle reports GPS_GLOBAL_ORIGIN.
+            self._send_origin()
         with self._lock:
             mode_held = self._want_mode is not None and self._custom_mode == self._want_mode
             if mode_held and now - self._mode_since_s >= MODE_SETTLE_S:
@@ -676,6 +687,10 @@ class Bridge:
                 self._speed_mps = math.hypot(float(message.vx), float(message.vy))
                 self._speed_s = now
                 self._velocity_ned = (float(message.vx), float(message.vy))
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            if not self._origin_confirmed:
+                log.info("vehicle has its EKF origin")
+            self._origin_confirmed = True
         elif kind == "ATTITUDE":
             with self._lock:
                 self._yaw_ned = float(message.yaw)

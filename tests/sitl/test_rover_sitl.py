@@ -62,6 +62,11 @@ OUTPUTS = {
         'failsafe.brake_mode="GUIDED"',
     ],
     "guided": ['output.mode="guided"', "vision.forward_pose=false"],
+    "guided-brake": [
+        'output.mode="guided"',
+        "vision.forward_pose=false",
+        'failsafe.brake_mode="LOITER"',
+    ],
 }
 """Bridge settings per case (guided with GPS here: SITL's EKF has its own position)."""
 
@@ -117,14 +122,16 @@ def test_drive_and_every_stop(
     # Cold start: the bridge came up while the autopilot booted; it must keep asking.
     _armed(zenoh, observer)
     assert "giving up" not in bridge.log()
-    goal = case != "manual-neutral"  # neutral sticks in MANUAL coast: measured, no goal
+    # Neutral sticks in MANUAL coast, and GUIDED's zero velocity brakes gently: measured, no
+    # goal; the brake modes (GUIDED's stop, Loiter) have the goal.
+    goal = case.endswith("brake")
     if goal:  # braking in GUIDED needs the EKF's position: GPS, some 20 s after boot
         wait_until(
             lambda: any("is using GPS" in text for text in observer.texts),
             BOOT_TIMEOUT_S,
             "the EKF using GPS",
         )
-    if case == "guided":
+    if case.startswith("guided"):
         wait_until(lambda: observer.mode == "GUIDED", BOOT_TIMEOUT_S, "GUIDED")
 
     # 1. Command silence: the bridge's own failsafe.
@@ -153,7 +160,7 @@ def test_drive_and_every_stop(
     bridge = start_bridge(sitl.serial1, *OUTPUTS[case])
     _armed(zenoh, observer, timeout_s=30.0)
     wait_until(
-        lambda: observer.mode == ("GUIDED" if case == "guided" else "MANUAL"),
+        lambda: observer.mode == ("GUIDED" if case.startswith("guided") else "MANUAL"),
         10.0,
         "the output's mode",
     )
