@@ -61,6 +61,8 @@ COMMAND = Topic("cmd_vel", "geometry_msgs/msg/Twist")
 CONTROLLER_STATUS = Topic("qnav/controller_status", "std_msgs/msg/String")
 VEHICLE_STATE = Topic("qnav/vehicle_state", "std_msgs/msg/String")
 VEHICLE_REQUEST = Topic("qnav/vehicle_request", "std_msgs/msg/String")
+POLICY_ANNOUNCEMENT = Topic("qnav/policy_announcement", "std_msgs/msg/String")
+"""The policy `qnav serve` recommends (JSON, `contracts.delivery.Announcement`)."""
 
 TOPICS = (
     SCAN,
@@ -73,6 +75,7 @@ TOPICS = (
     CONTROLLER_STATUS,
     VEHICLE_STATE,
     VEHICLE_REQUEST,
+    POLICY_ANNOUNCEMENT,
 )
 """Every topic of the project (what `qnav record` subscribes to)."""
 
@@ -82,10 +85,12 @@ PUBLISHERS: dict[str, tuple[Topic, ...]] = {
     "sensors": (SCAN, POSE, ESTOP),
     "operator": (TARGET_POSE, TARGET_POINT, ESTOP, ESTOP_RELEASE, VEHICLE_REQUEST),
     "recorder": (),
+    "server": (POLICY_ANNOUNCEMENT,),
 }
 """Who may publish what, by certificate identity (config/zenoh-secure.json5's access control):
 only the controller commands the car, only the bridge reports the vehicle, only the operator
-sets targets, releases the stop or asks to arm; anyone known may press the stop."""
+sets targets, releases the stop or asks to arm, only the policy server (`qnav serve`) announces
+policies; anyone known may press the stop."""
 
 
 def key(topic: Topic | str, namespace: str = "") -> str:

@@ -116,6 +116,53 @@ class SafetySettings:
         )
 
 
+PolicySource = Literal["file", "server"]
+
+
+@dataclass(frozen=True)
+class PolicySourceSettings:
+    """Where the policy comes from: the file alone, or also a `qnav serve` on the desktop
+    (docs/serve.md)."""
+
+    SECTION = "policy"
+
+    source: PolicySource = "file"
+    """"file": controller.policy only. "server": start with controller.policy, then take the
+    policies a `qnav serve` announces, each verified (signature, sha256, contract, one trial
+    run) and swapped in only while the car is stopped; any failure keeps the running one."""
+    public_key: str = ""
+    """The server's Ed25519 public key (PEM, from `qnav keys`); required with source = "server".
+    A relative path is taken from the settings file's folder."""
+    cache_dir: str = ""
+    """Where fetched policy files are written ("": a temporary folder, removed at exit). A
+    relative path is taken from the settings file's folder."""
+    chunk_timeout_s: float = 2.0
+    """A chunk of a policy file not received within this fails the transfer."""
+    retry_interval_s: float = 10.0
+    """A version whose transfer failed is fetched again at most this often."""
+    max_file_bytes: int = 64 * 1024 * 1024
+    """Announced policy files larger than this are refused unfetched."""
+
+    def __post_init__(self) -> None:
+        if self.source not in ("file", "server"):
+            raise ConfigError(f"policy.source = {self.source!r} is not one of file, server")
+        check_range(self, "chunk_timeout_s", self.chunk_timeout_s, 0.0, 600.0, exclusive_low=True)
+        check_range(self, "retry_interval_s", self.retry_interval_s, 0.0, 86400.0)
+        check_range(self, "max_file_bytes", self.max_file_bytes, 1, 1 << 30)
+
+    def public_key_path(self) -> Path:
+        """The public key file; ConfigError naming `policy.public_key` if unset or missing."""
+        if not self.public_key:
+            raise ConfigError(
+                'policy.public_key is not set: policy.source = "server" needs the server\'s '
+                "public key (qnav keys DIR writes DIR/policy-signing.pub)"
+            )
+        path = Path(self.public_key)
+        if not path.is_file():
+            raise ConfigError(f"policy.public_key = {str(path)!r}: no such file")
+        return path
+
+
 @dataclass(frozen=True)
 class TopicSettings:
     """ROS topic names (without namespace); zenoh keys are `[zenoh.namespace/]NAME`, as
@@ -137,9 +184,13 @@ class TopicSettings:
     """Motor commands out (geometry_msgs/msg/Twist: linear.x, angular.z)."""
     status: str = wire.CONTROLLER_STATUS.name
     """Status out (std_msgs/msg/String holding one JSON object per decision)."""
+    policy_announcement: str = wire.POLICY_ANNOUNCEMENT.name
+    """Policy announcements in, from `qnav serve` (std_msgs/msg/String, JSON; read only with
+    policy.source = "server")."""
 
     def __post_init__(self) -> None:
-        for name in ("scan", "pose", "estop", "estop_release", "command", "status"):
+        names = ("scan", "pose", "estop", "estop_release", "command", "status")
+        for name in (*names, "policy_announcement"):
             value = getattr(self, name)
             if not value.strip("/") or any(c in value for c in "*$?# "):
                 raise ConfigError(f"topics.{name} = {value!r} is not a usable topic name")
@@ -157,6 +208,8 @@ class DaemonConfig:
     """Scan resampling."""
     safety: SafetySettings = field(default_factory=SafetySettings)
     """Stop rules."""
+    policy: PolicySourceSettings = field(default_factory=PolicySourceSettings)
+    """Policies from a server."""
     topics: TopicSettings = field(default_factory=TopicSettings)
     """Topic names."""
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
@@ -180,7 +233,8 @@ class DaemonConfig:
 def load_config(path: Path | None, assignments: list[str] | None = None) -> DaemonConfig:
     """Settings from a TOML file (defaults without one) and `section.field=value` overrides.
 
-    A relative `controller.policy` in the file is taken from the file's folder.
+    A relative `controller.policy`, `policy.public_key` or `policy.cache_dir` in the file is taken
+    from the file's folder.
     """
     config = DaemonConfig()
     if path is not None:
@@ -191,6 +245,12 @@ def load_config(path: Path | None, assignments: list[str] | None = None) -> Daem
                 config,
                 controller=replace(config.controller, policy=str(path.parent / policy)),
             )
+        source = config.policy
+        public_key, cache_dir = (
+            str(path.parent / value) if value and not Path(value).is_absolute() else value
+            for value in (source.public_key, source.cache_dir)
+        )
+        config = replace(config, policy=replace(source, public_key=public_key, cache_dir=cache_dir))
     if assignments:
         config = with_overrides(config, parse_assignments(assignments))
     return config

@@ -24,6 +24,7 @@ import gc
 import logging
 import signal
 import sys
+import tempfile
 import textwrap
 import threading
 import time
@@ -33,13 +34,16 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from contracts import wire
+from contracts import delivery, wire
+from contracts.errors import PolicyFileError
 from contracts.health import Heartbeat
+from contracts.policy_file import PolicyContract
 from contracts.settings import to_toml
 from contracts.transport import StoppedError, open_session
 from contracts.wire import Twist2D
 from controller.config import DaemonConfig, load_config
 from controller.decision import Controller, Input, Output, Reason
+from controller.delivery import Candidate, PolicyFetcher
 from controller.policy import PolicyRuntime
 
 log = logging.getLogger("qnav.controller")
@@ -100,9 +104,23 @@ class Ratekeeper:
 class Daemon:
     """The controller on a zenoh session."""
 
-    def __init__(self, config: DaemonConfig, controller: Controller) -> None:
+    def __init__(
+        self,
+        config: DaemonConfig,
+        controller: Controller,
+        policy_sha256: str = "",
+        public_key: Any = None,
+    ) -> None:
         self.config = config
         self.controller = controller
+        self.policy_sha256 = policy_sha256
+        """Hash of the running policy's file (a server's announcement of it is ignored)."""
+        self.public_key = public_key
+        """The server's public key (with policy.source = "server")."""
+        self.fetcher: PolicyFetcher | None = None
+        """Takes delivered policies (while `run` has a session, with policy.source = "server")."""
+        self._candidate: Candidate | None = None
+        """A verified policy waiting for the car to stop (under the lock)."""
         self.period_s = controller.period_s
         self.decide_on_scan = config.controller.trigger == "scan"
         self.stopping = threading.Event()
@@ -119,6 +137,8 @@ class Daemon:
         """The status publisher (while `run` has a session)."""
         self._sent_s = 0.0
         """When the last command was published."""
+        self._scratch: tempfile.TemporaryDirectory[str] | None = None
+        """The temporary policy cache (policy.cache_dir unset)."""
         self.heartbeat = Heartbeat.from_env("controller")
         namespace = config.zenoh.namespace
         topics = config.topics
@@ -132,6 +152,7 @@ class Daemon:
             self.keys[Input.SCAN] = wire.key(topics.scan, namespace)
         self.command_key = wire.key(topics.command, namespace)
         self.status_key = wire.key(topics.status, namespace)
+        self.announcement_key = wire.key(topics.policy_announcement, namespace)
 
     def request_stop(self) -> None:
         """End the loop (safe from a signal handler or another thread)."""
@@ -173,6 +194,8 @@ class Daemon:
                 )
                 for source, key in self.keys.items()
             ]
+            if self.config.policy.source == "server":
+                subscribers.append(self._start_fetcher(session))
             log.info(
                 "listening on %s; commands to %s, status to %s",
                 ", ".join(f"{s.value}={k}" for s, k in self.keys.items()),
@@ -187,6 +210,8 @@ class Daemon:
                     now = time.monotonic()
                     self._publish_status(self.controller.shutdown(now, self._send), now)
                 log.info("stop command published; closing the zenoh session")
+                if self.fetcher is not None:
+                    self.fetcher.stop()
                 for subscriber in subscribers:
                     subscriber.undeclare()
                 self._command.undeclare()
@@ -194,6 +219,62 @@ class Daemon:
         finally:
             session.close()
             self.heartbeat.close()
+            if self._scratch is not None:
+                self._scratch.cleanup()
+
+    def _start_fetcher(self, session: Any) -> Any:
+        """Start taking the policies a server announces; returns the announcement subscriber."""
+        import zenoh
+
+        settings = self.config.policy
+        if settings.cache_dir:
+            cache = Path(settings.cache_dir)
+        else:
+            self._scratch = tempfile.TemporaryDirectory(prefix="qnav-policies-")
+            cache = Path(self._scratch.name)
+        self.fetcher = PolicyFetcher(
+            settings,
+            public_key=self.public_key,
+            cache_dir=cache,
+            backend=self.config.controller.backend,
+            running=self._running,
+            offer=self._offer,
+            warn=lambda kind, message: self.bounded.warning(kind, message, time.monotonic()),
+        )
+        fetcher = self.fetcher
+        subscriber = session.declare_subscriber(
+            self.announcement_key,
+            zenoh.handlers.Callback(
+                lambda sample: fetcher.on_payload(sample.payload.to_bytes()), indirect=False
+            ),
+        )
+        fetcher.start(session, self.config.zenoh.namespace)
+        log.info("taking policies announced on %s (cache %s)", self.announcement_key, cache)
+        return subscriber
+
+    def _running(self) -> tuple[PolicyContract, str]:
+        with self._lock:
+            return self.controller.runtime.contract, self.policy_sha256
+
+    def _offer(self, candidate: Candidate) -> None:
+        with self._lock:
+            self._candidate = candidate
+
+    def _swap_if_at_rest(self, now: float) -> None:
+        """Swap a waiting policy in if the car is stopped (under the lock, between decisions)."""
+        candidate = self._candidate
+        if candidate is None or self.fetcher is None or not self.controller.at_rest(now):
+            return
+        self._candidate = None
+        previous = self.controller.policy_version
+        try:
+            self.controller.swap_policy(candidate.runtime, candidate.version)
+        except PolicyFileError as error:
+            self.fetcher.refused(candidate.version, str(error))
+            return
+        self.policy_sha256 = candidate.sha256
+        self.fetcher.swapped(candidate.version)
+        log.info("policy %s swapped in (was %s) while stopped", candidate.version, previous)
 
     def _send(self, command: Twist2D) -> None:
         """Publish a command the moment the controller decides it (its status comes after)."""
@@ -212,6 +293,8 @@ class Daemon:
             "decide_ms": round((self._sent_s - started) * 1e3, 3),
             "late_ms": round(self._late_s * 1e3, 3),
         }
+        if self.fetcher is not None:
+            report["delivery"] = self.fetcher.report()
         self._status.put(wire.encode_json_msg(report))
         self._note_reason(output)
 
@@ -241,6 +324,7 @@ class Daemon:
             started = time.monotonic()
             self._late_s = started - rate.deadline
             with self._lock:
+                self._swap_if_at_rest(started)
                 if self.decide_on_scan:
                     output = self.controller.check(started, self._send)
                     if output is not None:
@@ -274,18 +358,25 @@ class Daemon:
 def build(config: DaemonConfig) -> Daemon:
     """A daemon for `config`: the policy loaded and checked, ready to `run`."""
     path = config.policy_path()
+    public_key = None
+    if config.policy.source == "server":
+        public_key = delivery.load_public_key(config.policy.public_key_path(), "policy.public_key")
     runtime = PolicyRuntime(path, backend=config.controller.backend)
     contract = runtime.contract
+    sha = delivery.sha256_of(path.read_bytes())
+    version = delivery.version_of(path.stem, sha)
     log.info(
-        "policy %s: %s, %s, window %d, %s, period %.3f s",
+        "policy %s (%s): %s, %s, window %d, %s, period %.3f s",
         path,
+        version,
         contract.model_kind,
         contract.scenario,
         contract.window_length,
         f"{contract.num_beams} beams" if contract.num_beams else "no lidar",
         contract.control_period_s,
     )
-    return Daemon(config, Controller(runtime, config.safety, config.lidar))
+    controller = Controller(runtime, config.safety, config.lidar, policy_version=version)
+    return Daemon(config, controller, sha, public_key)
 
 
 def serve(daemon: Daemon) -> None:

@@ -52,9 +52,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts import wire
+from contracts import delivery, wire
 from contracts.actions import Action
-from contracts.errors import PolicyInputError
+from contracts.errors import PolicyFileError, PolicyInputError
 from contracts.observation import target_features_of
 from contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
 from controller.config import LidarSettings, SafetySettings
@@ -97,6 +97,10 @@ class Reason(StrEnum):
     SHUTDOWN = "shutdown"
 
 
+AT_REST = frozenset({Reason.NO_TARGET, Reason.TARGET_REACHED, Reason.ESTOP_LATCHED})
+"""The stops during which a delivered policy may be swapped in: no episode is under way."""
+
+
 @dataclass
 class Counters:
     """Running totals reported in every status."""
@@ -117,6 +121,8 @@ class Counters:
     """Emergency-stop messages that pressed it."""
     releases_refused: int = 0
     """Release requests refused because the emergency stop was still pressed."""
+    policy_swaps: int = 0
+    """Policies swapped in while running (`Controller.swap_policy`)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As plain JSON values."""
@@ -129,6 +135,7 @@ class Counters:
             "overruns": self.overruns,
             "estop_presses": self.estop_presses,
             "releases_refused": self.releases_refused,
+            "policy_swaps": self.policy_swaps,
         }
 
 
@@ -160,6 +167,8 @@ class Status:
     """The last emergency-stop message (None: none yet)."""
     counters: dict[str, Any]
     """A copy of the running totals."""
+    policy_version: str = ""
+    """Version of the policy that decides (or would decide): `Controller.policy_version`."""
 
     def to_dict(self) -> dict[str, Any]:
         """As one JSON object (the status message)."""
@@ -178,6 +187,7 @@ class Status:
             "ages_s": dict(self.ages_s),
             "estop": {"latched": self.estop_latched, "pressed": self.estop_pressed},
             "counters": self.counters,
+            "policy_version": self.policy_version,
         }
 
 
@@ -214,8 +224,11 @@ class Controller:
         runtime: PolicyRuntime,
         safety: SafetySettings | None = None,
         lidar: LidarSettings | None = None,
+        policy_version: str = "",
     ) -> None:
         self.runtime = runtime
+        self.policy_version = policy_version or delivery.version_of_file(runtime.path)
+        """Reported in every status (by default the file's own: `version_of_file`)."""
         self.safety = safety or SafetySettings()
         self.lidar = lidar or LidarSettings()
         contract = runtime.contract
@@ -239,6 +252,7 @@ class Controller:
         self.target_reached = False
         self._sequence = 0
         self._window_fresh = True
+        self._last_reason: Reason | None = None
 
     # ---- inputs -------------------------------------------------------------------------
 
@@ -450,6 +464,33 @@ class Controller:
         """The last output before the process exits: a stop (`send` as for `decide`)."""
         return self._stop(now, Reason.SHUTDOWN, send)
 
+    def at_rest(self, now: float) -> bool:
+        """Whether a policy may be swapped in now: the last output stopped the car for no
+        target, a reached target or a latched emergency stop, and the rules still say so (so the
+        car was told to stop, and no episode is under way)."""
+        return self._last_reason in AT_REST and self._stop_reason(now) in AT_REST
+
+    def swap_policy(self, runtime: PolicyRuntime, version: str) -> None:
+        """Run `runtime` from the next decision on (call between two decisions, `at_rest`).
+
+        The new policy must keep what the loop and the car were set up for (beams, actions,
+        control period): `PolicyFileError` otherwise, and the old one stays."""
+        have, offered = self.runtime.contract, runtime.contract
+        if (offered.num_beams, offered.control_period_s, offered.actions) != (
+            have.num_beams,
+            have.control_period_s,
+            have.actions,
+        ):
+            raise PolicyFileError(
+                f"policy {version} does not keep the running policy's beams, control period and "
+                "actions"
+            )
+        self.runtime = runtime
+        self.policy_version = version
+        self.runtime.reset()
+        self._window_fresh = True
+        self.counters.policy_swaps += 1
+
     def note_overruns(self, missed: int) -> None:
         """Count control periods the loop missed (reported in status)."""
         self.counters.overruns += missed
@@ -508,6 +549,7 @@ class Controller:
         send: CommandSink | None,
     ) -> Output:
         self._sequence += 1
+        self._last_reason = reason
         self.counters.decisions += 1
         if send is not None:
             send(command)  # nothing the status reads changes in between
@@ -524,5 +566,6 @@ class Controller:
             estop_latched=self.estop_latched,
             estop_pressed=self.estop_pressed,
             counters=self.counters.to_dict(),
+            policy_version=self.policy_version,
         )
         return Output(command, status)

@@ -55,7 +55,12 @@ class OnnxContents:
 
 def read_onnx(path: Path) -> OnnxContents:
     """Metadata and initializers of the ONNX file at `path`."""
-    data = memoryview(Path(path).read_bytes())
+    return parse_onnx(Path(path).read_bytes(), path)
+
+
+def parse_onnx(contents: bytes, path: Path | str) -> OnnxContents:
+    """Metadata and initializers of an ONNX file's bytes (`path` names it in errors)."""
+    data = memoryview(contents)
     metadata: dict[str, str] = {}
     initializers: dict[str, NDArray[np.generic]] = {}
     try:
@@ -156,7 +161,7 @@ def _as_bytes(value: int | memoryview) -> memoryview:
     return value
 
 
-def _tensor(data: memoryview, path: Path) -> tuple[str, NDArray[np.generic]]:
+def _tensor(data: memoryview, path: Path | str) -> tuple[str, NDArray[np.generic]]:
     name, dims, dtype_code = "", [], 1
     raw: memoryview | None = None
     floats: list[float] = []

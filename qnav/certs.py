@@ -20,9 +20,10 @@ from contracts.errors import ConfigError
 from contracts.transport import secure_client_config, secure_hub_config
 from contracts.wire import PUBLISHERS
 
-IDENTITIES = ("hub", "controller", "bridge", "recorder", "sensors", "operator")
+IDENTITIES = ("hub", "controller", "bridge", "recorder", "sensors", "operator", "server")
 """The identities of config/zenoh-secure.json5: the listening hub, each daemon, the sensors
-(lidar and motion capture, or the sim-car), and the operator who may arm and release."""
+(lidar and motion capture, or the sim-car), the operator who may arm and release, and the
+policy server (`qnav serve`, docs/serve.md)."""
 
 DAYS = 825
 """Validity of the certificates (the most that common TLS clients accept)."""

@@ -246,6 +246,24 @@ def build_parser() -> argparse.ArgumentParser:
     gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
     gauge.set_defaults(handler=_lazy("qnav.commands:gauge"))
 
+    probe = verbs.add_parser(
+        "probe",
+        help="perception ceiling: the Q-network fitted to the planner's doom labels, on the gauge",
+    )
+    _world_options(probe, "obstacles-inertia")
+    probe.add_argument(
+        "--probe-set",
+        dest="probe_assignments",
+        action="append",
+        default=[],
+        metavar="probe.FIELD=VALUE",
+        help="change one probe setting, e.g. probe.epochs=20 (repeatable; `qnav probe "
+        "--print-config` lists them)",
+    )
+    probe.add_argument("--print-config", action="store_true", help="print the probe settings")
+    probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")
+    probe.set_defaults(handler=_lazy("qnav.commands:probe"))
+
     imitate = verbs.add_parser(
         "imitate",
         help="behaviour-cloning ceiling: train the network to copy the oracle planner, test it",
@@ -402,7 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.add_argument(
         "--names",
         nargs="+",
-        help="identities (default: hub controller bridge recorder sensors operator)",
+        help="identities (default: hub controller bridge recorder sensors operator server)",
     )
     certs.add_argument(
         "--endpoint",
@@ -413,6 +431,61 @@ def build_parser() -> argparse.ArgumentParser:
         "--print-commands", action="store_true", help="print the openssl commands, run nothing"
     )
     certs.set_defaults(handler=_lazy("qnav.certs:certs_verb"))
+
+    keys = verbs.add_parser(
+        "keys", help="an Ed25519 key pair that signs the policies qnav serve delivers"
+    )
+    keys.add_argument("folder", type=Path, help="where to write the key pair (e.g. keys/)")
+    keys.add_argument("--force", action="store_true", help="replace an existing key pair")
+    keys.set_defaults(handler=_lazy("qnav.serve:keys_verb"))
+
+    serve = verbs.add_parser(
+        "serve",
+        help="serve exported policies to cars over zenoh, announcing the best (docs/serve.md)",
+    )
+    serve.add_argument(
+        "sources",
+        nargs="+",
+        type=Path,
+        metavar="SOURCE",
+        help="policy files (.onnx), or folders searched for them (run folders, runs/)",
+    )
+    serve.add_argument(
+        "--key",
+        type=Path,
+        required=True,
+        metavar="FILE",
+        help="the Ed25519 private key that signs announcements (qnav keys DIR)",
+    )
+    serve.add_argument(
+        "--poll-s", type=float, default=2.0, help="seconds between looks at the sources (2)"
+    )
+    serve.add_argument(
+        "--announce-interval-s",
+        type=float,
+        default=2.0,
+        help="the current announcement is repeated this often, for late cars (2)",
+    )
+    serve.add_argument(
+        "--chunk-bytes", type=int, default=262144, help="chunk size of transfers (262144)"
+    )
+    serve.add_argument(
+        "--export-runs",
+        type=int,
+        default=0,
+        metavar="EPISODES",
+        help="export each training run whose keep-best weights are newer than its policy.onnx, "
+        "testing it over EPISODES episodes (0: serve only exported files; needs torch)",
+    )
+    serve.add_argument(
+        "--zenoh-config",
+        type=Path,
+        metavar="FILE",
+        help="a zenoh JSON5 configuration (TLS, access control: qnav certs writes "
+        "zenoh-server.json5)",
+    )
+    _zenoh_options(serve)
+    serve.set_defaults(handler=_lazy("qnav.serve:serve_verb"))
 
     recover = verbs.add_parser(
         "recover",

@@ -205,7 +205,14 @@ def diagnose(args: argparse.Namespace) -> int:
 def gauge(args: argparse.Namespace) -> int:
     """The decisive states of a world with the baselines' scores, or each run's score on its
     own world's states beside its test success."""
-    from sim.decisive import GaugeSettings, cached, go_to_target_choices, random_expectation
+    from contracts.actions import Action
+    from sim.decisive import (
+        GaugeSettings,
+        cached,
+        constant_choice,
+        go_to_target_choices,
+        random_expectation,
+    )
     from sim.decisive import score as judge
 
     rows: list[dict[str, object]] = []
@@ -221,8 +228,16 @@ def gauge(args: argparse.Namespace) -> int:
         for name, result in (
             ("random", random_expectation(states)),
             ("go-to-target", judge(states, go_to_target_choices(states))),
+            *((f"always {a.name.lower()}", constant_choice(states, a)) for a in Action),
         ):
-            rows.append({"policy": name, "safe": result.safe, **result.by_driver})
+            rows.append(
+                {
+                    "policy": name,
+                    "safe": result.safe,
+                    "balanced": result.balanced,
+                    **result.by_driver,
+                }
+            )
         visited = dict(zip(("planner", "go-to-target"), states.visited.tolist(), strict=True))
         print(
             f"{len(states.doomed)} decisive states in {sum(visited.values())} visited "
@@ -240,7 +255,13 @@ def gauge(args: argparse.Namespace) -> int:
         results = run / "results.json"
         test = json.loads(results.read_text())["test"]["success"] if results.exists() else None
         rows.append(
-            {"policy": str(run), "safe": report.safe, **report.by_driver, "test_success": test}
+            {
+                "policy": str(run),
+                "safe": report.safe,
+                "balanced": report.balanced,
+                **report.by_driver,
+                "test_success": test,
+            }
         )
     for row in rows:
         if args.json:
@@ -250,6 +271,37 @@ def gauge(args: argparse.Namespace) -> int:
                 f"{key} {value:.3f}" for key, value in row.items() if isinstance(value, float)
             )
             print(f"{row['policy']}: {shares}")
+    return 0
+
+
+def probe(args: argparse.Namespace) -> int:
+    """Fit the paper's network to the planner's doom labels; print the gauge after each pass."""
+    from contracts.settings import to_toml
+    from training.probe import ProbeSettings
+    from training.probe import probe as fit
+
+    settings = ProbeSettings()
+    if args.probe_assignments:
+        overrides = parse_assignments(args.probe_assignments)
+        unknown = set(overrides) - {"probe"}
+        if unknown:
+            raise ConfigError(f"--probe-set takes probe.FIELD=VALUE, not {sorted(unknown)}")
+        settings = with_overrides(settings, overrides["probe"])
+    if args.print_config:
+        print(to_toml(settings))
+        return 0
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    if not world.obstacles.count:
+        raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
+    for epoch in fit(world, settings, progress=not args.json):
+        if args.json:
+            print(json.dumps(epoch._asdict()))
+        else:
+            print(
+                f"epoch {epoch.epoch}: loss {epoch.loss:.4f}, fit (balanced, training set) "
+                f"{epoch.train_balanced:.3f}, gauge safe {epoch.safe:.3f}, "
+                f"balanced {epoch.balanced:.3f} (blind choices 0.500)"
+            )
     return 0
 
 

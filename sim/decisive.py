@@ -54,12 +54,16 @@ class GaugeSettings:
     """Seed of the layouts (apart from training's, validation's and the test's)."""
     window: int = 5
     """Frames per window (the paper's k)."""
+    ordinary_share: float = 0.0
+    """Share of the other states (every action safe, or every one doomed) kept as well, drawn
+    from the seed: the gauge keeps none; a set to train on doom labels (`qnav probe`) some."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes_per_driver", self.episodes_per_driver, 1, 10**7)
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
         check_range(self, "num_worlds", self.num_worlds, 1, 100_000)
         check_range(self, "window", self.window, 1, 1000)
+        check_range(self, "ordinary_share", self.ordinary_share, 0.0, 1.0)
 
 
 DRIVERS = ("planner", "go-to-target")
@@ -67,7 +71,8 @@ DRIVERS = ("planner", "go-to-target")
 
 
 class DecisiveStates(NamedTuple):
-    """States where some action is doomed and another is not, with what a policy sees there."""
+    """States where some action is doomed and another is not, with what a policy sees there
+    (and, where `GaugeSettings.ordinary_share` asks, some where none or all are)."""
 
     windows: NDArray[np.float32]
     """(K, k, F) the last k encoded frames (scan and target features), oldest first."""
@@ -93,7 +98,7 @@ class DecisiveStates(NamedTuple):
 
 def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False) -> DecisiveStates:
     """Drive the settings' episodes with the planner and with go-to-target, keeping every
-    decisive state visited and its window."""
+    decisive state visited and its window (and `settings.ordinary_share` of the others)."""
     planner = OracleDriver(config, seed=settings.seed)
     drivers: list[StateAct] = [
         lambda state, _: planner.act(state),
@@ -139,9 +144,14 @@ def cached(
 
 
 def _drive_and_keep(
-    config: WorldConfig, settings: GaugeSettings, act: StateAct, index: int, progress: bool
+    config: WorldConfig,
+    settings: GaugeSettings,
+    act: StateAct,
+    index: int,
+    progress: bool,
 ) -> tuple[tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.int8]], int]:
     max_range_m = distance_scale_m(config.lidar)
+    chance = np.random.default_rng([settings.seed, index])
     windows, doomed = [], []
     visited = 0
     episodes = np.arange(settings.episodes_per_driver, dtype=np.int64)
@@ -156,9 +166,11 @@ def _drive_and_keep(
                 encode_frame(observation.scan_m, observation.target_features(), max_range_m)
             )
             doom = doomed_actions(config, state)
-            decisive = doom.any(axis=1) & ~doom.all(axis=1)
-            windows.append(frames[decisive].copy())
-            doomed.append(doom[decisive])
+            keep = doom.any(axis=1) & ~doom.all(axis=1)
+            if settings.ordinary_share:
+                keep |= chance.random(keep.size) < settings.ordinary_share
+            windows.append(frames[keep].copy())
+            doomed.append(doom[keep])
             visited += running.size
             state, observation, transition = step(config, state, act(state, observation))
             going = np.flatnonzero(~(transition.terminated | transition.truncated))
@@ -186,8 +198,12 @@ class GaugeResult(NamedTuple):
 
     safe: float
     """Share of all decisive states where the chosen action is not doomed."""
+    balanced: float
+    """The safe share averaged over the doom patterns (which of the actions are doomed), each
+    pattern weighted alike: a choice that ignores the scan (random, or always the same action)
+    scores 1/2 here, whatever the mix of patterns, so only perception lifts it."""
     by_driver: dict[str, float]
-    """The same share over the states each driver visited."""
+    """The safe share over the states each driver visited."""
     states: int
     """Decisive states judged."""
 
@@ -195,27 +211,38 @@ class GaugeResult(NamedTuple):
 def score(states: DecisiveStates, actions: NDArray[np.integer]) -> GaugeResult:
     """Judge one action per decisive state (a policy's greedy choices on `states.windows`)."""
     if actions.size == 0:
-        return GaugeResult(math.nan, {}, 0)
+        return GaugeResult(math.nan, math.nan, {}, 0)
     safe = ~states.doomed[np.arange(actions.size), actions]
-    by_driver = {
-        name: float(safe[states.driver == i].mean())
-        for i, name in enumerate(DRIVERS)
-        if np.any(states.driver == i)
-    }
-    return GaugeResult(float(safe.mean()), by_driver, int(actions.size))
+    return _result(states, safe.astype(np.float64))
 
 
 def random_expectation(states: DecisiveStates) -> GaugeResult:
     """What a uniformly random choice scores on average (the share of safe actions)."""
     if len(states.doomed) == 0:
-        return GaugeResult(math.nan, {}, 0)
-    safe = (~states.doomed).mean(axis=1)
+        return GaugeResult(math.nan, math.nan, {}, 0)
+    return _result(states, (~states.doomed).mean(axis=1))
+
+
+def constant_choice(states: DecisiveStates, action: int) -> GaugeResult:
+    """What always taking one action scores: the gauge's plain share rewards a prior (in
+    obstacles-inertia, always driving forward is safe in four decisive states of five)."""
+    return score(states, np.full(len(states.doomed), action, dtype=np.int64))
+
+
+def doom_patterns(doomed: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """(K,) each state's set of doomed actions as a bit mask (bit a set where action a is)."""
+    return doomed.astype(np.int64) @ (1 << np.arange(doomed.shape[1], dtype=np.int64))
+
+
+def _result(states: DecisiveStates, safe: NDArray[np.float64]) -> GaugeResult:
     by_driver = {
         name: float(safe[states.driver == i].mean())
         for i, name in enumerate(DRIVERS)
         if np.any(states.driver == i)
     }
-    return GaugeResult(float(safe.mean()), by_driver, len(safe))
+    patterns = doom_patterns(states.doomed)
+    balanced = np.mean([safe[patterns == p].mean() for p in np.unique(patterns)])
+    return GaugeResult(float(safe.mean()), float(balanced), by_driver, len(safe))
 
 
 def go_to_target_choices(states: DecisiveStates) -> NDArray[np.int64]:

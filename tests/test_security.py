@@ -49,7 +49,7 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     endpoint = f"tls/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
     done = subprocess.run(
         [sys.executable, "-m", "qnav", "certs", str(folder), "--endpoint", endpoint, "--names",
-         "hub", "controller", "bridge", "sensors", "operator", "recorder", "intruder"],
+         "hub", "controller", "bridge", "sensors", "operator", "recorder", "server", "intruder"],
         capture_output=True, text=True, timeout=120, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
@@ -255,6 +255,10 @@ class Ordered:
         ("bridge", "cmd_vel", "qnav/vehicle_state"),
         ("bridge", "qnav/vehicle_request", "qnav/vehicle_state"),
         ("bridge", "car1/qnav/estop_release", "car1/qnav/vehicle_state"),
+        ("server", "cmd_vel", "qnav/policy_announcement"),
+        ("server", "qnav/estop_release", "car1/qnav/policy_announcement"),
+        ("controller", "qnav/policy_announcement", "cmd_vel"),
+        ("operator", "qnav/policy_announcement", "qnav/estop_release"),
     ],
 )
 def test_each_identity_is_refused_each_key_it_may_not_publish(

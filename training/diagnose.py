@@ -29,7 +29,13 @@ from torch.nn import functional
 from contracts.actions import NUM_ACTIONS, Action
 from contracts.observation import distance_scale_m, encode_frame
 from contracts.policy_file import CONV_CHANNELS
-from sim.decisive import DecisiveStates, go_to_target_choices, random_expectation, score
+from sim.decisive import (
+    DecisiveStates,
+    constant_choice,
+    go_to_target_choices,
+    random_expectation,
+    score,
+)
 from sim.evaluate import EvalSettings, evaluate
 from sim.world import Observation, observe, reset
 from training.agent import TorchAgent, greedy_actions
@@ -51,12 +57,16 @@ class DecisiveReport:
 
     safe: float
     """Share of the decisive states where the greedy action is safe."""
+    balanced: float
+    """The same averaged over doom patterns: 1/2 for any choice that ignores the scan."""
     by_driver: dict[str, float]
     """The same over the states each driver (planner, go-to-target) visited."""
     random: float
     """What a uniformly random choice scores on average."""
     go_to_target: float
     """What the blind go-to-target controller scores."""
+    forward: float
+    """What always driving forward scores (the plain share's prior)."""
     states: int
     """Decisive states judged."""
 
@@ -64,8 +74,10 @@ class DecisiveReport:
         """One line for the terminal."""
         drivers = ", ".join(f"{name} {share:.0%}" for name, share in self.by_driver.items())
         return (
-            f"safe choices in {self.states} decisive states: {self.safe:.1%} ({drivers}); "
-            f"random {self.random:.1%}, go-to-target {self.go_to_target:.1%}"
+            f"safe choices in {self.states} decisive states: {self.safe:.1%} ({drivers}), "
+            f"balanced over doom patterns {self.balanced:.1%} (blind choices: 50%); "
+            f"random {self.random:.1%}, always forward {self.forward:.1%}, "
+            f"go-to-target {self.go_to_target:.1%}"
         )
 
 
@@ -75,9 +87,11 @@ def decisive_report(network: QNetwork, states: DecisiveStates) -> DecisiveReport
     mine = score(states, greedy_actions(network, states.windows))
     return DecisiveReport(
         safe=mine.safe,
+        balanced=mine.balanced,
         by_driver=mine.by_driver,
         random=random_expectation(states).safe,
         go_to_target=score(states, go_to_target_choices(states)).safe,
+        forward=constant_choice(states, Action.FORWARD).safe,
         states=mine.states,
     )
 

@@ -287,7 +287,9 @@ def train(
                 if decisive is None:
                     decisive = decisive_states(world, settings, progress)
                 chosen = greedy_actions(online, decisive.windows)
-                row["decisive_safe"] = round(score(decisive, chosen).safe, 4)
+                judged = score(decisive, chosen)
+                row["decisive_safe"] = round(judged.safe, 4)
+                row["decisive_balanced"] = round(judged.balanced, 4)
             state.eval_s += time.perf_counter() - started
         state.history.append(row)
         _checkpoint(checkpoint, online, target, optimizer, state, next_scan=next_scan)
@@ -484,6 +486,7 @@ def _write_progress(run_dir: Path, history: list[dict[str, float]], title: str) 
         "eval_collision",
         "eval_unfinished",
         "decisive_safe",
+        "decisive_balanced",
     ]
     partial = run_dir / "progress.csv.partial"
     with partial.open("w", newline="") as handle:

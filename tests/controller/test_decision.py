@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts import cdr, wire
+from contracts import cdr, delivery, wire
+from contracts.errors import PolicyFileError
 from contracts.wire import STOP, Pose2D, Scan, Twist2D
 from controller.config import LidarSettings, SafetySettings
 from controller.decision import Controller, Input, Output, Reason
@@ -559,3 +560,54 @@ def test_the_periodic_check_stops_the_car_when_the_scans_stop(policy: Path) -> N
     output = c.check(5.0)
     assert output is not None
     assert_stop(output, Reason.SCAN_STALE)
+
+
+def test_a_policy_may_be_swapped_in_only_while_the_car_is_stopped_with_no_episode_under_way(
+    policy: Path,
+) -> None:
+    c = controller(policy)
+    assert not c.at_rest(0.0)  # nothing decided yet: the car was never told to stop
+    feed(c, 0.0)
+    assert_stop(c.decide(0.0), Reason.NO_TARGET)
+    assert c.at_rest(0.01)
+    c.receive(Input.TARGET, target_payload(), 0.01)
+    assert not c.at_rest(0.01)  # an episode is about to start
+    assert c.decide(0.01).status.reason is Reason.POLICY
+    assert not c.at_rest(0.02)
+    feed(c, 0.5)
+    assert_stop(c.decide(0.5 + 3 * c.period_s), Reason.SCAN_STALE)
+    assert not c.at_rest(0.5 + 3 * c.period_s)  # a stale sensor is no rest: it may come back
+    c.on_estop(True, 0.6)
+    assert_stop(c.decide(0.6), Reason.ESTOP_LATCHED)
+    assert c.at_rest(0.6)
+
+
+def test_a_swapped_policy_decides_from_a_fresh_window_and_names_itself_in_the_status(
+    policy: Path, make_policy: PolicyFactory
+) -> None:
+    other = make_policy("walls-inertia", seed=1)
+    c = ready(policy)
+    before = c.decide(0.0).status
+    assert before.policy_version == delivery.version_of_file(policy)
+    c.receive(Input.TARGET, target_payload(1.0, 1.0), 0.01)
+    assert_stop(c.decide(0.01), Reason.TARGET_REACHED)
+    c.swap_policy(PolicyRuntime(other), "other-1")
+    c.receive(Input.TARGET, target_payload(), 0.02)
+    feed(c, 0.02)
+    after = c.decide(0.02).status
+    fresh = ready(other)
+    assert after.policy_version == "other-1" and after.counters["policy_swaps"] == 1
+    assert after.q_values == pytest.approx(fresh.decide(0.0).status.q_values, abs=1e-6)
+    assert after.q_values != pytest.approx(before.q_values, abs=1e-4)
+
+
+def test_a_policy_that_does_not_keep_the_cars_beams_actions_or_period_is_never_swapped_in(
+    policy: Path, make_policy: PolicyFactory
+) -> None:
+    c = controller(policy)
+    with pytest.raises(PolicyFileError, match="beams, control period and actions"):
+        c.swap_policy(PolicyRuntime(make_policy("walls-increment")), "increment")
+    with pytest.raises(PolicyFileError):
+        c.swap_policy(PolicyRuntime(make_policy("toycar-inertia")), "toy")
+    assert c.policy_version == delivery.version_of_file(policy)
+    assert c.counters.policy_swaps == 0

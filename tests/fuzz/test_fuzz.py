@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from contracts import wire
+from contracts import delivery, wire
 from contracts.transport import ZenohSettings, open_session
 from firmware_bridge.bench import free_port
 from sim.mavlink_vehicle import MavlinkVehicle
@@ -46,7 +46,9 @@ CONTROLLER_KEYS = {
     wire.TARGET_POSE: "pose",
     wire.ESTOP: "bool",
     wire.ESTOP_RELEASE: "bool",
+    wire.POLICY_ANNOUNCEMENT: "json",
 }
+"""Every key the controller reads, policy announcements included (`policy.source = "server"`)."""
 BRIDGE_KEYS = {wire.COMMAND: "twist", wire.VEHICLE_REQUEST: "json", wire.POSE: "pose"}
 
 
@@ -109,9 +111,12 @@ def test_no_malformed_payload_moves_or_releases_the_controller(
         session.declare_subscriber(wire.key(wire.CONTROLLER_STATUS), on_status),
     ]
     log = (tmp_path / "controller.log").open("wb")
+    public_key = tmp_path / "policy.pub"
+    public_key.write_bytes(delivery.generate_key_pair()[1])
     process = subprocess.Popen(
         [sys.executable, "-m", "qnav", "controller", "--policy", str(POLICY),
-         "--set", f'zenoh.connect=["{endpoint}"]', "--set", "safety.estop_start_latched=true"],
+         "--set", f'zenoh.connect=["{endpoint}"]', "--set", "safety.estop_start_latched=true",
+         "--set", 'policy.source="server"', "--set", f'policy.public_key="{public_key}"'],
         stdout=log, stderr=log,
     )  # fmt: skip
     try:
@@ -129,7 +134,10 @@ def test_no_malformed_payload_moves_or_releases_the_controller(
         assert during and all(c == wire.STOP for c in during)
         assert all(latched), "a malformed payload released the stop"
         assert rss_after - rss_before < RSS_GROWTH_LIMIT_MB
-        malformed = last["counters"]["malformed"]
+        malformed = last["counters"]["malformed"] | {
+            wire.POLICY_ANNOUNCEMENT.name: last["delivery"]["malformed"]
+        }
+        assert last["counters"]["policy_swaps"] == 0 and last["delivery"]["pending"] is None
         # It still answers valid input: button out, release, inputs -> the policy drives.
         moved_from = len(during)
         publish = {

@@ -14,6 +14,7 @@ from sim.decisive import (
     GaugeSettings,
     cached,
     collect,
+    constant_choice,
     go_to_target_choices,
     random_expectation,
     score,
@@ -46,6 +47,26 @@ def test_safe_and_doomed_choices_score_one_and_zero(states: DecisiveStates) -> N
     assert score(states, doomed_choice).safe == 0.0
     expected = float((~states.doomed).sum()) / states.doomed.size
     assert random_expectation(states).safe == pytest.approx(expected)
+
+
+def test_a_blind_choice_scores_one_half_balanced_whatever_the_mix_of_patterns() -> None:
+    # Every doom pattern with one or two of three actions doomed, in very unequal numbers, so
+    # the plain share rewards always taking the action most often safe.
+    patterns = [[1, 0, 0]] * 50 + [[0, 1, 0]] * 3 + [[0, 0, 1]] * 7
+    patterns += [[1, 1, 0]] * 2 + [[1, 0, 1]] * 4 + [[0, 1, 1]] * 30
+    doomed = np.array(patterns, dtype=bool)
+    states = DecisiveStates(
+        windows=np.zeros((len(doomed), 1, 4), dtype=np.float32),
+        doomed=doomed,
+        driver=np.zeros(len(doomed), dtype=np.int8),
+        visited=np.array([len(doomed), 0]),
+    )
+    assert random_expectation(states).balanced == pytest.approx(0.5)
+    for action in range(NUM_ACTIONS):
+        assert constant_choice(states, action).balanced == pytest.approx(0.5)
+    assert constant_choice(states, 0).safe != pytest.approx(0.5)
+    assert score(states, np.argmin(doomed, axis=1)).balanced == 1.0
+    assert score(states, np.argmax(doomed, axis=1)).balanced == 0.0
 
 
 def test_go_to_target_is_judged_on_the_newest_frames_bearing(states: DecisiveStates) -> None:
@@ -82,8 +103,14 @@ def test_qnav_gauge_prints_the_baselines_of_a_world() -> None:
     result = _qnav("gauge", "--scenario", "obstacles-increment", "--episodes", "10", "--json")
     assert result.returncode == 0, result.stderr
     rows = [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
-    assert [row["policy"] for row in rows] == ["random", "go-to-target"]
-    assert all(0.0 <= row["safe"] <= 1.0 for row in rows)
+    assert [row["policy"] for row in rows] == [
+        "random",
+        "go-to-target",
+        "always forward",
+        "always left",
+        "always right",
+    ]
+    assert all(0.0 <= row["safe"] <= 1.0 and 0.0 <= row["balanced"] <= 1.0 for row in rows)
 
 
 def test_qnav_gauge_refuses_a_world_without_moving_obstacles() -> None:

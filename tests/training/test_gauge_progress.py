@@ -35,6 +35,7 @@ def test_each_evaluation_in_an_obstacle_world_reports_the_share_of_safe_choices(
     evaluated = [row for row in rows if row["eval_success"]]
     assert len(evaluated) == 2
     assert all(0.0 <= float(row["decisive_safe"]) <= 1.0 for row in evaluated)
+    assert all(0.0 <= float(row["decisive_balanced"]) <= 1.0 for row in evaluated)
 
 
 def test_walls_only_worlds_have_no_gauge(tmp_path: Path) -> None:
