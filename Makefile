@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-stack fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
+.PHONY: install demo test test-slow test-stack test-sitl fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 # constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
 $(STAMP): pyproject.toml constraints.txt
@@ -46,6 +46,15 @@ fuzz: $(STAMP)
 # The full stack (sim-car, controller, bridge, recorder as processes) against in-process eval.
 test-stack: $(STAMP)
 	$(BIN)/pytest -m stack -s
+
+# The bridge against ArduPilot Rover SITL (docs/bridge.md, "ArduPilot in the loop"): set
+# ARDUPILOT_SITL to an ardurover binary (never vendored; the docs say how to build one). It runs
+# in a network namespace of its own where unshare allows (loopback only: the autopilot's ports
+# are reachable from nowhere else); without ARDUPILOT_SITL every test is skipped and says why.
+SITL_NETNS := $(shell unshare --net true 2>/dev/null && echo "unshare --net" || \
+	(unshare --net --map-root-user true 2>/dev/null && echo "unshare --net --map-root-user"))
+test-sitl: $(STAMP)
+	$(SITL_NETNS) sh -c '$(if $(SITL_NETNS),ip link set lo up && )$(BIN)/pytest -m sitl tests/sitl -p no:cacheprovider -rs $(SITL_ARGS)'
 
 # Regenerate the playback tests' reference decisions on purpose, and show what changed
 # (tests/data/make_playback_data.py --refs; docs/recordings.md). Commit the new references.

@@ -65,17 +65,17 @@ from contracts.wire import (
 )
 from firmware_bridge import mapping
 from firmware_bridge.failsafe import CommandGate
-from firmware_bridge.link import MavlinkLink
+from firmware_bridge.link import MavlinkLink, serial0_warning
 from firmware_bridge.settings import BridgeSettings, load_settings
 
 log = logging.getLogger("firmware_bridge")
 
 LOOP_MAX_WAIT_S = 0.1
 """The bridge thread looks at its clocks at least this often (requests from zenoh wait for it)."""
-REQUEST_RETRY_S = 0.5
-"""An arm or mode request not yet seen in the vehicle's heartbeat is sent again this often."""
-REQUEST_ATTEMPTS = 10
-"""... this many times, then the bridge gives up and says so."""
+MODE_SETTLE_S = 1.5
+"""A requested mode counts as taken once the heartbeats showed it this long: Rover may undo a
+mode right after boot (INITIAL_MODE, the RC mode switch's first reading; seen in SITL), and the
+bridge asks again then."""
 EXIT_ACK_WAIT_S = 0.2
 """On shutdown, how long to wait for the disarm to be acknowledged before sending it again."""
 
@@ -119,6 +119,15 @@ class Bridge:
                     "signing key file %s is readable by other users (chmod 600 it)",
                     settings.signing.key_file,
                 )
+            serial0 = serial0_warning(settings.mavlink.connection)
+            if serial0 is not None:
+                log.warning(
+                    "SIGNING PROTECTS NOTHING HERE: %s, where ArduPilot accepts unsigned "
+                    "packets from anyone (it treats it as the trusted USB link). Connect the "
+                    "bridge to a telemetry port (SERIAL1/TELEM1...; SITL: tcp 5762) and keep "
+                    "SERIAL0 for setting the key up (docs/bridge.md)",
+                    serial0,
+                )
         self.link = MavlinkLink(settings.mavlink, key_bytes)
         self._gate = CommandGate(
             settings.failsafe.command_timeout_s, settings.failsafe.stop_period_s
@@ -138,6 +147,16 @@ class Bridge:
         self._armed: bool | None = None
         self._custom_mode: int | None = None
         self._position_ned: tuple[float, float, float] | None = None
+        self._speed_mps: float | None = None
+        """Ground speed from the newest LOCAL_POSITION_NED (None before the first)."""
+        self._speed_s = -math.inf
+        self._velocity_ned: tuple[float, float] | None = None
+        self._yaw_rate_ned: float | None = None
+        self._braking = False
+        """True from a stop that switched to `failsafe.brake_mode` until the next command."""
+        self._brake_mode = (
+            mode_number(settings.failsafe.brake_mode) if settings.failsafe.brake_mode else None
+        )
         self._yaw_ned: float | None = None
         self._battery: dict[str, float] | None = None
         self._last_ack: dict[str, Any] | None = None
@@ -145,6 +164,12 @@ class Bridge:
         self._want_mode: int | None = None
         self._want_armed: bool | None = None
         self._request_attempts = 0
+        self._mode_since_s = -math.inf
+        self._origin_confirmed = False
+        """True once the vehicle reported GPS_GLOBAL_ORIGIN (its EKF has an origin)."""
+        self._request_since_s = -math.inf
+        self._request_status: str | None = None
+        self._vehicle_text: str | None = None
         self._next_request_s = -math.inf
         self._pose_since_link_up = False
         self._waiting_for_pose_logged = False
@@ -245,7 +270,13 @@ class Bridge:
         for _ in range(failsafe.stop_repeats_on_exit):
             self._send_stop(self._clock())
         log.info("sent stop %d times on exit", failsafe.stop_repeats_on_exit)
+        if self._brake_mode is not None and self._link_up:
+            self._send_command_long(
+                MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, self._brake_mode
+            )
+            log.info("exit: switching to %s to brake", mode_name(self._brake_mode))
         if failsafe.disarm_on_exit:
+            self._wait_for_rest()
             self._disarm_on_exit()
         self._publish_state(self._clock(), bridge="stopped")
         if self._session is not None:
@@ -311,6 +342,18 @@ class Bridge:
                 self.counters["stops"] += 1
             self._gate.stop_sent(now_s)
 
+    def _brake(self, now: float) -> None:
+        """A moving car was just stopped: switch to the braking mode, if one is set."""
+        if self._brake_mode is None or self._brake_mode == self.settings.rover_mode:
+            return
+        with self._lock:
+            self._braking = True
+            self._want_mode = self._brake_mode
+            self._request_since_s = now
+            self._request_attempts = 0
+            self._next_request_s = -math.inf
+        log.info("stopped: switching to %s to brake", mode_name(self._brake_mode))
+
     def _send_command_long(self, command: int, *params: float) -> None:
         target = self.settings.mavlink
         padded = (list(params) + [0.0] * 7)[:7]
@@ -345,7 +388,7 @@ class Bridge:
                 self.settings.mavlink.vehicle_system_id, lat, lon, alt, int(time.time() * 1e6)
             )
         )
-        log.info("EKF origin sent (%.6f, %.6f, %.1f m)", *_origin(self.settings))
+        log.debug("EKF origin sent (%.6f, %.6f, %.1f m)", *_origin(self.settings))
 
     # -- zenoh callbacks ----------------------------------------------------------------------
 
@@ -370,6 +413,16 @@ class Bridge:
             if not self._gate.accept_command(now):
                 self.counters["dropped"] += 1
                 return
+            if self._braking:
+                # Back to the output's mode at once: the command below takes effect with it.
+                self._braking = False
+                self._want_mode = self.settings.rover_mode
+                self._request_since_s = now
+                self._request_attempts = 0
+                self._next_request_s = now + self.settings.vehicle.request_retry_s
+                self._send_command_long(
+                    MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, self._want_mode
+                )
             if self.link.send(message, as_gcs=self._as_gcs):
                 self.counters["commands"] += 1
 
@@ -416,6 +469,7 @@ class Bridge:
             if mode is not None:
                 self._want_mode = mode
             self._request_attempts = 0
+            self._request_since_s = self._clock()
             self._next_request_s = -math.inf
             self.counters["requests"] += 1
 
@@ -456,9 +510,12 @@ class Bridge:
 
     def _duties(self, now: float) -> None:
         with self._lock:
+            was_driving = self._gate.was_driving
             stop_due = self._gate.stop_due(now)
         if stop_due:
             self._send_stop(now)
+            if was_driving:
+                self._brake(now)
         if now >= self._next_heartbeat_s:
             self._send_heartbeat()
             self._next_heartbeat_s = now + self.settings.mavlink.heartbeat_period_s
@@ -494,6 +551,7 @@ class Bridge:
         with self._lock:
             self._gate.set_link(True)
             self._link_up = True
+            self._origin_confirmed = False  # a rebooted autopilot lost it
             self._pose_since_link_up = False
             if not self._ever_up:
                 vehicle = self.settings.vehicle
@@ -501,6 +559,8 @@ class Bridge:
                     self._want_mode = self.settings.rover_mode
                 if vehicle.arm_on_connect:
                     self._want_armed = True
+                self._request_attempts = 0
+                self._request_since_s = now
                 self._next_request_s = -math.inf
         self._ever_up = True
         self._state_dirty = True
@@ -514,31 +574,62 @@ class Bridge:
     def _send_requests(self, now: float) -> None:
         if not self._link_up or now < self._next_request_s:
             return
-        self._next_request_s = now + REQUEST_RETRY_S
+        vehicle = self.settings.vehicle
+        self._next_request_s = now + vehicle.request_retry_s
         # GUIDED needs a position estimate: ask for it only once a pose went to the autopilot.
         needs_pose = self._guided and self.settings.vision.forward_pose
+        if (
+            needs_pose
+            and not self._origin_confirmed
+            and self._custom_mode not in (None, ROVER_MODES["INITIALISING"])
+        ):
+            # An origin sent while the EKF still starts is dropped ("AHRS: waiting for home"
+            # in SITL): again until the vehicle reports GPS_GLOBAL_ORIGIN.
+            self._send_origin()
         with self._lock:
-            if self._want_mode is not None and self._custom_mode == self._want_mode:
+            mode_held = self._want_mode is not None and self._custom_mode == self._want_mode
+            if mode_held and now - self._mode_since_s >= MODE_SETTLE_S:
                 self._want_mode = None
             if self._want_armed is not None and self._armed == self._want_armed:
                 self._want_armed = None
             want_mode, want_armed = self._want_mode, self._want_armed
+            if mode_held:
+                want_mode = None  # there now: watch that it holds, without asking again
             if want_mode == ROVER_MODES["GUIDED"] and needs_pose and not self._pose_since_link_up:
                 if not self._waiting_for_pose_logged:
                     log.info("waiting for a motion-capture pose before asking for GUIDED")
                     self._waiting_for_pose_logged = True
                 want_mode = None
-            if want_mode is None and want_armed is None:
+            if self._custom_mode == ROVER_MODES["INITIALISING"]:
+                # Rover ends its boot by switching to INITIAL_MODE: a mode taken before that
+                # is undone (seen in SITL), so ask only once the vehicle is up.
+                if want_mode is not None or want_armed is not None:
+                    self._set_request_status("waiting for the vehicle to initialise")
                 return
-            if self._request_attempts >= REQUEST_ATTEMPTS:
+            if want_mode is None and want_armed is None:
+                if (self._request_status or "").startswith(("asking", "waiting")):
+                    self._set_request_status(None)  # done (a give-up stays reported)
+                return
+            waited_s = now - self._request_since_s
+            if 0 < vehicle.request_timeout_s <= waited_s:
                 self._want_mode = self._want_armed = None
+                self._set_request_status(
+                    f"gave up on {_describe(want_mode, want_armed)} after "
+                    f"{self._request_attempts} tries in {waited_s:.1f} s"
+                )
                 log.warning(
-                    "vehicle did not take %s after %d attempts; giving up",
+                    "vehicle did not take %s in %.1f s (%d tries; vehicle.request_timeout_s); "
+                    "giving up",
                     _describe(want_mode, want_armed),
-                    REQUEST_ATTEMPTS,
+                    waited_s,
+                    self._request_attempts,
                 )
                 return
             self._request_attempts += 1
+            self._set_request_status(
+                f"asking for {_describe(want_mode, want_armed)} "
+                f"(try {self._request_attempts}, {waited_s:.1f} s)"
+            )
         if want_mode is not None:
             self._send_command_long(
                 MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, want_mode
@@ -546,6 +637,12 @@ class Bridge:
         if want_armed is not None:
             self._send_command_long(MAV_CMD_COMPONENT_ARM_DISARM, 1.0 if want_armed else 0.0)
         log.info("asked the vehicle for %s", _describe(want_mode, want_armed))
+
+    def _set_request_status(self, status: str | None) -> None:
+        """What the bridge is asking of the vehicle (called under the lock)."""
+        if status != self._request_status:
+            self._request_status = status
+            self._state_dirty = True
 
     def _on_mavlink(self, message: Any, now: float) -> None:
         kind = message.get_type()
@@ -577,18 +674,27 @@ class Bridge:
                         mode_name(message.custom_mode),
                     )
                     self._state_dirty = True
+                if int(message.custom_mode) != self._custom_mode:
+                    self._mode_since_s = now
                 self._armed, self._custom_mode = armed, int(message.custom_mode)
-                # Done is done: a request met once is not sent again after a reconnect.
+                # Done is done: a request met once is not sent again after a reconnect. A mode
+                # must hold for MODE_SETTLE_S first (`_send_requests`).
                 if self._want_armed == armed:
                     self._want_armed = None
-                if self._want_mode == self._custom_mode:
-                    self._want_mode = None
         elif kind == "LOCAL_POSITION_NED":
             with self._lock:
                 self._position_ned = (float(message.x), float(message.y), float(message.z))
+                self._speed_mps = math.hypot(float(message.vx), float(message.vy))
+                self._speed_s = now
+                self._velocity_ned = (float(message.vx), float(message.vy))
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            if not self._origin_confirmed:
+                log.info("vehicle has its EKF origin")
+            self._origin_confirmed = True
         elif kind == "ATTITUDE":
             with self._lock:
                 self._yaw_ned = float(message.yaw)
+                self._yaw_rate_ned = float(message.yawspeed)
         elif kind == "SYS_STATUS":
             battery: dict[str, float] = {}
             if message.voltage_battery != 0xFFFF:
@@ -604,7 +710,11 @@ class Bridge:
                 self._last_ack = {"command": int(message.command), "result": int(message.result)}
             log.info("vehicle answered command %d with result %d", message.command, message.result)
         elif kind == "STATUSTEXT":
-            log.info("vehicle says: %s", message.text)
+            text = str(message.text)
+            log.info("vehicle says: %s", text)
+            with self._lock:
+                self._vehicle_text = text  # arming refusals say why: users see it in the state
+            self._state_dirty = True
 
     # -- state on zenoh -----------------------------------------------------------------------
 
@@ -628,8 +738,11 @@ class Bridge:
                 "output": self.settings.output.mode,
                 "driving": self._gate.driving(now),
                 "position": position,
+                "velocity": _velocity(self._velocity_ned, self._yaw_ned, self._yaw_rate_ned),
                 "battery": self._battery,
                 "last_ack": self._last_ack,
+                "request": self._request_status,
+                "vehicle_text": self._vehicle_text,
                 "counters": dict(self.counters),
             }
 
@@ -642,6 +755,35 @@ class Bridge:
             self._state_publisher.put(encode_json_msg(self.state(now, bridge)))
         except Exception as error:  # zenoh errors must not stop the failsafe loop
             self._rate_log.warning("state", "could not publish the vehicle state: %s", error)
+
+    def _wait_for_rest(self) -> None:
+        """Keep stopping until the vehicle reports rest (or `rest_timeout_s`): a car disarmed
+        while moving loses its brakes and coasts. Without speed reports there is nothing to
+        wait for."""
+        failsafe = self.settings.failsafe
+        start = self._clock()
+        deadline = start + failsafe.rest_timeout_s
+        next_stop = start + failsafe.stop_period_s
+        while self._link_up and self._speed_mps is not None:
+            now = self._clock()
+            fresh = now - self._speed_s < 1.0
+            if fresh and self._speed_mps < failsafe.rest_speed_mps:
+                log.info("exit: vehicle at rest after %.2f s", now - start)
+                return
+            if now >= deadline:
+                log.warning(
+                    "exit: vehicle not reported at rest within %g s (failsafe.rest_timeout_s)",
+                    failsafe.rest_timeout_s,
+                )
+                return
+            if now >= next_stop:
+                self._send_stop(now)
+                next_stop = now + failsafe.stop_period_s
+            for message in self.link.poll(min(deadline, next_stop) - now):
+                try:
+                    self._on_mavlink(message, self._clock())
+                except Exception:
+                    log.debug("handler error", exc_info=True)
 
     def _disarm_on_exit(self) -> None:
         """Send disarm until acknowledged (or a few tries), reading replies here. With the link
@@ -662,6 +804,22 @@ class Bridge:
                         log.info("disarm on exit: vehicle answered %d", message.result)
                         return
         log.warning("disarm on exit: no answer from the vehicle")
+
+
+def _velocity(
+    velocity_ned: tuple[float, float] | None, yaw_ned: float | None, yaw_rate_ned: float | None
+) -> dict[str, float] | None:
+    """The vehicle's own velocity in our terms: forward speed along its heading (m/s, negative
+    backwards) and turn rate (rad/s, counter-clockwise), from LOCAL_POSITION_NED and ATTITUDE."""
+    if velocity_ned is None or yaw_ned is None or yaw_rate_ned is None:
+        return None
+    north, east = velocity_ned
+    forward = north * math.cos(yaw_ned) + east * math.sin(yaw_ned)
+    return {
+        "forward_mps": forward,
+        "speed_mps": math.hypot(north, east),
+        "turn_rate_radps": -yaw_rate_ned,
+    }
 
 
 def _parse_request(request: dict[str, Any]) -> tuple[bool | None, int | None]:

@@ -52,6 +52,11 @@ class CommandGate:
         """True while the last command is fresh (the vehicle may be moving on it)."""
         return self.link_up and not self.closed and now_s - self._last_command_s < self.timeout_s
 
+    @property
+    def was_driving(self) -> bool:
+        """True when a command went out after the last stop (the car may be moving)."""
+        return self._last_command_s > self._last_stop_s
+
     def stop_due(self, now_s: float) -> bool:
         """True when a stop must be sent now (then send it and call `stop_sent`)."""
         if self.driving(now_s):

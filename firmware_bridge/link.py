@@ -118,6 +118,34 @@ class MavlinkLink:
             return []
 
 
+SITL_SERIAL0_PORTS = frozenset(5760 + 10 * instance for instance in range(10))
+"""ArduPilot SITL serves SERIAL0 on TCP 5760 (+ 10 per instance, `-I`)."""
+
+
+def serial0_warning(connection: str) -> str | None:
+    """Why `connection` is probably the autopilot's SERIAL0, where ArduPilot takes unsigned
+    packets whatever the signing setup (GCS_Signing.cpp: channel 0 is "the secure channel",
+    USB on a flight controller), or None.
+
+    A USB CDC device (/dev/ttyACM*, or a /dev/serial/by-id/usb-*-if00 name; a USB-serial
+    adapter's ends in -port0) is the board's USB port, SERIAL0; TCP 5760 is SITL's SERIAL0. A
+    UART (/dev/ttyAMA0, /dev/ttyS*, /dev/ttyUSB* adapters on a TELEM port) or UDP from a
+    telemetry link is not."""
+    lowered = connection.lower()
+    if lowered.startswith("/dev/ttyacm") or (
+        lowered.startswith("/dev/serial/by-id/usb-") and lowered.endswith("-if00")
+    ):
+        return f"{connection} is a USB port: the autopilot's SERIAL0"
+    if lowered.startswith(("tcp:", "tcpin:")):
+        try:
+            port = int(connection.rsplit(":", 1)[1])
+        except ValueError:
+            return None
+        if port in SITL_SERIAL0_PORTS:
+            return f"{connection} is TCP port {port}: ArduPilot SITL's SERIAL0"
+    return None
+
+
 def _close_quietly(conn: Any) -> None:
     with contextlib.suppress(OSError):
         conn.close()

@@ -114,8 +114,13 @@ def sticks(twist: Twist2D, output: OutputSettings) -> Sticks:
         steering = -steering
     if output.throttle_reversed:
         throttle = -throttle
+    # The throttle cap and a forbidden reverse hold whatever message carries the sticks
+    # (MANUAL_CONTROL has no PWM for the PWM limits to clip).
+    throttle = _clip(throttle, output.max_throttle_fraction)
+    if output.throttle_pwm_min_us == output.throttle_pwm_trim_us:
+        throttle = max(0.0, throttle)
     # `+ 0.0` turns -0.0 into 0.0 so a stop maps exactly to trim.
-    return Sticks(_clip(steering, 1.0) + 0.0, _clip(throttle, 1.0) + 0.0)
+    return Sticks(_clip(steering, 1.0) + 0.0, throttle + 0.0)
 
 
 def fraction_to_pwm(fraction: float, low_us: int, trim_us: int, high_us: int) -> int:

@@ -16,6 +16,7 @@ from contracts.mavlink import (
     COMPANION_COMPONENT_ID,
     GCS_SYSTEM_ID,
     ROVER_MODES,
+    mode_number,
 )
 from contracts.settings import check_range, from_dict, load_toml
 from contracts.transport import ZenohSettings
@@ -102,7 +103,12 @@ class OutputSettings:
     throttle_pwm_trim_us: int = 1500
     """Throttle PWM for stop (RC3_TRIM)."""
     throttle_pwm_max_us: int = 1900
-    """Throttle PWM for full forward (RC3_MAX); lower it to cap the speed."""
+    """Throttle PWM for full forward (RC3_MAX); lower it to cap the speed (RC overrides only:
+    MANUAL_CONTROL carries no PWM; `max_throttle_fraction` caps both)."""
+    max_throttle_fraction: float = 1.0
+    """manual mode: the largest throttle sent, as a fraction of full travel, forward and
+    reverse, in both messages (RC_CHANNELS_OVERRIDE and MANUAL_CONTROL); e.g. 0.4 indoors.
+    With `throttle_pwm_min_us` = trim, reverse is forbidden in both too."""
     guided_max_speed_mps: float = 1.0
     """guided mode: forward speed targets are clipped to this magnitude."""
     guided_max_turn_rate_radps: float = 1.0
@@ -120,6 +126,9 @@ class OutputSettings:
             check_range(self, name, getattr(self, name), 0.0, 100.0, exclusive_low=True)
         for name in ("guided_max_speed_mps", "guided_max_turn_rate_radps"):
             check_range(self, name, getattr(self, name), 0.0, 100.0)
+        check_range(
+            self, "max_throttle_fraction", self.max_throttle_fraction, 0.0, 1.0, exclusive_low=True
+        )
         for channel in ("steering", "throttle"):
             low = getattr(self, f"{channel}_pwm_min_us")
             trim = getattr(self, f"{channel}_pwm_trim_us")
@@ -156,7 +165,18 @@ class FailsafeSettings:
     stop_repeats_on_exit: int = 3
     """On SIGINT or SIGTERM, stop is sent this many times (UDP may drop one)."""
     disarm_on_exit: bool = True
-    """On SIGINT or SIGTERM, disarm after sending stop."""
+    """On SIGINT or SIGTERM, disarm after sending stop, once the vehicle reports it is at rest
+    (`rest_speed_mps`, or `rest_timeout_s` passed): disarming a moving car removes its brakes."""
+    brake_mode: str = ""
+    """A Rover mode that brakes, switched to when the bridge stops a moving car (command
+    silence, exit) and left for the output's mode on the next fresh command; e.g. GUIDED
+    (it brakes to a stop, and needs a position estimate). Empty: stay in the output's mode,
+    where a manual stop is neutral sticks, on which Rover coasts (GUIDED's zero velocity
+    target brakes by itself)."""
+    rest_speed_mps: float = 0.05
+    """The vehicle is at rest when its LOCAL_POSITION_NED speed is below this."""
+    rest_timeout_s: float = 5.0
+    """On exit, disarm after this long even if the vehicle never reported rest."""
     implausible_factor: float = 10.0
     """A command beyond this many times the output's full scale (speed or turn rate) is not
     one anyone meant: it is refused as malformed and the car is stopped; closer overshoot is
@@ -167,6 +187,13 @@ class FailsafeSettings:
         check_range(self, "command_timeout_s", self.command_timeout_s, 0.01, 10.0)
         check_range(self, "stop_period_s", self.stop_period_s, 0.005, 2.0)
         check_range(self, "stop_repeats_on_exit", self.stop_repeats_on_exit, 1, 100)
+        if self.brake_mode:
+            try:
+                mode_number(self.brake_mode)
+            except ValueError as error:
+                raise ConfigError(f"failsafe.brake_mode: {error}") from None
+        check_range(self, "rest_speed_mps", self.rest_speed_mps, 0.0, 10.0, exclusive_low=True)
+        check_range(self, "rest_timeout_s", self.rest_timeout_s, 0.0, 600.0)
 
 
 @dataclass(frozen=True)
@@ -185,9 +212,17 @@ class VehicleSettings:
     requests are always taken)."""
     state_period_s: float = 0.2
     """Period of the vehicle state message on zenoh (also sent at once on any change)."""
+    request_retry_s: float = 0.5
+    """An arm or mode request not yet shown by the vehicle's heartbeat is sent again this often
+    (each refusal's text goes out on the vehicle state topic)."""
+    request_timeout_s: float = 120.0
+    """Give up on an arm or mode request after this long (0: never). An autopilot refuses to
+    arm until its pre-arm checks pass, which takes tens of seconds after it boots."""
 
     def __post_init__(self) -> None:
         check_range(self, "state_period_s", self.state_period_s, 0.01, 60.0)
+        check_range(self, "request_retry_s", self.request_retry_s, 0.01, 60.0)
+        check_range(self, "request_timeout_s", self.request_timeout_s, 0.0, 86400.0)
 
 
 @dataclass(frozen=True)

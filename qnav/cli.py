@@ -683,6 +683,31 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     bridge.set_defaults(handler=_lazy("firmware_bridge.daemon:run"))
 
+    calibrate_car = verbs.add_parser(
+        "calibrate-car",
+        help="drive a short bounded pattern through a running bridge and fit its speed and "
+        "turn-rate scales from the vehicle's own velocity (the car must be armed, and watched)",
+    )
+    calibrate_car.add_argument(
+        "--config", type=Path, metavar="FILE", help="the bridge's TOML settings (its zenoh)"
+    )
+    calibrate_car.add_argument(
+        "--set",
+        dest="assignments",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="change one bridge setting (as `qnav bridge --set`)",
+    )
+    calibrate_car.add_argument(
+        "--max-distance-m", type=float, default=15.0, help="abort beyond this (15 m)"
+    )
+    calibrate_car.add_argument(
+        "--wait-s", type=float, default=60.0, help="wait this long for an armed car (60 s)"
+    )
+    calibrate_car.add_argument("--json", action="store_true", help="print one JSON object")
+    calibrate_car.set_defaults(handler=_lazy("firmware_bridge.calibrate:run"))
+
     vehicle = verbs.add_parser(
         "fake-vehicle", help="a small MAVLink car that behaves like ArduPilot Rover"
     )

@@ -80,6 +80,9 @@ POS_IGNORE = 0x7
 VEL_IGNORE = 0x38
 YAW_IGNORE = 0x400
 YAW_RATE_IGNORE = 0x800
+NOT_READY = b"Arm: System not initialised"
+"""What Rover says when asked to arm before its sensors are up (AP_Arming)."""
+MAV_SEVERITY_CRITICAL = 2
 HEADING_GAIN_PER_S = 2.0
 """Turn rate per radian of heading error when a guided target gives velocity without yaw rate."""
 
@@ -118,6 +121,12 @@ class MavlinkVehicleSettings:
     """GUIDED needs an EKF origin and a fresh vision position estimate, as on a real Rover."""
     position_timeout_s: float = 1.0
     """A vision position estimate older than this no longer counts as a position."""
+    initialising_s: float = 0.0
+    """The vehicle reports mode INITIALISING for this long after boot, then switches to
+    `initial_mode`, undoing any mode taken meanwhile, as Rover does at the end of its boot."""
+    arming_delay_s: float = 0.0
+    """Arming is refused for this long after boot, with Rover's STATUSTEXT "Arm: System not
+    initialised", as an autopilot whose sensors and EKF are still starting (a cold start)."""
     x_m: float = 0.0
     """Start position x, our frame (x_ned = y, y_ned = x)."""
     y_m: float = 0.0
@@ -143,6 +152,8 @@ class MavlinkVehicleSettings:
             check_range(self, name, getattr(self, name), 0.001, 10.0)
         for name in ("rc_override_timeout_s", "guided_timeout_s", "position_timeout_s"):
             check_range(self, name, getattr(self, name), 0.01, 60.0)
+        check_range(self, "arming_delay_s", self.arming_delay_s, 0.0, 600.0)
+        check_range(self, "initialising_s", self.initialising_s, 0.0, 600.0)
         if self.signing_key_file and not Path(self.signing_key_file).is_file():
             raise ConfigError(f"signing_key_file {self.signing_key_file!r} does not exist")
 
@@ -199,7 +210,12 @@ class MavlinkVehicle:
         self._pose = np.array([[settings.x_m, settings.y_m, settings.yaw_rad]], dtype=np.float64)
         self._velocity = np.zeros((1, 2), dtype=np.float64)
         self._armed = False
-        self._mode = mode_number(settings.initial_mode)
+        self._initialising = settings.initialising_s > 0
+        self._mode = (
+            ROVER_MODES["INITIALISING"]
+            if self._initialising
+            else mode_number(settings.initial_mode)
+        )
         self._override: _Override | None = None
         self._guided: _GuidedTarget | None = None
         self._origin: tuple[int, int, int] | None = None
@@ -322,6 +338,9 @@ class MavlinkVehicle:
                 next_telemetry = now + settings.telemetry_period_s
 
     def _step(self, period_s: float, now: float) -> None:
+        if self._initialising and now - self._boot_s >= self.settings.initialising_s:
+            self._initialising = False
+            self._mode = mode_number(self.settings.initial_mode)
         speed, rate = self._targets(now)
         with self._lock:
             self._pose, self._velocity = step_velocity_lag(
@@ -452,7 +471,10 @@ class MavlinkVehicle:
         command = int(message.command)
         if command == MAV_CMD_COMPONENT_ARM_DISARM:
             arm = message.param1 >= 0.5
-            if arm and self._mode == ROVER_MODES["GUIDED"] and not self._guided_allowed(now):
+            if arm and now - self._boot_s < self.settings.arming_delay_s:
+                result = MAV_RESULT_FAILED
+                self._send(self._conn.mav.statustext_encode(MAV_SEVERITY_CRITICAL, NOT_READY))
+            elif arm and self._mode == ROVER_MODES["GUIDED"] and not self._guided_allowed(now):
                 result = MAV_RESULT_FAILED
             else:
                 result = MAV_RESULT_ACCEPTED

@@ -119,3 +119,15 @@ def test_absurd_poses_are_refused() -> None:
     assert mapping.pose_problem(Pose2D(0.0, "map", 1e308, 0.0, 0.0), 100.0) is not None
     assert mapping.pose_problem(Pose2D(0.0, "map", 0.0, -100.5, 0.0), 100.0) is not None
     assert mapping.pose_problem(Pose2D(0.0, "map", math.nan, 0.0, 0.0), 100.0) is not None
+
+
+def test_the_throttle_cap_and_no_reverse_hold_in_both_manual_messages() -> None:
+    # MANUAL_CONTROL carries no PWM: the PWM limits alone never capped it (issue 20).
+    out = OutputSettings(max_throttle_fraction=0.4, throttle_pwm_min_us=1500)
+    for linear in (-5.0, -1.0, 0.5, 1.0, 5.0):
+        z = mapping.manual_control(Twist2D(linear, 0.0), out).z
+        pwm = mapping.rc_override(Twist2D(linear, 0.0), out).throttle_pwm_us
+        assert 0 <= z <= 400
+        assert 1500 <= pwm <= 1500 + 0.4 * 400
+        assert z == round((pwm - 1500) / 400 * 1000)
+    assert mapping.manual_control(Twist2D(1.0, 0.0), out).z == 400

@@ -12,6 +12,10 @@ import pytest
 
 from contracts.errors import ConfigError
 from contracts.mavlink import load_signing_key
+from contracts.settings import from_dict, with_overrides
+from firmware_bridge.daemon import Bridge
+from firmware_bridge.link import serial0_warning
+from firmware_bridge.settings import BridgeSettings
 from tests.firmware_bridge.rig import Rig, wait_until
 
 KEY = bytes(range(100, 132))
@@ -84,3 +88,42 @@ def test_signing_bridge_refuses_an_unsigned_vehicle(make_rig: MakeRig, key_file:
     time.sleep(0.2)
     assert rig.state().get("link_up") is False
     assert not rig.vehicle.armed
+
+
+@pytest.mark.parametrize(
+    ("connection", "serial0"),
+    [
+        ("tcp:127.0.0.1:5760", True),  # SITL's SERIAL0
+        ("tcp:127.0.0.1:5770", True),  # SITL -I 1
+        ("/dev/ttyACM0", True),  # a flight controller's USB
+        ("/dev/serial/by-id/usb-ArduPilot_Pixhawk1_3E0031-if00", True),
+        ("tcp:127.0.0.1:5762", False),  # SITL's SERIAL1
+        ("/dev/ttyAMA0", False),  # a UART wired to TELEM2
+        ("/dev/ttyUSB0", False),  # a USB-serial adapter on a TELEM port
+        ("/dev/serial/by-id/usb-FTDI_FT232R_USB_UART_A50285BI-if00-port0", False),
+        ("udpin:0.0.0.0:14550", False),
+    ],
+)
+def test_serial0_is_recognised(connection: str, serial0: bool) -> None:
+    assert (serial0_warning(connection) is not None) is serial0
+
+
+def test_a_signing_bridge_on_serial0_warns_loudly(
+    key_file: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # ArduPilot accepts unsigned packets on SERIAL0 whatever the key: signing there is a false
+    # sense of safety, and the log must say so.
+    settings = from_dict(
+        BridgeSettings,
+        {
+            "mavlink": {"connection": "tcp:127.0.0.1:5760"},
+            "signing": {"enabled": True, "key_file": str(key_file)},
+        },
+    )
+    with caplog.at_level(logging.WARNING, logger="firmware_bridge"):
+        Bridge(settings)
+    assert any("SIGNING PROTECTS NOTHING" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="firmware_bridge"):
+        Bridge(with_overrides(settings, {"mavlink": {"connection": "tcp:127.0.0.1:5762"}}))
+    assert not any("SIGNING" in r.getMessage() for r in caplog.records)

@@ -1,0 +1,458 @@
+"""ArduPilot Rover SITL, our real bridge process and a zenoh peer, wired as on the car.
+
+`Sitl` runs the `ardurover` binary named by the ARDUPILOT_SITL environment variable (never
+vendored; docs/bridge.md, "Getting a SITL binary"), wiped (`-w`), with our parameter files. Its
+SERIAL0 (TCP base port + 0, the "USB" port ArduPilot trusts unsigned) carries the `Observer`:
+the test's own ground-truth reader of LOCAL_POSITION_NED, GLOBAL_POSITION_INT, ATTITUDE,
+HEARTBEAT and STATUSTEXT, with system id 250 so the autopilot never takes it for its ground
+station. The bridge drives SERIAL1 (TCP base port + 2), as a companion computer on a telemetry
+port would. `make test-sitl` runs all of it inside a network namespace of its own (loopback
+only), so nothing the autopilot serves is reachable from outside.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from contracts.mavlink import (
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    drain,
+    mode_name,
+    open_connection,
+    wrap_pi,
+)
+from contracts.transport import ZenohSettings, open_session
+from contracts.wire import (
+    COMMAND,
+    POSE,
+    VEHICLE_STATE,
+    Pose2D,
+    Twist2D,
+    decode_json_msg,
+    encode_pose_msg,
+    encode_twist_msg,
+    key,
+)
+from firmware_bridge.bench import free_port
+
+T = TypeVar("T")
+
+ROOT = Path(__file__).resolve().parents[2]
+SITL_PARAMS = ROOT / "config" / "ardupilot-sitl.parm"
+"""Our Rover parameters for SITL: the failsafes, stream rates and RC ranges (docs/bridge.md)."""
+SITL_ENV = "ARDUPILOT_SITL"
+HOME = "-35.363261,149.165230,584,0"
+"""ArduPilot's SITL home (CMAC), heading north."""
+OBSERVER_SYSTEM_ID = 250
+MESSAGE_INTERVAL_US = 50_000
+"""The observer asks for its messages at 20 Hz."""
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+OBSERVED = {"LOCAL_POSITION_NED": 32, "GLOBAL_POSITION_INT": 33, "ATTITUDE": 30, "SIMSTATE": 164}
+"""SIMSTATE is SITL's true pose: the test's motion capture."""
+REST_SPEED_MPS = 0.05
+"""Below this the vehicle is at rest."""
+
+
+def sitl_binary() -> Path | None:
+    """The ardurover binary from ARDUPILOT_SITL, or None when it is not set."""
+    value = os.environ.get(SITL_ENV, "")
+    return Path(value) if value else None
+
+
+def wait_until(condition: Callable[[], T], timeout_s: float, what: str) -> T:
+    """Poll `condition` until it returns something truthy (returned), or fail at the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.02)
+
+
+def _port_is_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def free_instance() -> int:
+    """A SITL instance number whose TCP ports (5760 + 10 i ... + 3) are free."""
+    for instance in range(0, 40):
+        base = 5760 + 10 * instance
+        if all(_port_is_free(base + offset) for offset in range(4)):
+            return instance
+    raise RuntimeError("no free SITL instance among 0..39")
+
+
+@dataclass
+class Sample:
+    """One telemetry message as the observer received it."""
+
+    time_s: float
+    """Host monotonic time of arrival."""
+    type: str
+    fields: dict[str, Any]
+
+
+class Sitl:
+    """One `ardurover` process in a work directory of its own."""
+
+    def __init__(
+        self, binary: Path, workdir: Path, params: list[Path], instance: int | None = None
+    ) -> None:
+        self.binary = binary
+        self.workdir = workdir
+        self.params = params
+        self.instance = free_instance() if instance is None else instance
+        self.base_port = 5760 + 10 * self.instance
+        self.process: subprocess.Popen[bytes] | None = None
+        self.log_path = workdir / "ardurover.log"
+
+    @property
+    def serial0(self) -> str:
+        """SERIAL0 ("USB"; unsigned packets always accepted there)."""
+        return f"tcp:127.0.0.1:{self.base_port}"
+
+    @property
+    def serial1(self) -> str:
+        """SERIAL1 (a telemetry port; signing enforced once a key is set)."""
+        return f"tcp:127.0.0.1:{self.base_port + 2}"
+
+    def command_line(self) -> list[str]:
+        return [
+            str(self.binary),
+            "-w",
+            "--model", "rover",
+            "--speedup", "1",
+            "--home", HOME,
+            "--defaults", ",".join(str(p) for p in self.params),
+            "--serial0", "tcp:0",
+            "--serial1", "tcp:2",
+            "-I", str(self.instance),
+        ]  # fmt: skip
+
+    def start(self) -> None:
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        with self.log_path.open("wb") as out:
+            self.process = subprocess.Popen(
+                self.command_line(), cwd=self.workdir, stdout=out, stderr=subprocess.STDOUT
+            )
+        wait_until(
+            lambda: not _port_is_free(self.base_port + 2) or self.process_died(),
+            20.0,
+            "SITL's serial ports",
+        )
+        if self.process_died():
+            raise AssertionError(f"ardurover exited: {self.log_tail()}")
+
+    def process_died(self) -> bool:
+        return self.process is not None and self.process.poll() is not None
+
+    def log_tail(self, lines: int = 30) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+    def stop(self) -> None:
+        if self.process is None:
+            return
+        self.process.send_signal(signal.SIGTERM)
+        try:
+            self.process.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.process = None
+
+
+class Observer:
+    """The test's view of the autopilot over SERIAL0: telemetry, armed flag, mode, texts."""
+
+    def __init__(self, connection: str) -> None:
+        self.connection = connection
+        self.samples: list[Sample] = []
+        self.texts: list[str] = []
+        self.armed: bool | None = None
+        self.mode: str | None = None
+        self.changes: list[tuple[float, bool, str]] = []
+        """(time, armed, mode) at each change the heartbeats showed."""
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._send_lock = threading.Lock()
+        self._next_request_s = 0.0
+        self.conn: Any = wait_until(self._connect, 20.0, f"a connection to {connection}")
+        self._thread = threading.Thread(target=self._loop, name="observer", daemon=True)
+        self._thread.start()
+
+    def _connect(self) -> Any:
+        try:
+            return open_connection(
+                self.connection, baud_rate=115200, system_id=OBSERVER_SYSTEM_ID, component_id=1
+            )
+        except OSError:
+            return None
+
+    def _request_streams(self) -> None:
+        with self._send_lock:
+            for message_id in OBSERVED.values():
+                self.conn.mav.command_long_send(
+                    1, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, message_id, MESSAGE_INTERVAL_US,
+                    0, 0, 0, 0, 0,
+                )  # fmt: skip
+
+    def _loop(self) -> None:
+        while not self._stopping.is_set():
+            now = time.monotonic()
+            if now >= self._next_request_s:  # again now and then: SITL may not hear the first
+                self._request_streams()
+                self._next_request_s = now + 2.0
+            try:
+                messages = drain(self.conn, 0.05)
+            except (OSError, ConnectionError):
+                time.sleep(0.05)
+                continue
+            now = time.monotonic()
+            for message in messages:
+                kind = message.get_type()
+                if message.get_srcSystem() != 1 or message.get_srcComponent() != 1:
+                    continue
+                if kind in OBSERVED:
+                    with self._lock:
+                        self.samples.append(Sample(now, kind, message.to_dict()))
+                elif kind == "HEARTBEAT":
+                    armed = bool(message.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+                    mode = mode_name(message.custom_mode)
+                    if (armed, mode) != (self.armed, self.mode):
+                        with self._lock:
+                            self.changes.append((now, armed, mode))
+                    self.armed, self.mode = armed, mode
+                elif kind == "STATUSTEXT":
+                    with self._lock:
+                        self.texts.append(str(message.text))
+
+    def close(self) -> None:
+        self._stopping.set()
+        self._thread.join(timeout=2)
+        self.conn.close()
+
+    def send(self, build: Callable[[Any], None]) -> None:
+        """Send something over SERIAL0 (`build(conn.mav)` does the sending)."""
+        with self._send_lock:
+            build(self.conn.mav)
+
+    def latest(self, kind: str) -> Sample | None:
+        with self._lock:
+            for sample in reversed(self.samples):
+                if sample.type == kind:
+                    return sample
+        return None
+
+    def since(self, kind: str, time_s: float) -> list[Sample]:
+        with self._lock:
+            return [s for s in self.samples if s.type == kind and s.time_s >= time_s]
+
+    def position(self) -> tuple[float, float]:
+        """(north m, east m) from the newest LOCAL_POSITION_NED."""
+        sample = self.latest("LOCAL_POSITION_NED")
+        assert sample is not None, "no LOCAL_POSITION_NED yet"
+        return float(sample.fields["x"]), float(sample.fields["y"])
+
+    def speed(self) -> float:
+        """Ground speed (m/s) from the newest LOCAL_POSITION_NED."""
+        sample = self.latest("LOCAL_POSITION_NED")
+        if sample is None:
+            return math.nan
+        return math.hypot(sample.fields["vx"], sample.fields["vy"])
+
+    def yaw_ned(self) -> float:
+        sample = self.latest("ATTITUDE")
+        assert sample is not None, "no ATTITUDE yet"
+        return float(sample.fields["yaw"])
+
+
+@dataclass
+class StopMeasure:
+    """How the vehicle came to rest after an event (a silence, a signal)."""
+
+    speed_before_mps: float
+    stop_time_s: float
+    """From the event to the first LOCAL_POSITION_NED below REST_SPEED_MPS that stays there."""
+    stop_distance_m: float
+    """Distance travelled from the event to that moment (LOCAL_POSITION_NED)."""
+    gps_distance_m: float
+    """The same from GLOBAL_POSITION_INT."""
+    rested: bool = field(default=True)
+
+
+def measure_stop(observer: Observer, event_s: float, timeout_s: float) -> StopMeasure:
+    """Wait until the vehicle has stayed below REST_SPEED_MPS for 0.5 s (or `timeout_s`)."""
+    deadline = event_s + timeout_s
+    while time.monotonic() < deadline:
+        samples = observer.since("LOCAL_POSITION_NED", event_s)
+        rest = _rest_index(samples)
+        if rest is not None and samples[-1].time_s - samples[rest].time_s >= 0.5:
+            break
+        time.sleep(0.05)
+    samples = observer.since("LOCAL_POSITION_NED", event_s - 0.3)
+    before = [s for s in samples if s.time_s <= event_s]
+    after = [s for s in samples if s.time_s > event_s]
+    assert before and after, "no LOCAL_POSITION_NED around the event"
+    start = before[-1]
+    rest = _rest_index(after)
+    end = after[rest] if rest is not None else after[-1]
+    distance = math.hypot(end.fields["x"] - start.fields["x"], end.fields["y"] - start.fields["y"])
+    gps = observer.since("GLOBAL_POSITION_INT", event_s - 0.3)
+    gps_distance = math.nan
+    gps_before = [s for s in gps if s.time_s <= event_s]
+    gps_after = [s for s in gps if s.time_s > event_s and s.time_s <= end.time_s + 0.06]
+    if gps_before and gps_after:
+        gps_distance = _ground_distance_m(gps_before[-1].fields, gps_after[-1].fields)
+    return StopMeasure(
+        speed_before_mps=math.hypot(start.fields["vx"], start.fields["vy"]),
+        stop_time_s=end.time_s - event_s,
+        stop_distance_m=distance,
+        gps_distance_m=gps_distance,
+        rested=rest is not None,
+    )
+
+
+def _rest_index(samples: list[Sample]) -> int | None:
+    """Index of the first sample from which every later one is at rest."""
+    index = None
+    for i, sample in enumerate(samples):
+        if math.hypot(sample.fields["vx"], sample.fields["vy"]) < REST_SPEED_MPS:
+            if index is None:
+                index = i
+        else:
+            index = None
+    return index
+
+
+def _ground_distance_m(a: dict[str, Any], b: dict[str, Any]) -> float:
+    """Flat-earth distance between two GLOBAL_POSITION_INT fixes (metres apart)."""
+    lat = math.radians(a["lat"] * 1e-7)
+    north = (b["lat"] - a["lat"]) * 1e-7 * 111_319.5
+    east = (b["lon"] - a["lon"]) * 1e-7 * 111_319.5 * math.cos(lat)
+    return math.hypot(north, east)
+
+
+def true_pose(simstate: dict[str, Any], home: tuple[float, float]) -> tuple[float, float, float]:
+    """SITL's true pose as motion capture gives it: (x east m, y north m, yaw rad
+    counter-clockwise from x) around `home` (lat, lon degrees)."""
+    north = (simstate["lat"] * 1e-7 - home[0]) * 111_319.5
+    east = (simstate["lng"] * 1e-7 - home[1]) * 111_319.5 * math.cos(math.radians(home[0]))
+    return east, north, wrap_pi(math.pi / 2 - simstate["yaw"])
+
+
+class MotionCapture:
+    """Publishes SITL's true pose on zenoh's `pose` key at `rate_hz`, as a mocap system."""
+
+    def __init__(self, zenoh: Zenoh, observer: Observer, rate_hz: float = 30.0) -> None:
+        self._zenoh, self._observer, self._period_s = zenoh, observer, 1.0 / rate_hz
+        self._stopping = threading.Event()
+        self.published = 0
+        home = HOME.split(",")
+        self._home = (float(home[0]), float(home[1]))
+        self._publisher = zenoh.session.declare_publisher(key(POSE))
+        self._thread = threading.Thread(target=self._loop, name="mocap", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stopping.wait(self._period_s):
+            sample = self._observer.latest("SIMSTATE")
+            if sample is None:
+                continue
+            x, y, yaw = true_pose(sample.fields, self._home)
+            self._publisher.put(encode_pose_msg(Pose2D(time.time(), "map", x, y, yaw)))
+            self.published += 1
+
+    def close(self) -> None:
+        self._stopping.set()
+        self._thread.join(timeout=2)
+        self._publisher.undeclare()
+
+
+class Zenoh:
+    """The test's zenoh peer: the bridge connects to it; commands out, vehicle states in."""
+
+    def __init__(self) -> None:
+        self.port = free_port(socket.SOCK_STREAM)
+        self.session: Any = open_session(
+            ZenohSettings(listen=(f"tcp/127.0.0.1:{self.port}",), connect=())
+        )
+        self.states: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+        self._subscriber = self.session.declare_subscriber(key(VEHICLE_STATE), self._on_state)
+        self._publisher = self.session.declare_publisher(key(COMMAND))
+
+    def _on_state(self, sample: Any) -> None:
+        state = decode_json_msg(sample.payload.to_bytes())
+        with self._lock:
+            self.states.append(state)
+
+    def state(self) -> dict[str, Any]:
+        with self._lock:
+            return self.states[-1] if self.states else {}
+
+    def command(self, linear_mps: float, angular_radps: float) -> None:
+        self._publisher.put(encode_twist_msg(Twist2D(linear_mps, angular_radps)))
+
+    def drive(self, linear_mps: float, angular_radps: float, seconds: float) -> float:
+        """A command every 0.1 s (the controller's rate is 5-10 Hz); the last one's time."""
+        end = time.monotonic() + seconds
+        while True:
+            self.command(linear_mps, angular_radps)
+            sent = time.monotonic()
+            if sent >= end:
+                return sent
+            time.sleep(0.1)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+        self.session.close()
+
+
+class BridgeProcess:
+    """`qnav bridge` as its own process, as a user runs it."""
+
+    def __init__(self, config: Path, log_path: Path, assignments: list[str]) -> None:
+        self.log_path = log_path
+        args = [sys.executable, "-m", "qnav", "bridge", "--config", str(config)]
+        for assignment in assignments:
+            args += ["--set", assignment]
+        with log_path.open("wb") as out:
+            self.process = subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT)
+
+    def signal(self, number: int) -> float:
+        """Send a signal; its time."""
+        sent = time.monotonic()
+        self.process.send_signal(number)
+        return sent
+
+    def wait(self, timeout_s: float = 10.0) -> int:
+        return self.process.wait(timeout=timeout_s)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
