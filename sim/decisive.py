@@ -166,7 +166,7 @@ def _drive_and_keep(
                 encode_frame(observation.scan_m, observation.target_features(), max_range_m)
             )
             doom = doomed_actions(config, state)
-            keep = doom.any(axis=1) & ~doom.all(axis=1)
+            keep = is_decisive(doom)
             if settings.ordinary_share:
                 keep |= chance.random(keep.size) < settings.ordinary_share
             windows.append(frames[keep].copy())
@@ -227,6 +227,11 @@ def constant_choice(states: DecisiveStates, action: int) -> GaugeResult:
     """What always taking one action scores: the gauge's plain share rewards a prior (in
     obstacles-inertia, always driving forward is safe in four decisive states of five)."""
     return score(states, np.full(len(states.doomed), action, dtype=np.int64))
+
+
+def is_decisive(doomed: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """(K,) True where some action of a (K, A) doom table is doomed and another is not."""
+    return np.asarray(doomed.any(axis=1) & ~doomed.all(axis=1))
 
 
 def doom_patterns(doomed: NDArray[np.bool_]) -> NDArray[np.int64]:

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from contracts.settings import check_range
 from sim.config import WorldConfig
-from sim.decisive import DecisiveStates, GaugeSettings, cached, score
+from sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
 from training.agent import greedy_actions
 from training.networks import QNetwork
 
@@ -80,7 +80,7 @@ class ProbeEpoch(NamedTuple):
 
 def decisive_only(states: DecisiveStates) -> DecisiveStates:
     """The states of a set where some action is doomed and another is not."""
-    keep = states.doomed.any(axis=1) & ~states.doomed.all(axis=1)
+    keep = is_decisive(states.doomed)
     return states._replace(
         windows=states.windows[keep], doomed=states.doomed[keep], driver=states.driver[keep]
     )
@@ -118,8 +118,9 @@ def probe(
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     windows = torch.from_numpy(labelled.windows)
     safe = torch.from_numpy((~labelled.doomed).astype(np.float32))
-    decisive = labelled.doomed.any(axis=1) & ~labelled.doomed.all(axis=1)
-    weight = torch.from_numpy(np.where(decisive, settings.decisive_weight, 1.0).astype(np.float32))
+    weight = torch.from_numpy(
+        np.where(is_decisive(labelled.doomed), settings.decisive_weight, 1.0).astype(np.float32)
+    )
     order = np.random.default_rng(settings.seed)
     history = []
     for epoch in tqdm(range(1, settings.epochs + 1), desc="probe", disable=not progress):
