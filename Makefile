@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-stack test-sitl fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
+.PHONY: install demo test test-slow test-stack test-sitl stack-sitl fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 # constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
 $(STAMP): pyproject.toml constraints.txt
@@ -55,6 +55,14 @@ SITL_NETNS := $(shell unshare --net true 2>/dev/null && echo "unshare --net" || 
 	(unshare --net --map-root-user true 2>/dev/null && echo "unshare --net --map-root-user"))
 test-sitl: $(STAMP)
 	$(SITL_NETNS) sh -c '$(if $(SITL_NETNS),ip link set lo up && )$(BIN)/pytest -m sitl tests/sitl -p no:cacheprovider -rs $(SITL_ARGS)'
+
+# The full stack on the firmware: policy -> controller -> bridge -> ArduPilot Rover SITL, the
+# pose from the autopilot, walls and lidar simulated around it; beside the same episodes in
+# process (docs/bridge.md, "The full stack on the firmware"). Loopback-only namespace as above.
+STACK_POLICY ?= tests/data/stack/policy.onnx
+STACK_EPISODES ?= 20
+stack-sitl: $(STAMP)
+	$(SITL_NETNS) sh -c '$(if $(SITL_NETNS),ip link set lo up && )$(BIN)/python -m qnav stack --vehicle sitl --policy $(STACK_POLICY) --episodes $(STACK_EPISODES) --no-record --out out/stack-sitl $(STACK_ARGS)'
 
 # Regenerate the playback tests' reference decisions on purpose, and show what changed
 # (tests/data/make_playback_data.py --refs; docs/recordings.md). Commit the new references.

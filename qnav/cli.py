@@ -550,6 +550,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="MAVLink connection of the simulated autopilot (udpout:127.0.0.1:14550, where "
         "`qnav bridge` listens by default)",
     )
+    sim_car.add_argument(
+        "--firmware",
+        metavar="CONNECTION",
+        help="a real autopilot's MAVLink port (e.g. SITL's SERIAL0, tcp:127.0.0.1:5760): its own "
+        "pose moves the robot, instead of the test vehicle on --vehicle",
+    )
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
     sim_car.set_defaults(handler=_lazy("qnav.stack:sim_car_verb"))
@@ -564,6 +570,16 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument("--out", type=Path, default=Path("out/stack"), help="output folder")
     stack.add_argument("--no-record", action="store_true", help="do not record to MCAP")
     stack.add_argument("--json", action="store_true", help="print one JSON object")
+    stack.add_argument(
+        "--vehicle",
+        choices=["sim", "sitl"],
+        default="sim",
+        help="the car: the MAVLink test vehicle (sim), or ArduPilot Rover SITL driven in GUIDED "
+        "with the pose from the autopilot (sitl; loopback-only namespace, `make stack-sitl`)",
+    )
+    stack.add_argument(
+        "--sitl-binary", type=Path, help="ardurover binary for --vehicle sitl ($ARDUPILOT_SITL)"
+    )
     stack.set_defaults(handler=_lazy("qnav.stack:stack_verb"))
 
     health = verbs.add_parser(

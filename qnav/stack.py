@@ -69,10 +69,29 @@ class StackFiles:
         return self.root / f"{name}.log"
 
 
+def sitl_bridge_settings(connection: str) -> dict[str, Any]:
+    """The bridge on the firmware: GUIDED velocity and yaw rate (Rover's own speed and turn-rate
+    controllers, braking on a stop), SITL's GPS as the EKF's position (no pose forwarded), and
+    the ground-station heartbeat well within FS_GCS_TIMEOUT (config/bridge-sitl.toml)."""
+    return {
+        "mavlink": {"connection": connection, "heartbeat_period_s": 0.1},
+        "output": {"mode": "guided"},
+        "vision": {"forward_pose": False},
+        "vehicle": {"arm_on_connect": True, "set_mode_on_connect": True},
+    }
+
+
 def write_configs(
-    files: StackFiles, policy: Path, zenoh_endpoint: str, mavlink_port: int, tolerance_m: float
+    files: StackFiles,
+    policy: Path,
+    zenoh_endpoint: str,
+    mavlink_port: int,
+    tolerance_m: float,
+    *,
+    bridge_values: dict[str, Any] | None = None,
 ) -> None:
-    """The controller's and the bridge's TOML files for this stack."""
+    """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
+    bridge's settings other than zenoh, instead of the test vehicle's)."""
     from controller.config import DaemonConfig
     from firmware_bridge.settings import BridgeSettings
 
@@ -85,14 +104,11 @@ def write_configs(
             "zenoh": zenoh,
         },
     )
-    bridge = from_dict(
-        BridgeSettings,
-        {
-            "mavlink": {"connection": f"udpout:127.0.0.1:{mavlink_port}"},
-            "vehicle": {"arm_on_connect": True, "set_mode_on_connect": True},
-            "zenoh": zenoh,
-        },
-    )
+    values = bridge_values or {
+        "mavlink": {"connection": f"udpout:127.0.0.1:{mavlink_port}"},
+        "vehicle": {"arm_on_connect": True, "set_mode_on_connect": True},
+    }
+    bridge = from_dict(BridgeSettings, {**values, "zenoh": zenoh})
     files.root.mkdir(parents=True, exist_ok=True)
     files.controller_toml.write_text(to_toml(controller))
     files.bridge_toml.write_text(to_toml(bridge))
@@ -162,8 +178,14 @@ def run_stack(
     first_episode: int = 0,
     record: bool = True,
     progress: bool = True,
+    sitl_binary: Path | None = None,
 ) -> dict[str, Any]:
-    """Run the full stack for `episodes` episodes; returns its outcome fractions and paths."""
+    """Run the full stack for `episodes` episodes; returns its outcome fractions and paths.
+
+    With `sitl_binary`, the car is ArduPilot Rover SITL (a skid-steered rover, `qnav.sitl`):
+    the bridge drives it in GUIDED and the sim-car takes the robot's pose from the autopilot's
+    own LOCAL_POSITION_NED and ATTITUDE, simulating lidar and walls around it.
+    """
     from tqdm import tqdm
 
     from contracts.policy_file import PolicyContract
@@ -175,11 +197,26 @@ def run_stack(
     files = StackFiles(out)
     hub = f"tcp/127.0.0.1:{free_port()}"
     mavlink_port = free_port(socket.SOCK_DGRAM)
-    write_configs(files, policy, hub, mavlink_port, world.robot_radius_m)
+    sitl = None
+    vehicle_args = ["--vehicle", f"udpin:127.0.0.1:{mavlink_port}"]
+    bridge_values = None
+    if sitl_binary is not None:
+        from qnav.sitl import SITL_PARAMS, SKID_PARAMS, SitlProcess
+
+        sitl = SitlProcess(
+            sitl_binary, files.root / "sitl", [SITL_PARAMS, SKID_PARAMS], model="rover-skid"
+        )
+        vehicle_args = ["--firmware", sitl.serial0]
+        bridge_values = sitl_bridge_settings(sitl.serial1)
+    write_configs(
+        files, policy, hub, mavlink_port, world.robot_radius_m, bridge_values=bridge_values
+    )
     daemons = Daemons(files)
     outcomes: list[str] = []
     started = time.monotonic()
     try:
+        if sitl is not None:
+            sitl.start()
         # The recorder and the daemons first: they wait for the sim-car, which is the zenoh hub,
         # so nothing the sim-car publishes is missed.
         if record:
@@ -193,7 +230,7 @@ def run_stack(
             "--episodes", str(episodes),
             "--first-episode", str(first_episode),
             "--listen", hub,
-            "--vehicle", f"udpin:127.0.0.1:{mavlink_port}",
+            *vehicle_args,
             "--log", str(files.episodes),
             stdout=subprocess.PIPE,
         )  # fmt: skip
@@ -210,6 +247,8 @@ def run_stack(
             raise RuntimeError("sim-car failed:\n  " + "\n  ".join(tail))
     finally:
         codes = daemons.stop()
+        if sitl is not None:
+            sitl.stop()
     count = max(len(outcomes), 1)
     return {
         "policy": str(policy),
@@ -218,6 +257,8 @@ def run_stack(
         "success": outcomes.count("success") / count,
         "collision": outcomes.count("collision") / count,
         "unfinished": outcomes.count("unfinished") / count,
+        "vehicle": "sitl" if sitl is not None else "sim",
+        "outcomes": outcomes,
         "wall_s": round(time.monotonic() - started, 1),
         "exit_codes": codes,
         "folder": str(out),
@@ -229,6 +270,19 @@ def stack_verb(args: argparse.Namespace) -> int:
     """`qnav stack`: the full stack, then the same episodes in process, side by side."""
     if not args.policy.is_file():
         raise ConfigError(f"--policy {args.policy} does not exist")
+    sitl_binary = None
+    if args.vehicle == "sitl":
+        from qnav.sitl import SITL_ENV, network_is_isolated, sitl_binary_from_env
+
+        sitl_binary = args.sitl_binary or sitl_binary_from_env()
+        if sitl_binary is None:
+            raise ConfigError(f"--vehicle sitl needs --sitl-binary or {SITL_ENV} (docs/bridge.md)")
+        if not network_is_isolated():
+            # SITL serves unauthenticated TCP ports: only loopback may reach them.
+            raise ConfigError(
+                "--vehicle sitl runs only in a network namespace of its own (loopback only): "
+                "`make stack-sitl`, or `unshare --net sh -c 'ip link set lo up && qnav stack ...'`"
+            )
     result = run_stack(
         args.policy,
         args.out,
@@ -236,19 +290,49 @@ def stack_verb(args: argparse.Namespace) -> int:
         episodes=args.episodes,
         record=not args.no_record,
         progress=not args.json,
+        sitl_binary=sitl_binary,
     )
+    if sitl_binary is not None:
+        result["in_process"] = in_process_outcomes(args.policy, result["scenario"], args.episodes)
+        result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
     if args.json:
         print(json.dumps(result))
         return 0
     print(
-        f"full stack, {result['scenario']}, {result['episodes']} episodes "
+        f"full stack ({result['vehicle']}), {result['scenario']}, {result['episodes']} episodes "
         f"({result['wall_s']:.0f} s): success {result['success']:.3f}, "
         f"collision {result['collision']:.3f}, unfinished {result['unfinished']:.3f}"
     )
+    if "in_process" in result:
+        same = result["in_process"]
+        print(
+            f"in process, same episodes: success {same['success']:.3f}, collision "
+            f"{same['collision']:.3f}, unfinished {same['unfinished']:.3f}; "
+            f"gap {result['gap']:+.3f}"
+        )
     print(f"configuration, logs and episode log in {result['folder']}")
     if result["recording"]:
         print(f"recording: {', '.join(result['recording'])}")
     return 0
+
+
+def in_process_outcomes(policy: Path, scenario_name: str, episodes: int) -> dict[str, Any]:
+    """`qnav eval` of the policy file on the stack's episodes (the test protocol's first ones)."""
+    from controller.policy import PolicyRuntime
+    from sim.config import scenario as load_scenario
+    from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+
+    runtime = PolicyRuntime(policy, num_streams=episodes)
+    result = evaluate(
+        load_scenario(scenario_name),
+        StreamPolicyAgent(runtime, episodes),
+        EvalSettings(episodes=episodes, num_worlds=episodes),
+    )
+    return {
+        "success": float(result.success),
+        "collision": float(result.collision),
+        "unfinished": float(result.unfinished),
+    }
 
 
 def sim_car_verb(args: argparse.Namespace) -> int:
@@ -267,6 +351,9 @@ def sim_car_verb(args: argparse.Namespace) -> int:
         first_episode=args.first_episode,
         seed=args.seed,
         vehicle_connection=args.vehicle,
+        firmware_connection=args.firmware or "",
+        # An autopilot boots, finds GPS and arms in tens of seconds.
+        start_timeout_s=180.0 if args.firmware else SimCarSettings().start_timeout_s,
     )
     zenoh = ZenohSettings(
         listen=tuple(args.listen or ()),

@@ -35,6 +35,7 @@ from contracts.transport import ZenohSettings, open_session
 from sim.config import IncrementDynamics, InertiaDynamics, WorldConfig
 from sim.dynamics import action_velocities, move_obstacles
 from sim.evaluate import EvalSettings
+from sim.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
 from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from sim.render import EpisodeRecord
 from sim.task import Outcome, outcome, reward
@@ -73,6 +74,15 @@ class SimCarSettings:
     """Longest wait for the car to be armed before the first episode."""
     settle_s: float = 1.0
     """Pause after publishing a new target before the episode's clock starts."""
+    firmware_connection: str = ""
+    """A real autopilot's MAVLink port (e.g. SITL's SERIAL0, tcp:127.0.0.1:5760): its own pose
+    estimate moves the robot (`sim.firmware_vehicle`) instead of the test vehicle; empty: the
+    test vehicle on `vehicle_connection`."""
+    rest_speed_mps: float = 0.05
+    """With a firmware vehicle: an episode starts only once the vehicle is slower than this."""
+    rest_timeout_s: float = 10.0
+    """With a firmware vehicle: the longest wait for rest before an episode (then it starts
+    anyway, and the log says so)."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes", self.episodes, 1, 10_000_000)
@@ -148,13 +158,19 @@ class SimCar:
         self.world = replace(world, max_episode_steps=settings.max_episode_steps)
         self.settings = settings
         self.zenoh = zenoh
-        self.vehicle = MavlinkVehicle(
-            MavlinkVehicleSettings(
-                connection=settings.vehicle_connection,
-                dynamics=vehicle_dynamics(world, settings),
-                require_position_for_guided=False,
+        self.vehicle: MavlinkVehicle | FirmwareVehicle
+        if settings.firmware_connection:
+            self.vehicle = FirmwareVehicle(
+                FirmwareVehicleSettings(connection=settings.firmware_connection)
             )
-        )
+        else:
+            self.vehicle = MavlinkVehicle(
+                MavlinkVehicleSettings(
+                    connection=settings.vehicle_connection,
+                    dynamics=vehicle_dynamics(world, settings),
+                    require_position_for_guided=False,
+                )
+            )
         self.episodes: list[EpisodeLog] = []
         self._velocities = np.array(action_velocities(world.dynamics, world.control_period_s))
         self._last_command: wire.Twist2D | None = None
@@ -211,10 +227,12 @@ class SimCar:
     ) -> EpisodeLog | None:
         world, settings = self.world, self.settings
         state = reset(world, np.array([settings.seed]), np.array([index]))
+        self._wait_for_rest(index)
         self.vehicle.set_pose(*state.pose[0])
         entry = EpisodeLog(index, "unfinished", 0, target=state.target_xy[0].tolist())
         self._publish(state, publish, target=True)
         stop.wait(settings.settle_s)
+        self._wait_for_rest(index)
         self.vehicle.set_pose(*state.pose[0])  # in case a late command moved it while settling
         period = world.control_period_s
         deadline = time.monotonic()
@@ -237,6 +255,19 @@ class SimCar:
                 break
             self._publish(state, publish, observation_scan=observation.scan_m)
         return None if stop.is_set() else entry
+
+    def _wait_for_rest(self, index: int) -> None:
+        """A firmware vehicle keeps the speed it had: the episode starts once it is at rest."""
+        vehicle, settings = self.vehicle, self.settings
+        if not isinstance(vehicle, FirmwareVehicle):
+            return
+        if not vehicle.wait_for_rest(settings.rest_speed_mps, settings.rest_timeout_s):
+            log.warning(
+                "episode %d starts at %.2f m/s: not at rest within %g s (rest_timeout_s)",
+                index,
+                vehicle.speed_mps(),
+                settings.rest_timeout_s,
+            )
 
     def _advance(self, state: WorldState) -> WorldState:
         world = self.world
