@@ -36,8 +36,8 @@ def sitl_binary_from_env() -> Path | None:
 
 def network_is_isolated() -> bool:
     """True when loopback is this network namespace's only interface (`unshare --net`)."""
-    try:
-        interfaces = os.listdir("/sys/class/net")
+    try:  # the kernel's list for this process's namespace (/sys may show the host's)
+        interfaces = [name for _, name in socket.if_nameindex()]
     except OSError:
         return False
     return interfaces == ["lo"]

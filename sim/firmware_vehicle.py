@@ -49,8 +49,9 @@ class FirmwareVehicleSettings:
     """Our system id on that link (never the bridge's ground-station id, 255)."""
     vehicle_system_id: int = 1
     """The autopilot's system id."""
-    message_rate_hz: float = 50.0
-    """LOCAL_POSITION_NED and ATTITUDE are asked for at this rate."""
+    message_rate_hz: float = 20.0
+    """LOCAL_POSITION_NED and ATTITUDE are asked for at this rate (Rover: at most half its
+    SCHED_LOOP_RATE, 50 Hz by default)."""
     ready_mode: str = "GUIDED"
     """`armed` is true only when armed in this mode (empty: any mode)."""
 

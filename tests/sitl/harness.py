@@ -12,6 +12,7 @@ only), so nothing the autopilot serves is reachable from outside.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -456,3 +457,68 @@ class BridgeProcess:
         if self.process.poll() is None:
             self.process.kill()
             self.process.wait()
+
+
+class LinkCutter:
+    """A TCP relay between the bridge and the autopilot that can go silent, as a radio link
+    out of range: after `cut()` no byte passes either way and both sockets stay open (no FIN,
+    no reset), so neither end learns of it except by silence. A bridge that reconnects while
+    cut is accepted and hears nothing."""
+
+    def __init__(self, upstream_port: int) -> None:
+        self.upstream_port = upstream_port
+        self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._server.bind(("127.0.0.1", 0))
+        self._server.listen(4)
+        self.port = int(self._server.getsockname()[1])
+        self._cut = threading.Event()
+        self._stopping = threading.Event()
+        self._sockets: list[socket.socket] = []
+        threading.Thread(target=self._accept, name="link-accept", daemon=True).start()
+
+    @property
+    def connection(self) -> str:
+        """The bridge's mavlink.connection."""
+        return f"tcp:127.0.0.1:{self.port}"
+
+    def cut(self) -> float:
+        """Stop passing bytes, both ways; its time."""
+        self._cut.set()
+        return time.monotonic()
+
+    def _accept(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                client, _ = self._server.accept()
+            except OSError:
+                return
+            self._sockets.append(client)
+            if self._cut.is_set():
+                threading.Thread(target=self._pump, args=(client, None), daemon=True).start()
+                continue
+            upstream = socket.create_connection(("127.0.0.1", self.upstream_port))
+            self._sockets.append(upstream)
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    def _pump(self, source: socket.socket, sink: socket.socket | None) -> None:
+        while not self._stopping.is_set():
+            try:
+                data = source.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            if sink is not None and not self._cut.is_set():
+                try:
+                    sink.sendall(data)
+                except OSError:
+                    return
+
+    def close(self) -> None:
+        self._stopping.set()
+        self._server.close()
+        for sock in self._sockets:
+            with contextlib.suppress(OSError):
+                sock.close()
