@@ -9,6 +9,7 @@ same episodes in process.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -53,3 +54,25 @@ def test_the_full_stack_scores_within_five_hundredths_of_the_in_process_evaluati
     assert abs(stack["success"] - in_process.success) <= 0.05
     assert stack["exit_codes"]["controller"] == 0 and stack["exit_codes"]["bridge"] == 0
     assert stack["recording"], "the recorder wrote no MCAP file"
+
+
+def test_the_stack_on_sitl_needs_a_binary_and_a_loopback_only_namespace(tmp_path: Path) -> None:
+    # SITL serves unauthenticated TCP ports: `qnav stack --vehicle sitl` starts it only where
+    # loopback is the only interface (make stack-sitl). Both refusals name what to do.
+    from qnav.sitl import SITL_ENV, network_is_isolated
+
+    base = [sys.executable, "-m", "qnav", "stack", "--vehicle", "sitl", "--policy", str(POLICY),
+            "--out", str(tmp_path / "out")]  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k != SITL_ENV}
+    done = subprocess.run(base, capture_output=True, text=True, env=env, timeout=60, check=False)
+    assert done.returncode == 2 and SITL_ENV in done.stderr
+    if network_is_isolated():
+        pytest.skip("this test runs in a loopback-only namespace: nothing to refuse")
+    binary = tmp_path / "ardurover"
+    binary.write_text("")
+    done = subprocess.run(
+        [*base, "--sitl-binary", str(binary)], capture_output=True, text=True, timeout=60,
+        check=False,
+    )  # fmt: skip
+    assert done.returncode == 2 and "network namespace of its own" in done.stderr
+    assert not (tmp_path / "out" / "sitl").exists(), "nothing was started"
