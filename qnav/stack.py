@@ -213,6 +213,7 @@ def run_stack(
     )
     daemons = Daemons(files)
     outcomes: list[str] = []
+    steps: list[int] = []
     started = time.monotonic()
     try:
         if sitl is not None:
@@ -239,6 +240,7 @@ def run_stack(
             for line in sim_car.stdout:
                 if line.startswith("episode "):
                     outcomes.append(line.split()[2].rstrip(","))
+                    steps.append(int(line.split()[3]))
                     bar.update(1)
                     bar.set_postfix(success=f"{outcomes.count('success') / len(outcomes):.2f}")
                 daemons.check_alive()
@@ -259,6 +261,7 @@ def run_stack(
         "unfinished": outcomes.count("unfinished") / count,
         "vehicle": "sitl" if sitl is not None else "sim",
         "outcomes": outcomes,
+        "mean_steps": round(sum(steps) / count, 1),
         "wall_s": round(time.monotonic() - started, 1),
         "exit_codes": codes,
         "folder": str(out),
@@ -295,6 +298,7 @@ def stack_verb(args: argparse.Namespace) -> int:
     if sitl_binary is not None:
         result["in_process"] = in_process_outcomes(args.policy, result["scenario"], args.episodes)
         result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
+        result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
     if args.json:
         print(json.dumps(result))
         return 0
@@ -308,12 +312,56 @@ def stack_verb(args: argparse.Namespace) -> int:
         print(
             f"in process, same episodes: success {same['success']:.3f}, collision "
             f"{same['collision']:.3f}, unfinished {same['unfinished']:.3f}; "
-            f"gap {result['gap']:+.3f}"
+            f"gap {result['gap']:+.3f}; mean steps {result['mean_steps']} on the firmware, "
+            f"{same['mean_steps']} in process"
+        )
+        response = result["response"]
+        print(
+            f"per control period: forward {response['forward_m_per_step']} m "
+            f"(trained {response['trained_m_per_step']}), turn {response['turn_rad_per_step']} "
+            f"rad (trained {response['trained_rad_per_step']})"
         )
     print(f"configuration, logs and episode log in {result['folder']}")
     if result["recording"]:
         print(f"recording: {', '.join(result['recording'])}")
     return 0
+
+
+def action_response(episodes_log: Path, scenario_name: str) -> dict[str, float]:
+    """How far the car moved per control period on each kind of action, from the sim-car's
+    episode log, beside what the trained dynamics do (the action's velocity x the period):
+    the firmware's speed and turn-rate response, lags and latency included."""
+    import math
+
+    from sim.config import scenario as load_scenario
+    from sim.dynamics import action_velocities
+
+    world = load_scenario(scenario_name)
+    velocities = action_velocities(world.dynamics, world.control_period_s)
+    forward: list[float] = []
+    turn: list[float] = []
+    for line in episodes_log.read_text().splitlines():
+        entry = json.loads(line)
+        poses = entry["poses"]
+        for i, action in enumerate(entry["actions"][: len(poses) - 1]):
+            if action < 0:
+                continue
+            (x0, y0, yaw0), (x1, y1, yaw1) = poses[i][:3], poses[i + 1][:3]
+            linear, angular = velocities[action]
+            if linear != 0:
+                forward.append(((x1 - x0) * math.cos(yaw0) + (y1 - y0) * math.sin(yaw0)) / linear)
+            if angular != 0:
+                turned = math.atan2(math.sin(yaw1 - yaw0), math.cos(yaw1 - yaw0))
+                turn.append(turned / angular)
+    period = world.control_period_s
+    return {
+        "forward_m_per_step": round(sum(forward) / max(len(forward), 1), 3),
+        "turn_rad_per_step": round(sum(turn) / max(len(turn), 1), 3),
+        "trained_m_per_step": round(max(abs(v[0]) for v in velocities) * period, 3),
+        "trained_rad_per_step": round(max(abs(v[1]) for v in velocities) * period, 3),
+        "forward_steps": len(forward),
+        "turn_steps": len(turn),
+    }
 
 
 def in_process_outcomes(policy: Path, scenario_name: str, episodes: int) -> dict[str, Any]:
@@ -332,6 +380,7 @@ def in_process_outcomes(policy: Path, scenario_name: str, episodes: int) -> dict
         "success": float(result.success),
         "collision": float(result.collision),
         "unfinished": float(result.unfinished),
+        "mean_steps": round(float(result.mean_steps), 1),
     }
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import signal
+import statistics
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -25,6 +26,7 @@ from firmware_bridge.calibrate import Calibrator, Pattern
 from firmware_bridge.settings import BridgeSettings
 from tests.sitl.harness import (
     BridgeProcess,
+    LinkCutter,
     MotionCapture,
     Observer,
     Sitl,
@@ -283,3 +285,72 @@ def test_calibrate_car_makes_a_twist_drive_at_the_speed_it_asks(
     print(f"[sitl] a {DRIVE_SPEED_MPS} m/s Twist after calibration: {speed:.2f} m/s")
     assert speed == pytest.approx(DRIVE_SPEED_MPS, rel=0.2)
     assert calibrated.process.poll() is None
+
+
+FAULT_REPEATS = 3
+"""Each fault is measured this many times per configuration: the goal holds for the worst."""
+FAULT_CASES = {
+    "manual": (OUTPUTS["manual-neutral"], False),
+    "guided": (OUTPUTS["guided"], False),
+    "mocap-guided": (['output.mode="guided"'], True),
+}
+"""Bridge settings, and whether the autopilot runs mocap-only (config/ardupilot-mocap.parm)."""
+
+
+@pytest.mark.parametrize("case", list(FAULT_CASES))
+def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
+    case: str, start_sitl: StartSitl, start_bridge: StartBridge, zenoh: Zenoh, tmp_path: Path
+) -> None:
+    # Nothing from the bridge reaches the autopilot any more, either because the bridge died
+    # without a word (SIGKILL) or because the link went silent with the bridge alive (a relay
+    # that stops passing bytes, both ways, sockets open: a radio out of range). Only the
+    # autopilot's GCS failsafe (FS_GCS_TIMEOUT, FS_TIMEOUT, FS_ACTION; config/ardupilot-sitl.parm)
+    # can stop the car. Goal: at rest within 2 s, for the worst of the repeats.
+    assignments, mocap_only = FAULT_CASES[case]
+    extra = []
+    if mocap_only:
+        no_gps = tmp_path / "no-gps.parm"
+        no_gps.write_text("SIM_GPS1_ENABLE 0\n")
+        extra = [ROOT / "config" / "ardupilot-mocap.parm", no_gps]
+    sitl, observer = start_sitl(extra)
+    mocap = MotionCapture(zenoh, observer) if mocap_only else None
+    mode = "MANUAL" if case == "manual" else "GUIDED"
+    measures: dict[str, list[StopMeasure]] = {"SIGKILL": [], "link loss": []}
+    try:
+        for fault in [*measures] * FAULT_REPEATS:
+            relay = LinkCutter(sitl.base_port + 2) if fault == "link loss" else None
+            bridge = start_bridge(relay.connection if relay else sitl.serial1, *assignments)
+            _armed(zenoh, observer)
+            wait_until(
+                lambda: observer.mode == mode and zenoh.state().get("link_up"),
+                BOOT_TIMEOUT_S,
+                mode,
+            )
+            if mode == "GUIDED" and not mocap_only:  # GUIDED brakes only with the EKF's position
+                wait_until(
+                    lambda: any("is using GPS" in t for t in observer.texts), BOOT_TIMEOUT_S, "GPS"
+                )
+            _drive_and_check_motion(zenoh, observer)
+            event = bridge.signal(signal.SIGKILL) if relay is None else relay.cut()
+            measure = measure_stop(observer, event, timeout_s=30.0)
+            measures[fault].append(measure)
+            _report(f"{case}, {fault}", measure)
+            print(f"[sitl] {case}, {fault}: modes since: {observer.changes[-2:]}")
+            if relay is not None:
+                bridge.signal(signal.SIGTERM)
+                bridge.wait(timeout_s=20.0)
+                relay.close()
+            else:
+                bridge.wait(timeout_s=5.0)
+    finally:
+        if mocap is not None:
+            mocap.close()
+    for fault, runs in measures.items():
+        times = sorted(m.stop_time_s for m in runs)
+        print(
+            f"[sitl] {case}, {fault}: at rest after median {statistics.median(times):.2f} s, "
+            f"worst {times[-1]:.2f} s, over {len(times)} (distances "
+            f"{', '.join(f'{m.stop_distance_m:.2f}' for m in runs)} m)"
+        )
+        assert all(m.rested for m in runs)
+        assert times[-1] <= FAILSAFE_GOAL_S, f"{case}, {fault}: {times}"
