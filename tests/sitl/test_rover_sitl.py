@@ -326,7 +326,9 @@ def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
                 BOOT_TIMEOUT_S,
                 mode,
             )
-            if mode == "GUIDED" and not mocap_only:  # GUIDED brakes only with the EKF's position
+            if not mocap_only:
+                # FS_ACTION 6 is Loiter only with the EKF's position (GPS here, some 20 s after
+                # boot); without one it is Hold, which coasts: 6.6 s, 2.4 m in manual, seen.
                 wait_until(
                     lambda: any("is using GPS" in t for t in observer.texts), BOOT_TIMEOUT_S, "GPS"
                 )
