@@ -167,12 +167,13 @@ class FailsafeSettings:
     disarm_on_exit: bool = True
     """On SIGINT or SIGTERM, disarm after sending stop, once the vehicle reports it is at rest
     (`rest_speed_mps`, or `rest_timeout_s` passed): disarming a moving car removes its brakes."""
-    brake_mode: str = ""
+    brake_mode: str = "GUIDED"
     """A Rover mode that brakes, switched to when the bridge stops a moving car (command
-    silence, exit) and left for the output's mode on the next fresh command; e.g. GUIDED
-    (it brakes to a stop, and needs a position estimate). Empty: stay in the output's mode,
-    where a manual stop is neutral sticks, on which Rover coasts (GUIDED's zero velocity
-    target brakes by itself)."""
+    silence, exit) and left for the output's mode on the next fresh command. GUIDED (default)
+    brakes to a stop; it needs a position estimate (GPS or the motion-capture pose), and
+    without one Rover refuses it and the car coasts on neutral. Empty: stay in the output's
+    mode, where a manual stop is neutral sticks, on which Rover coasts (SITL: 5-7 s from 1 m/s;
+    GUIDED's zero velocity target brakes by itself)."""
     rest_speed_mps: float = 0.05
     """The vehicle is at rest when its LOCAL_POSITION_NED speed is below this."""
     rest_timeout_s: float = 5.0

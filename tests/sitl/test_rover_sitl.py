@@ -57,6 +57,7 @@ OUTPUTS = {
     "manual-neutral": [
         'output.mode="manual"',
         f"output.speed_at_full_throttle_mps={SITL_FULL_THROTTLE_MPS}",
+        'failsafe.brake_mode=""',
     ],
     "manual-brake": [
         'output.mode="manual"',
@@ -337,7 +338,12 @@ def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
             measure = measure_stop(observer, event, timeout_s=30.0)
             measures[fault].append(measure)
             _report(f"{case}, {fault}", measure)
-            print(f"[sitl] {case}, {fault}: modes since: {observer.changes[-2:]}")
+            switched = [(round(t - event, 2), m) for t, _, m in observer.changes if t > event]
+            trace = [
+                (round(x.time_s - event, 2), round(math.hypot(x.fields["vx"], x.fields["vy"]), 3))
+                for x in observer.since("LOCAL_POSITION_NED", event)[::4]
+            ][:16]
+            print(f"[sitl] {case}, {fault}: modes after it {switched}; speeds {trace}")
             if relay is not None:
                 bridge.signal(signal.SIGTERM)
                 bridge.wait(timeout_s=20.0)
