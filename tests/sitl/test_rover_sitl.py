@@ -232,6 +232,15 @@ def test_mocap_only_guided_drives_and_stops(
         assert silence.rested and silence.stop_time_s <= STOP_GOAL_S + 0.5
         assert mocap.published > 100
         assert "giving up" not in bridge.log()
+        # SIGTERM while driving: stop, brake, disarm once at rest (SIGKILL and link loss:
+        # test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss).
+        _drive_and_check_motion(zenoh, observer)
+        sent = bridge.signal(signal.SIGTERM)
+        term = measure_stop(observer, sent, timeout_s=30.0)
+        _report("mocap-only guided, SIGTERM", term)
+        assert bridge.wait(timeout_s=15.0) == 0
+        assert term.rested and term.stop_time_s <= STOP_GOAL_S
+        wait_until(lambda: observer.armed is False, 5.0, "the disarm on exit")
     finally:
         mocap.close()
 
