@@ -9,6 +9,10 @@ the car's drivers would: the lidar as a `sensor_msgs/LaserScan` (the world's bea
 bridge); the obstacles move as in the simulator. The episode's outcome is judged by the
 simulator's own rules (`sim.task.outcome`), and the next episode starts at once.
 
+With `firmware_connection` (`qnav sim-car --firmware`), a real autopilot moves the robot
+instead: its own pose estimate is the robot's pose (`sim.firmware_vehicle`), as in
+`qnav stack --vehicle sitl`.
+
 Episode g has the layout of the test protocol's episode g (seed and episode index as in
 `sim.evaluate`), so a run of the full stack can be compared with `qnav eval` of the same policy
 file, episode by episode.
