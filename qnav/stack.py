@@ -319,7 +319,9 @@ def stack_verb(args: argparse.Namespace) -> int:
         print(
             f"per control period: forward {response['forward_m_per_step']} m "
             f"(trained {response['trained_m_per_step']}), turn {response['turn_rad_per_step']} "
-            f"rad (trained {response['trained_rad_per_step']})"
+            f"rad (trained {response['trained_rad_per_step']}); by place in a run of one "
+            f"action (1st, 2nd, 3rd, 4th+): forward {response['forward_m_by_run']} m, "
+            f"turn {response['turn_rad_by_run']} rad"
         )
     print(f"configuration, logs and episode log in {result['folder']}")
     if result["recording"]:
@@ -327,40 +329,58 @@ def stack_verb(args: argparse.Namespace) -> int:
     return 0
 
 
-def action_response(episodes_log: Path, scenario_name: str) -> dict[str, float]:
+def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     """How far the car moved per control period on each kind of action, from the sim-car's
     episode log, beside what the trained dynamics do (the action's velocity x the period):
-    the firmware's speed and turn-rate response, lags and latency included."""
+    the firmware's speed and turn-rate response, lags and latency included. `*_by_run` splits
+    the same by the period's place in a run of one action (1st, 2nd, 3rd, 4th and later): the
+    lag after a change of action."""
     import math
 
     from sim.config import scenario as load_scenario
     from sim.dynamics import action_velocities
 
     world = load_scenario(scenario_name)
-    velocities = action_velocities(world.dynamics, world.control_period_s)
-    forward: list[float] = []
-    turn: list[float] = []
+    period = world.control_period_s
+    velocities = action_velocities(world.dynamics, period)
+    runs = 4
+    forward: list[list[float]] = [[] for _ in range(runs)]
+    turn: list[list[float]] = [[] for _ in range(runs)]
     for line in episodes_log.read_text().splitlines():
         entry = json.loads(line)
-        poses = entry["poses"]
-        for i, action in enumerate(entry["actions"][: len(poses) - 1]):
+        poses, actions = entry["poses"], entry["actions"]
+        place = 0
+        for i, action in enumerate(actions[: len(poses) - 1]):
+            place = place + 1 if i > 0 and actions[i - 1] == action else 0
             if action < 0:
                 continue
             (x0, y0, yaw0), (x1, y1, yaw1) = poses[i][:3], poses[i + 1][:3]
             linear, angular = velocities[action]
+            slot = min(place, runs - 1)
+            # Signed along what was asked, in units of the trained step's length.
             if linear != 0:
-                forward.append(((x1 - x0) * math.cos(yaw0) + (y1 - y0) * math.sin(yaw0)) / linear)
+                moved = (x1 - x0) * math.cos(yaw0) + (y1 - y0) * math.sin(yaw0)
+                forward[slot].append(moved / (linear * period))
             if angular != 0:
                 turned = math.atan2(math.sin(yaw1 - yaw0), math.cos(yaw1 - yaw0))
-                turn.append(turned / angular)
-    period = world.control_period_s
+                turn[slot].append(turned / (angular * period))
+    trained_m = max(abs(v[0]) for v in velocities) * period
+    trained_rad = max(abs(v[1]) for v in velocities) * period
+
+    def mean(values: list[float], scale: float) -> float:
+        return round(scale * sum(values) / max(len(values), 1), 3)
+
+    all_forward = [v for slot in forward for v in slot]
+    all_turn = [v for slot in turn for v in slot]
     return {
-        "forward_m_per_step": round(sum(forward) / max(len(forward), 1), 3),
-        "turn_rad_per_step": round(sum(turn) / max(len(turn), 1), 3),
-        "trained_m_per_step": round(max(abs(v[0]) for v in velocities) * period, 3),
-        "trained_rad_per_step": round(max(abs(v[1]) for v in velocities) * period, 3),
-        "forward_steps": len(forward),
-        "turn_steps": len(turn),
+        "forward_m_per_step": mean(all_forward, trained_m),
+        "turn_rad_per_step": mean(all_turn, trained_rad),
+        "trained_m_per_step": round(trained_m, 3),
+        "trained_rad_per_step": round(trained_rad, 3),
+        "forward_steps": len(all_forward),
+        "turn_steps": len(all_turn),
+        "forward_m_by_run": [mean(slot, trained_m) for slot in forward],
+        "turn_rad_by_run": [mean(slot, trained_rad) for slot in turn],
     }
 
 

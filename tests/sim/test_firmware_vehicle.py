@@ -1,11 +1,14 @@
-"""The firmware vehicle's episode frame: the autopilot's pose, moved onto the episode's start.
+"""The firmware vehicle's episode frame (the autopilot's pose, moved onto the episode's start),
+and the per-period response `qnav stack --vehicle sitl` reports from the episode log.
 
 The reading itself is tested against ArduPilot SITL (`tests/sitl/test_stack_sitl.py`).
 """
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,3 +48,28 @@ def test_yaw_stays_wrapped() -> None:
     yaw = apply_frame(transform, (0.0, 0.0, -2.0))[2]
     assert -math.pi < yaw <= math.pi
     assert yaw == pytest.approx(4.0 - 2 * math.pi)
+
+
+def test_action_response_measures_each_period_against_the_trained_step(tmp_path: Path) -> None:
+    # walls-increment: forward 0.2 m or a 0.2 rad turn per 0.2 s period when trained. A car
+    # that does nothing in the first period of each action and all of it afterwards.
+    from qnav.stack import action_response
+
+    poses = [[0.0, 0.0, 0.0]]
+    actions = [0, 0, 0, 1, 1, -1]
+    for place, action in enumerate(actions):
+        x, y, yaw = poses[-1]
+        first = place == 0 or actions[place - 1] != action
+        if action == 0 and not first:
+            x += 0.2
+        elif action == 1 and not first:
+            yaw += 0.2
+        poses.append([x, y, yaw])
+    log = tmp_path / "episodes.jsonl"
+    log.write_text(json.dumps({"poses": poses, "actions": actions}) + "\n")
+    response = action_response(log, "walls-increment")
+    assert response["trained_m_per_step"] == response["trained_rad_per_step"] == 0.2
+    assert response["forward_steps"] == 3 and response["turn_steps"] == 2
+    assert response["forward_m_per_step"] == pytest.approx(0.4 / 3, abs=1e-3)
+    assert response["forward_m_by_run"][:3] == [0.0, 0.2, 0.2]
+    assert response["turn_rad_by_run"][:2] == [0.0, 0.2]
