@@ -95,6 +95,8 @@ class SimCarSettings:
             self, "full_throttle_speed_mps", self.full_throttle_speed_mps, 0, 20, exclusive_low=True
         )
         check_range(self, "settle_s", self.settle_s, 0, 60)
+        check_range(self, "rest_speed_mps", self.rest_speed_mps, 0, 10, exclusive_low=True)
+        check_range(self, "rest_timeout_s", self.rest_timeout_s, 0, 600)
 
 
 @dataclass
