@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from qnav.sitl import network_is_isolated
 from tests.sitl.harness import SITL_ENV
 
 pytestmark = pytest.mark.sitl
@@ -28,6 +29,10 @@ EPISODES = 2
 
 @pytest.mark.timeout(600)
 def test_the_policy_drives_the_firmware_to_its_targets(tmp_path: Path) -> None:
+    if not network_is_isolated():
+        pytest.skip(
+            "qnav stack --vehicle sitl runs only in a loopback-only namespace (make test-sitl)"
+        )
     done = subprocess.run(
         [sys.executable, "-m", "qnav", "stack", "--vehicle", "sitl",
          "--sitl-binary", os.environ[SITL_ENV], "--policy", str(POLICY),
