@@ -321,7 +321,8 @@ def stack_verb(args: argparse.Namespace) -> int:
             f"(trained {response['trained_m_per_step']}), turn {response['turn_rad_per_step']} "
             f"rad (trained {response['trained_rad_per_step']}); by place in a run of one "
             f"action (1st, 2nd, 3rd, 4th+): forward {response['forward_m_by_run']} m, "
-            f"turn {response['turn_rad_by_run']} rad"
+            f"turn {response['turn_rad_by_run']} rad; scan to command (median) "
+            f"{response['scan_to_command_ms']} ms"
         )
     print(f"configuration, logs and episode log in {result['folder']}")
     if result["recording"]:
@@ -334,7 +335,8 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     episode log, beside what the trained dynamics do (the action's velocity x the period):
     the firmware's speed and turn-rate response, lags and latency included. `*_by_run` splits
     the same by the period's place in a run of one action (1st, 2nd, 3rd, 4th and later): the
-    lag after a change of action."""
+    lag after a change of action. `scan_to_command_ms`: the median time from a scan's
+    publication to the command after it (the controller and zenoh), as the sim-car logged it."""
     import math
 
     from sim.config import scenario as load_scenario
@@ -344,11 +346,13 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     period = world.control_period_s
     velocities = action_velocities(world.dynamics, period)
     runs = 4
+    delays: list[float] = []
     forward: list[list[float]] = [[] for _ in range(runs)]
     turn: list[list[float]] = [[] for _ in range(runs)]
     for line in episodes_log.read_text().splitlines():
         entry = json.loads(line)
         poses, actions = entry["poses"], entry["actions"]
+        delays += entry.get("command_delays_s", [])
         place = 0
         for i, action in enumerate(actions[: len(poses) - 1]):
             place = place + 1 if i > 0 and actions[i - 1] == action else 0
@@ -381,6 +385,7 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
         "turn_steps": len(all_turn),
         "forward_m_by_run": [mean(slot, trained_m) for slot in forward],
         "turn_rad_by_run": [mean(slot, trained_rad) for slot in turn],
+        "scan_to_command_ms": round(1000 * sorted(delays)[len(delays) // 2], 1) if delays else None,
     }
 
 

@@ -117,6 +117,9 @@ class EpisodeLog:
     """Target position."""
     actions: list[int] = field(default_factory=list)
     """The action each period's command corresponds to (-1: stop)."""
+    command_delays_s: list[float] = field(default_factory=list)
+    """Per period, from publishing the scan to the arrival of a command after it (the
+    controller's decision and zenoh both ways); periods without one are left out."""
 
 
 def vehicle_dynamics(world: WorldConfig, settings: SimCarSettings) -> InertiaDynamics:
@@ -180,6 +183,7 @@ class SimCar:
         self.episodes: list[EpisodeLog] = []
         self._velocities = np.array(action_velocities(world.dynamics, world.control_period_s))
         self._last_command: wire.Twist2D | None = None
+        self._command_arrival_s = -math.inf
 
     def action_of(self, command: wire.Twist2D | None) -> int:
         """The action whose velocity the command is (-1 for a stop or none)."""
@@ -201,6 +205,7 @@ class SimCar:
             def on_command(sample: Any) -> None:
                 with contextlib.suppress(wire.WireError):
                     self._last_command = wire.decode_twist_msg(bytes(sample.payload.to_bytes()))
+                    self._command_arrival_s = time.monotonic()
 
             commands = session.declare_subscriber(wire.key(wire.COMMAND, namespace), on_command)
             self._wait_until_armed(stop)
@@ -243,10 +248,13 @@ class SimCar:
         period = world.control_period_s
         deadline = time.monotonic()
         self._record(state, entry)
+        published_s = time.monotonic()
         self._publish(state, publish)
         while not stop.is_set():
             deadline += period
             stop.wait(max(0.0, deadline - time.monotonic()))
+            if self._command_arrival_s > published_s:
+                entry.command_delays_s.append(self._command_arrival_s - published_s)
             entry.actions.append(self.action_of(self._last_command))
             state = self._advance(state)
             self._record(state, entry)
@@ -259,6 +267,7 @@ class SimCar:
                 break
             if entry.steps >= world.max_episode_steps:
                 break
+            published_s = time.monotonic()
             self._publish(state, publish, observation_scan=observation.scan_m)
         return None if stop.is_set() else entry
 
