@@ -319,6 +319,10 @@ class Engine(Protocol):
         """Where the driver sees the run's folder (for progress and, when done, its files)."""
         ...
 
+    def close(self) -> None:
+        """Let go of what the engine holds (runs still going are not waited for)."""
+        ...
+
 
 @dataclass
 class LocalRunner:
@@ -351,6 +355,10 @@ class LocalRunner:
                 ended.append((spec, record(spec, self.run_dir(spec))))
         return ended
 
+    def close(self) -> None:
+        for process in self.running.values():
+            process.terminate()  # it resumes from its checkpoint next time
+
 
 def run_study(
     specs: list[RunSpec],
@@ -382,41 +390,62 @@ def run_study(
         return []
     results_root.mkdir(parents=True, exist_ok=True)
     runner = engine(study) if engine else LocalRunner(run_root, study, jobs)
-    started = time.monotonic()
-    running: list[RunSpec] = []
-    finished: list[RunSpec] = []
-    failed = 0
-    shown: dict[RunSpec, tuple[int, int] | None] = {}
-    while todo or running:
-        out_of_time = time_budget_s is not None and time.monotonic() - started > time_budget_s
-        while todo and len(running) < runner.capacity() and not out_of_time:
-            spec = todo.pop(0)
-            print(f"start  {spec.name}", flush=True)
-            runner.start(spec)
-            running.append(spec)
-        for spec, outcome in runner.ended():
-            running.remove(spec)
-            if isinstance(outcome, str):
-                failed += 1
-                print(f"FAILED {spec.name} ({outcome})", flush=True)
-                continue
-            write_result(results_root, spec, outcome)
-            finished.append(spec)
-            done = len(specs) - len(todo) - len(running) - failed
-            print(f"done   {spec.name} ({done} of {len(specs)} runs done)", flush=True)
-        for spec in running:
-            now = run_progress(runner.run_dir(spec))
-            if now is not None and now != shown.get(spec):
-                shown[spec] = now
-                print(f"       {spec.name}: {now[0]} of {now[1]} episodes", flush=True)
-        if out_of_time and not running:
-            print(f"time budget spent; {len(todo)} runs left for the next batch")
-            break
-        if todo or running:
-            time.sleep(poll_s)
+    try:
+        started = time.monotonic()
+        running: list[RunSpec] = []
+        finished: list[RunSpec] = []
+        failed = 0
+        shown: dict[RunSpec, tuple[int, int] | None] = {}
+        while todo or running:
+            out_of_time = time_budget_s is not None and time.monotonic() - started > time_budget_s
+            while todo and len(running) < runner.capacity() and not out_of_time:
+                spec = todo.pop(0)
+                print(f"start  {spec.name}", flush=True)
+                runner.start(spec)
+                running.append(spec)
+            for spec, outcome in runner.ended():
+                running.remove(spec)
+                if isinstance(outcome, str):
+                    failed += 1
+                    print(f"FAILED {spec.name} ({outcome})", flush=True)
+                    continue
+                write_result(results_root, spec, outcome)
+                finished.append(spec)
+                done = len(specs) - len(pending(specs, results_root))
+                print(f"done   {spec.name} ({done} of {len(specs)} runs done)", flush=True)
+            for spec in running:
+                now = run_progress(runner.run_dir(spec))
+                if now is not None and now != shown.get(spec):
+                    shown[spec] = now
+                    print(f"       {spec.name}: {now[0]} of {now[1]} episodes", flush=True)
+            if out_of_time and not running:
+                print(f"time budget spent; {len(todo)} runs left for the next batch")
+                break
+            if todo or running:
+                time.sleep(poll_s)
+    finally:
+        runner.close()
     done = len(specs) - len(pending(specs, results_root))
     print(f"study: {done} of {len(specs)} runs have results ({failed} failed now)", flush=True)
     return finished
+
+
+def sweep_table(specs: list[RunSpec], results_root: Path) -> str:
+    """A sweep's runs as a Markdown table: settings, seed, test figures (or 'not run yet')."""
+    lines = [
+        _row("scenario", "model", "settings", "seed", "success", "collision", "unfinished"),
+        _row(*["---"] * 7),
+    ]
+    for spec in specs:
+        path = result_path(results_root, spec)
+        point = ", ".join(spec.overrides) or "-"
+        if not path.exists():
+            lines.append(_row(spec.scenario, spec.model, point, spec.seed, "not run yet", "", ""))
+            continue
+        test = json.loads(path.read_text())["test"]
+        figures = (f"{test[k]:.3f}" for k in ("success", "collision", "unfinished"))
+        lines.append(_row(spec.scenario, spec.model, point, spec.seed, *figures))
+    return "\n".join(lines)
 
 
 def _load(results_root: Path) -> dict[str, dict[str, Any]]:
