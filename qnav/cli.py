@@ -645,7 +645,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_cluster = benches.add_parser(
         "cluster", help="a small fixed study on 1 Ray worker, then on 2: wall times and ratio"
     )
-    bench_cluster.add_argument("--repeats", type=int, default=1, help="timed pairs (1)")
+    bench_cluster.add_argument("--repeats", type=int, default=3, help="timed pairs (3)")
     bench_cluster.add_argument("--json", action="store_true", help="print one JSON object")
     bench_cluster.set_defaults(handler=_lazy("training.bench_cluster:bench"))
     _bench_bridge(benches)
@@ -697,6 +697,12 @@ def _study_options(
         "--address",
         help="with --engine ray: join the cluster whose head is HOST:PORT (default: start a "
         "local Ray instance on this machine)",
+    )
+    engine.add_argument(
+        "--connect-timeout-s",
+        type=float,
+        default=15.0,
+        help="with --address: how long the head has to answer before the study gives up (15)",
     )
     engine.add_argument(
         "--cpus", type=int, help="with --engine ray and no --address: the local instance's CPUs"

@@ -205,6 +205,7 @@ def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | Non
         artifacts=args.artifacts,
         scratch_dir=args.scratch_dir,
         max_retries=args.max_retries,
+        connect_timeout_s=args.connect_timeout_s,
     )
     return lambda study: RayEngine(args.runs_dir, study, settings)
 
