@@ -244,7 +244,14 @@ class RayEngine:
         self.ray = ray = import_ray()
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         if self.settings.address:
-            ray.init(address=self.settings.address, log_to_driver=False)
+            try:
+                ray.init(address=self.settings.address, log_to_driver=False)
+            except (ConnectionError, RuntimeError, ray.exceptions.RayError) as error:
+                raise ConfigError(
+                    f"--address {self.settings.address}: could not join the cluster "
+                    f"({_first_line(error)}; a head started with token authentication needs "
+                    "its token here too, docs/cluster.md); no run was started"
+                ) from None
         else:
             ray.init(
                 num_cpus=self.settings.local_cpus,
@@ -261,11 +268,14 @@ class RayEngine:
                 .options(scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=False))
                 .remote(str(self.run_root))
             )
+        alive = [n for n in ray.nodes() if n["Alive"]]
         print(
-            f"ray: {len(ray.nodes())} node(s), {ray.cluster_resources().get('CPU', 0):g} CPUs; "
+            f"ray: {len(alive)} node(s), {ray.cluster_resources().get('CPU', 0):g} CPUs; "
             f"each run asks for {self.study.threads}",
             flush=True,
         )
+        for node in alive:
+            print(f"ray: {describe_node(node)}", flush=True)
 
     def capacity(self) -> int:
         cpus = float(self.ray.cluster_resources().get("CPU", 0))
@@ -310,6 +320,24 @@ class RayEngine:
             return
         self.nodes = {n["NodeID"]: dict(n["Resources"]) for n in self.ray.nodes() if n["Alive"]}
         self.ray.shutdown()  # stops a local instance; leaves a cluster running
+
+
+BUILT_IN_RESOURCES = ("CPU", "GPU", "memory", "object_store_memory")
+
+
+def describe_node(node: dict[str, Any]) -> str:
+    """`node 1a2b3c4d5e6f at 10.0.0.2: 2 CPUs, gpu_box` (its id, address, CPUs and the custom
+    resources it was started with)."""
+    resources: dict[str, float] = node.get("Resources", {})
+    custom = sorted(
+        name
+        for name in resources
+        if name not in BUILT_IN_RESOURCES and not name.startswith(("node:", "accelerator_type"))
+    )
+    return (
+        f"node {node['NodeID'][:12]} at {node.get('NodeManagerAddress', '?')}: "
+        f"{resources.get('CPU', 0):g} CPUs" + "".join(f", {name}" for name in custom)
+    )
 
 
 def _first_line(error: BaseException) -> str:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import secrets
 import signal
 import socket
 import subprocess
@@ -194,11 +196,16 @@ def _free_port() -> int:
 
 
 @pytest.fixture
-def two_nodes(tmp_path: Path) -> Iterator[str]:
+def two_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
     """A head and a second node on this machine (1 CPU each, resources node_a and node_b),
-    each `ray start --block` in a process group of its own, ended by that group's id."""
+    each `ray start --block` in a process group of its own, ended by that group's id. The
+    cluster's token is this test's own (in the environment of the nodes and the driver), not
+    whatever ~/.ray/auth_token holds."""
     port = _free_port()
     common = ["--num-cpus=1", "--object-store-memory=100000000", "--block", "--disable-usage-stats"]
+    token = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+    for name, value in token.items():
+        monkeypatch.setenv(name, value)
     env = os.environ | {"RAY_USAGE_STATS_ENABLED": "0"}
     nodes: list[subprocess.Popen[bytes]] = []
     logs = [(tmp_path / f"node{i}.log").open("wb") for i in range(2)]
@@ -222,6 +229,10 @@ def two_nodes(tmp_path: Path) -> Iterator[str]:
              '--resources={"node_b": 1}', *common],
             stdout=logs[1], stderr=subprocess.STDOUT, start_new_session=True, env=env,
         ))  # fmt: skip
+        while "Ray runtime started" not in (tmp_path / "node1.log").read_text():
+            assert time.monotonic() < deadline, (tmp_path / "node1.log").read_text()
+            assert nodes[1].poll() is None, (tmp_path / "node1.log").read_text()
+            time.sleep(0.5)
         yield f"127.0.0.1:{port}"
     finally:
         for node in reversed(nodes):
@@ -248,34 +259,27 @@ def _end_group(process: subprocess.Popen[bytes]) -> None:
 def test_a_two_node_cluster_on_this_machine_runs_the_study_across_both_nodes(
     tmp_path: Path, two_nodes: str, local_study: tuple[Path, Path]
 ) -> None:
-    engines: list[RayEngine] = []
-    settings = ClusterSettings(
-        address=two_nodes, artifacts=True, scratch_dir=str(tmp_path / "scratch"), sync_every_s=1
-    )
+    """`qnav sweep --engine ray --address` (a process of its own, as a user runs it), workers
+    sharing no disk with the driver (--artifacts): one run on each node, the driver's folders
+    filled, the same results as the local runner's."""
     runs, results = tmp_path / "driver" / "runs", tmp_path / "driver" / "results"
-
-    def when_both_nodes_joined(study: StudySettings) -> RayEngine:
-        engine = _engine_factory(runs, settings, engines)(study)
-        deadline = time.monotonic() + 120
-        while sum(n["Alive"] for n in engine.ray.nodes()) < 2:
-            assert time.monotonic() < deadline, "the second node never joined"
-            time.sleep(0.5)
-        return engine
-
-    finished = run_study(
-        SPECS, runs, results_root=results, threads=1, common=TINY, engine=when_both_nodes_joined
-    )
-    assert finished == SPECS
-    engine = engines[0]
-    resources = {
-        name: next(r for r in engine.nodes[node] if r.startswith("node_"))
-        for name, node in engine.ran_on.items()
-    }
-    assert sorted(resources.values()) == ["node_a", "node_b"], resources
-    # Workers shared no disk with the driver (--artifacts): each run trained in its node's
-    # scratch folder and its files came back to the driver's run folder.
+    tiny = [arg for setting in TINY for arg in ("--set", setting)]
+    done = subprocess.run(
+        [sys.executable, "-m", "qnav", "sweep", "--seeds", "0,1", "--threads", "1", *tiny,
+         "--engine", "ray", "--address", two_nodes, "--artifacts",
+         "--scratch-dir", str(tmp_path / "scratch"), "--runs-dir", str(runs),
+         "--results-dir", str(results)],
+        check=False, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    nodes = dict(re.findall(r"^ray: node (\w+) at \S+ \d+ CPUs, (node_[ab])$", done.stdout, re.M))
+    assert sorted(nodes.values()) == ["node_a", "node_b"], done.stdout
+    ran_on = dict(re.findall(r"^\s+(\S+) ran on node (\w+)$", done.stdout, re.M))
+    assert sorted(nodes[node] for node in ran_on.values()) == ["node_a", "node_b"], done.stdout
+    assert sorted(ran_on) == sorted(s.name for s in SPECS)
     for spec in SPECS:
         for name in ("results.json", "model.pt", "progress.csv", "checkpoint.pt", "settings.toml"):
             assert (runs / spec.name / name).exists(), (spec.name, name)
+    # Each run trained in its node's scratch folder, not in the driver's.
     assert len(list((tmp_path / "scratch" / "qnav-runs").glob("*/*"))) == len(SPECS)
     _assert_same_runs((runs, results), local_study, SPECS)
