@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import tempfile
 import time
@@ -69,6 +70,7 @@ def time_study(workers: int, root: Path) -> float:
 def run(repeats: int = 3) -> dict[str, Any]:
     """Time the fixed study on 1 and on 2 workers, `repeats` times each, alternating."""
     times: dict[int, list[float]] = {1: [], 2: []}
+    load_before = os.getloadavg()[0]
     for _ in range(repeats):
         for workers in (1, 2):
             with tempfile.TemporaryDirectory(prefix="qnav-bench-cluster-") as folder:
@@ -81,7 +83,12 @@ def run(repeats: int = 3) -> dict[str, Any]:
         "seconds": {str(w): [round(x, 2) for x in t] for w, t in times.items()},
         "median_s": {str(w): round(m, 2) for w, m in medians.items()},
         "speedup_1_over_2": round(medians[1] / medians[2], 3),
-        "machine": {"cpu": platform.processor() or platform.machine(), "ray": _ray_version()},
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
+            "load_average_1min_before": round(load_before, 2),
+            "ray": _ray_version(),
+        },
     }
 
 
@@ -99,6 +106,11 @@ def format_report(report: dict[str, Any]) -> str:
         times = ", ".join(f"{t:.1f}" for t in report["seconds"][workers])
         label = "1 worker: " if workers == "1" else f"{workers} workers:"
         lines.append(f"{label} median {report['median_s'][workers]:.1f} s ({times})")
+    machine = report["machine"]
+    lines.append(
+        f"machine: {machine['cores']} cores, load average {machine['load_average_1min_before']} "
+        "before the bench (other work on the machine slows the 2-worker case most)"
+    )
     lines.append(
         f"speed-up, 1 worker over 2 (ratio of medians, {report['repeats']} pairs): "
         f"{report['speedup_1_over_2']:.2f}"

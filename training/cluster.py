@@ -254,6 +254,7 @@ class RayEngine:
                 ) from None
         else:
             ray.init(
+                address="local",  # a new instance, never a cluster found on this machine
                 num_cpus=self.settings.local_cpus,
                 object_store_memory=self.settings.object_store_mb * 2**20,
                 include_dashboard=False,

@@ -233,3 +233,13 @@ def test_without_ray_the_ray_engine_says_to_install_the_cluster_extra(
     with pytest.raises(ConfigError, match=r"pip install '\.\[cluster\]'"):
         run_study(specs, tmp_path / "runs", results_root=tmp_path / "results", engine=ray_engine)
     assert not (tmp_path / "runs").exists()
+
+
+def test_the_study_and_the_ray_engine_module_import_without_ray() -> None:
+    code = (
+        "import sys\n"
+        "import training.study, training.cluster, training.bench_cluster\n"
+        "print('ray' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "False"
