@@ -243,3 +243,12 @@ def test_the_study_and_the_ray_engine_module_import_without_ray() -> None:
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "False"
+
+
+def test_every_new_setting_has_a_one_line_docstring() -> None:
+    from contracts.settings import field_docs
+
+    for cls in (StudySettings, ClusterSettings):
+        docs = field_docs(cls)
+        missing = [f for f in cls.__dataclass_fields__ if not docs.get(f)]
+        assert not missing, f"{cls.__name__} fields without a docstring: {missing}"
