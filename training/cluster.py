@@ -230,6 +230,7 @@ class RayEngine:
     study: StudySettings
     settings: ClusterSettings
     ray: Any = None
+    task: Any = None
     store: Any = None
     running: dict[Any, RunSpec] = field(default_factory=dict)
     ran_on: dict[str, str] = field(default_factory=dict)
@@ -260,6 +261,8 @@ class RayEngine:
                 include_dashboard=False,
                 log_to_driver=False,
             )
+        # The task's name (the run's) is its worker's process title while it runs.
+        self.task = ray.remote(train_task)
         if self.settings.artifacts:
             from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
@@ -286,7 +289,7 @@ class RayEngine:
         return self.run_root / spec.name
 
     def start(self, spec: RunSpec) -> None:
-        task = self.ray.remote(train_task).options(
+        task = self.task.options(
             num_cpus=self.study.threads, max_retries=self.settings.max_retries, name=spec.name
         )
         ref = task.remote(
