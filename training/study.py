@@ -151,10 +151,10 @@ def parse_grid(items: list[str]) -> tuple[tuple[str, tuple[str, ...]], ...]:
     values, in the order given; a malformed item names `--grid`."""
     grid: list[tuple[str, tuple[str, ...]]] = []
     for item in items:
-        key, _, text = item.partition("=")
+        key, equals, text = item.partition("=")
         key = key.strip()
         values = tuple(v.strip() for v in text.split(","))
-        if not _ or "." not in key or not all(values):
+        if not equals or "." not in key or not all(values):
             raise ConfigError(
                 f"--grid {item!r}: expected SECTION.FIELD=VALUE,VALUE,... "
                 "(e.g. train.learning_rate=1e-4,3e-4)"
@@ -174,6 +174,11 @@ def grid_points(grid: tuple[tuple[str, tuple[str, ...]], ...]) -> list[tuple[str
     ]
 
 
+RUN_OPTIONS = {"train.seed": "--seeds", "train.model": "--models", "train.threads": "--threads"}
+"""Learner settings a study gives each run through its own options (an assignment would be
+overridden by them, silently)."""
+
+
 def check_assignments(assignments: tuple[str, ...], option: str) -> None:
     """Refuse, by name, a setting that no run could take (an unknown field, a bad value), before
     any run starts: train.* against the learner's settings, anything else the world's."""
@@ -181,6 +186,11 @@ def check_assignments(assignments: tuple[str, ...], option: str) -> None:
     from training.config import TrainSettings
 
     for assignment in assignments:
+        key = assignment.partition("=")[0].strip()
+        if key in RUN_OPTIONS:
+            raise ConfigError(
+                f"{option} {assignment}: a run's {key} is set by {RUN_OPTIONS[key]} instead"
+            )
         nested = parse_assignments([assignment])
         try:
             if "train" in nested:
@@ -223,9 +233,11 @@ def train_argv(spec: RunSpec, run_dir: Path, study: StudySettings) -> list[str]:
     """The `qnav train` arguments of one run: every engine trains a run with exactly these."""
     options = [
         "--scenario", spec.scenario, "--model", spec.model, "--seed", str(spec.seed),
-        "--relabel", spec.relabel, "--preset", study.preset, "--run-dir", str(run_dir),
+        "--preset", study.preset, "--run-dir", str(run_dir),
         "--train-set", f"train.threads={study.threads}",
     ]  # fmt: skip
+    if spec.relabel != "paper":  # both presets' own rule, which a sweep may vary (train.relabel)
+        options += ["--relabel", spec.relabel]
     for assignment in (*study.common, *spec.overrides):
         options += ["--train-set" if assignment.startswith("train.") else "--set", assignment]
     if spec.ablation:

@@ -62,6 +62,8 @@ def test_a_malformed_grid_names_the_option(items: list[str]) -> None:
         ("train.lr=1e-4", "unknown setting .lr."),
         ("train.batch_size=big", "big"),
         ("lidar.beams=3", "beams"),
+        ("train.seed=3", "set by --seeds"),
+        ("train.threads=4", "set by --threads"),
     ],
 )
 def test_a_setting_no_run_could_take_is_refused_by_name_before_any_run(
