@@ -197,8 +197,10 @@ def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | Non
         if args.artifacts:
             raise ConfigError("--artifacts needs --engine ray")
         return None
-    from training.cluster import ClusterSettings, RayEngine
+    from training.cluster import ClusterSettings, RayEngine, parse_address
 
+    if args.address is not None:
+        parse_address(args.address)  # a malformed one is named before anything else
     settings = ClusterSettings(
         address=args.address,
         local_cpus=args.cpus,
