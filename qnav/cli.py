@@ -666,7 +666,7 @@ def _study_options(
         type=int,
         default=None,
         help="torch threads per training, and CPUs of its Ray task (default: the machine's "
-        "cores / --jobs)",
+        "cores / --jobs; with --engine ray, 2)",
     )
     parser.add_argument("--preset", default="fast", choices=["fast", "paper"], help="schedule")
     parser.add_argument("--scenarios", default=scenarios, help=f"comma-separated ({scenarios})")

@@ -168,7 +168,7 @@ def reproduce(args: argparse.Namespace) -> int:
             args.runs_dir,
             results_root=args.results_dir,
             jobs=args.jobs,
-            threads=args.threads,
+            threads=_threads(args),
             preset=args.preset,
             time_budget_s=budget,
             engine=_engine(args),
@@ -186,6 +186,14 @@ def reproduce(args: argparse.Namespace) -> int:
     args.docs.write_text(results_markdown(args.results_dir, random_rows))
     print(f"wrote {args.docs}")
     return 0
+
+
+def _threads(args: argparse.Namespace) -> int | None:
+    """Torch threads per run: as given; else on Ray 2 (the fast preset's, sized for any node),
+    else the local runner shares this machine's cores among its jobs (None)."""
+    if args.threads is not None or args.engine == "local":
+        return int(args.threads) if args.threads is not None else None
+    return 2
 
 
 def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | None:
@@ -236,7 +244,7 @@ def sweep(args: argparse.Namespace) -> int:
         args.runs_dir,
         results_root=args.results_dir,
         jobs=args.jobs,
-        threads=args.threads,
+        threads=_threads(args),
         preset=args.preset,
         time_budget_s=budget,
         common=tuple(args.common),

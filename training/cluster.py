@@ -273,6 +273,13 @@ class RayEngine:
                 .remote(str(self.run_root))
             )
         alive = [n for n in ray.nodes() if n["Alive"]]
+        largest = max((n["Resources"].get("CPU", 0) for n in alive), default=0)
+        if self.study.threads > largest:
+            ray.shutdown()
+            raise ConfigError(
+                f"--threads = {self.study.threads}: no node of the cluster has that many CPUs "
+                f"(the most: {largest:g}); a run would never start"
+            )
         print(
             f"ray: {len(alive)} node(s), {ray.cluster_resources().get('CPU', 0):g} CPUs; "
             f"each run asks for {self.study.threads}",

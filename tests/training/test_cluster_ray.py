@@ -124,6 +124,18 @@ def test_a_local_ray_instance_with_two_workers_writes_the_local_runners_results(
     assert len(engines) == 1
 
 
+def test_runs_larger_than_any_node_are_refused_by_name_before_they_start(tmp_path: Path) -> None:
+    from contracts.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--threads = 2: no node of the cluster has that many"):
+        run_study(
+            SPECS, tmp_path / "runs", results_root=tmp_path / "results", threads=2, common=TINY,
+            engine=_engine_factory(tmp_path / "runs", ClusterSettings(local_cpus=1), []),
+        )  # fmt: skip
+    assert not ray.is_initialized()
+    assert not (tmp_path / "runs").exists()
+
+
 def _descendants(root: int) -> list[int]:
     """Our own child processes, all generations (Ray's workers are the raylet's children)."""
     parents: dict[int, int] = {}
