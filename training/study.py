@@ -5,6 +5,11 @@ two cross-dynamics tests and the feedforward agent with 10% random test actions.
 `runs/study/`, their results to `results/` (one JSON per run, committed), and the tables to
 `docs/results.md`. A run whose result exists is skipped, so the study can be stopped and
 started again at any point; an interrupted run resumes from its checkpoint.
+
+`qnav sweep` plans one run per point of a settings grid instead. Either plan is run by an
+engine: the local runner here (`qnav train` processes, `--jobs` at a time) or Ray
+(`training/cluster.py`, docs/cluster.md); the plan, the skip of finished runs, a run's `qnav
+train` arguments, its result record and the progress lines are this module's, whichever runs it.
 """
 
 from __future__ import annotations
