@@ -165,10 +165,11 @@ def to_dict(settings: object) -> dict[str, Any]:
     return out
 
 
-def with_overrides(settings: T, overrides: dict[str, Any]) -> T:
-    """A copy of `settings` with nested values replaced: {"obstacles": {"count": 3}}."""
+def with_overrides(settings: T, overrides: dict[str, Any], path: str = "") -> T:
+    """A copy of `settings` with nested values replaced: {"obstacles": {"count": 3}}; errors
+    name a setting under `path` (the section `settings` sits in, if any)."""
     merged = _deep_merge(to_dict(settings), overrides)
-    return from_dict(type(settings), merged)
+    return from_dict(type(settings), merged, path)
 
 
 def parse_assignments(assignments: list[str]) -> dict[str, Any]:

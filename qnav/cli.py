@@ -243,6 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
     gauge.add_argument(
         "--episodes", type=int, default=400, help="episodes per driver behind the state set (400)"
     )
+    gauge.add_argument(
+        "--ceiling",
+        action="store_true",
+        help="also score the best choice under each perception error (is doom learnable?)",
+    )
     gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
     gauge.set_defaults(handler=_lazy("qnav.commands:gauge"))
 

@@ -276,10 +276,13 @@ def gauge(args: argparse.Namespace) -> int:
     own world's states beside its test success."""
     from contracts.actions import Action
     from sim.decisive import (
+        PERCEPTION_LEVELS,
+        GaugeResult,
         GaugeSettings,
         cached,
         constant_choice,
         go_to_target_choices,
+        perception_ceiling,
         random_expectation,
     )
     from sim.decisive import score as judge
@@ -294,11 +297,17 @@ def gauge(args: argparse.Namespace) -> int:
             raise ConfigError(
                 f"no decisive states in {states.visited.sum()} visited: raise --episodes"
             )
-        for name, result in (
+        baselines: list[tuple[str, GaugeResult]] = [
             ("random", random_expectation(states)),
             ("go-to-target", judge(states, go_to_target_choices(states))),
             *((f"always {a.name.lower()}", constant_choice(states, a)) for a in Action),
-        ):
+        ]
+        if args.ceiling:
+            baselines += [
+                (f"best choice, {level} state", perception_ceiling(world, states, error))
+                for level, error in PERCEPTION_LEVELS.items()
+            ]
+        for name, result in baselines:
             rows.append(
                 {
                     "policy": name,
@@ -355,7 +364,7 @@ def probe(args: argparse.Namespace) -> int:
         unknown = set(overrides) - {"probe"}
         if unknown:
             raise ConfigError(f"--probe-set takes probe.FIELD=VALUE, not {sorted(unknown)}")
-        settings = with_overrides(settings, overrides["probe"])
+        settings = with_overrides(settings, overrides["probe"], "probe")
     if args.print_config:
         print(to_toml(settings))
         return 0

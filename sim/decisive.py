@@ -32,9 +32,10 @@ from contracts.observation import FrameWindow, distance_scale_m, encode_frame
 from contracts.settings import check_range, to_toml
 from sim.config import WorldConfig
 from sim.evaluate import go_to_target
-from sim.oracle import OracleDriver, doomed_actions
+from sim.oracle import OracleDriver, collision_shares, doomed_actions
 from sim.world import Observation, WorldState, observe, reset, step, take_rows
 
+F64 = NDArray[np.float64]
 StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]
 
 
@@ -78,6 +79,11 @@ class DecisiveStates(NamedTuple):
     """(K, k, F) the last k encoded frames (scan and target features), oldest first."""
     doomed: NDArray[np.bool_]
     """(K, A) the actions that are doomed there."""
+    collide_share: NDArray[np.float32]
+    """(K, A) the share of the planner's continuations after each action that collide (1 where
+    doomed): how close to doom each action is."""
+    world: WorldState
+    """The true state of the world there, one row per state (for probes given exact state)."""
     driver: NDArray[np.int8]
     """(K,) index into `DRIVERS` of who drove to this state."""
     visited: NDArray[np.int64]
@@ -86,14 +92,27 @@ class DecisiveStates(NamedTuple):
     def save(self, path: Path) -> None:
         """Write to an .npz file (atomically)."""
         partial = path.with_suffix(".partial.npz")
-        np.savez_compressed(partial, **self._asdict())
+        arrays = {name: value for name, value in self._asdict().items() if name != "world"}
+        arrays.update({f"world_{name}": value for name, value in self.world._asdict().items()})
+        np.savez_compressed(partial, **arrays)
         partial.replace(path)
 
     @classmethod
     def load(cls, path: Path) -> DecisiveStates:
         """Read what `save` wrote."""
         with np.load(path) as data:
-            return cls(**{name: data[name] for name in cls._fields})
+            world = WorldState(*(data[f"world_{name}"] for name in WorldState._fields))
+            return cls(**{name: data[name] for name in cls._fields if name != "world"}, world=world)
+
+    def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> DecisiveStates:
+        """The states `keep` selects (a mask or indices), with the visit counts unchanged."""
+        return self._replace(
+            windows=self.windows[keep],
+            doomed=self.doomed[keep],
+            collide_share=self.collide_share[keep],
+            world=take_rows(self.world, np.arange(len(self.doomed))[keep]),
+            driver=self.driver[keep],
+        )
 
 
 def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False) -> DecisiveStates:
@@ -107,11 +126,23 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
     parts = []
     visited = []
     for index, act in enumerate(drivers):
-        found, seen = _drive_and_keep(config, settings, act, index, progress)
+        *found, seen = _drive_and_keep(config, settings, act, index, progress)
         parts.append(found)
         visited.append(seen)
-    windows, doomed, driver = (np.concatenate(column) for column in zip(*parts, strict=True))
-    return DecisiveStates(windows, doomed, driver, np.array(visited, dtype=np.int64))
+    windows, share, world, driver = zip(*parts, strict=True)
+    collide_share = np.concatenate(share)
+    return DecisiveStates(
+        windows=np.concatenate(windows),
+        doomed=collide_share == 1.0,
+        collide_share=collide_share,
+        world=WorldState(*(np.concatenate(column) for column in zip(*world, strict=True))),
+        driver=np.concatenate(driver),
+        visited=np.array(visited, dtype=np.int64),
+    )
+
+
+_FORMAT = "2"
+"""Version of the cached file's layout (2: collision shares and world states kept)."""
 
 
 def cache_dir() -> Path:
@@ -133,7 +164,7 @@ def cached(
     a minute of CPU for the default 800 episodes; a changed setting makes a new set)."""
     # The world's own episode length plays no part: the settings' governs collection.
     config = replace(config, max_episode_steps=settings.max_episode_steps)
-    key = hashlib.sha256((to_toml(config) + to_toml(settings)).encode()).hexdigest()[:16]
+    key = hashlib.sha256((_FORMAT + to_toml(config) + to_toml(settings)).encode()).hexdigest()[:16]
     path = (directory or cache_dir()) / "decisive" / f"{config.name}-{key}.npz"
     if path.exists():
         return DecisiveStates.load(path)
@@ -149,10 +180,10 @@ def _drive_and_keep(
     act: StateAct,
     index: int,
     progress: bool,
-) -> tuple[tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.int8]], int]:
+) -> tuple[NDArray[np.float32], NDArray[np.float32], WorldState, NDArray[np.int8], int]:
     max_range_m = distance_scale_m(config.lidar)
     chance = np.random.default_rng([settings.seed, index])
-    windows, doomed = [], []
+    windows, shares, worlds = [], [], []
     visited = 0
     episodes = np.arange(settings.episodes_per_driver, dtype=np.int64)
     batches = np.array_split(episodes, -(-episodes.size // settings.num_worlds))
@@ -165,12 +196,13 @@ def _drive_and_keep(
             frames = window.advance(
                 encode_frame(observation.scan_m, observation.target_features(), max_range_m)
             )
-            doom = doomed_actions(config, state)
-            keep = is_decisive(doom)
+            share = collision_shares(config, state)
+            keep = is_decisive(share == 1.0)
             if settings.ordinary_share:
                 keep |= chance.random(keep.size) < settings.ordinary_share
             windows.append(frames[keep].copy())
-            doomed.append(doom[keep])
+            shares.append(share[keep].astype(np.float32))
+            worlds.append(take_rows(state, np.flatnonzero(keep)))
             visited += running.size
             state, observation, transition = step(config, state, act(state, observation))
             going = np.flatnonzero(~(transition.terminated | transition.truncated))
@@ -181,11 +213,14 @@ def _drive_and_keep(
             window.frames = window.frames[going]
             window.fresh = window.fresh[going]
     count = sum(len(w) for w in windows)
+    world = WorldState(*(np.concatenate(column) for column in zip(*worlds, strict=True)))
     return (
         np.concatenate(windows),
-        np.concatenate(doomed),
+        np.concatenate(shares),
+        world,
         np.full(count, index, dtype=np.int8),
-    ), visited
+        visited,
+    )
 
 
 def _frame_size(config: WorldConfig) -> int:
@@ -248,6 +283,63 @@ def _result(states: DecisiveStates, safe: NDArray[np.float64]) -> GaugeResult:
     patterns = doom_patterns(states.doomed)
     balanced = np.mean([safe[patterns == p].mean() for p in np.unique(patterns)])
     return GaugeResult(float(safe.mean()), float(balanced), by_driver, len(safe))
+
+
+class StateError(NamedTuple):
+    """How far from the true state a perceiver's estimate is: the spread (one standard
+    deviation, per axis) of zero-mean Gaussian errors."""
+
+    obstacle_position_m: float
+    """Error of each obstacle's position."""
+    obstacle_velocity_mps: float
+    """Error of each obstacle's velocity."""
+    robot_speed_mps: float
+    """Error of the robot's own forward speed (hidden under inertia dynamics)."""
+    robot_turn_radps: float
+    """Error of the robot's own turn rate."""
+
+
+PERCEPTION_LEVELS: dict[str, StateError] = {
+    "exact": StateError(0.0, 0.0, 0.0, 0.0),
+    "lidar-grade": StateError(0.01, 0.02, 0.0, 0.0),
+    "tracker": StateError(0.03, 0.05, 0.05, 0.1),
+    "coarse": StateError(0.1, 0.2, 0.1, 0.2),
+}
+"""Perception errors `qnav gauge --ceiling` reports. A 720-beam lidar resolves 0.5 degree, a
+few centimetres at the ranges that matter, and five frames 0.2 s apart give velocities to a
+few cm/s: "lidar-grade" is what a perfect perceiver of the window could know, "tracker" a
+good hand-built obstacle tracker, "coarse" a sloppy one."""
+
+
+def perception_ceiling(
+    config: WorldConfig,
+    states: DecisiveStates,
+    error: StateError,
+    draws: int = 16,
+    seed: int = 0,
+) -> GaugeResult:
+    """What the best policy that knows the state only up to `error` scores: in each state it
+    takes the action doomed least often over `draws` noisy copies of the true state (the
+    Bayes choice). If this is near 1 for a perception error the window allows, the doom labels
+    are learnable from what the policy sees, however knife-edged each label is."""
+    random = np.random.default_rng(seed)
+    doomed_count = np.zeros(states.doomed.shape)
+    for _ in range(draws):
+        doomed_count += doomed_actions(config, _with_error(states.world, error, random))
+    tie_break = random.random(doomed_count.shape) * 1e-3
+    return score(states, np.argmin(doomed_count + tie_break, axis=1))
+
+
+def _with_error(world: WorldState, error: StateError, random: np.random.Generator) -> WorldState:
+    def noisy(value: F64, sigma: F64 | float) -> F64:
+        return value + random.normal(size=value.shape) * sigma
+
+    robot_sigma = np.array([error.robot_speed_mps, error.robot_turn_radps])
+    return world._replace(
+        obstacle_xy=noisy(world.obstacle_xy, error.obstacle_position_m),
+        obstacle_velocity=noisy(world.obstacle_velocity, error.obstacle_velocity_mps),
+        velocity=noisy(world.velocity, robot_sigma),
+    )
 
 
 def go_to_target_choices(states: DecisiveStates) -> NDArray[np.int64]:

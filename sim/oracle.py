@@ -169,9 +169,26 @@ def doomed_actions(
     salt: int = 0,
 ) -> NDArray[np.bool_]:
     """(N, A): True where every continuation the planner knows, after taking that action first,
-    collides within `horizon_s`. The same continuations (structured and random, drawn per
-    world) follow every first action, so actions are judged alike. A non-doomed action is truly
-    safe for that long; a doomed one might be saved by a sequence the planner does not try."""
+    collides within `horizon_s`. A non-doomed action is truly safe for that long; a doomed one
+    might be saved by a sequence the planner does not try."""
+    shares = collision_shares(
+        config, state, horizon_s=horizon_s, random_sequences=random_sequences, salt=salt
+    )
+    return np.asarray(shares == 1.0, dtype=bool)
+
+
+def collision_shares(
+    config: WorldConfig,
+    state: WorldState,
+    *,
+    horizon_s: float = DOOM_HORIZON_S,
+    random_sequences: int = 64,
+    salt: int = 0,
+) -> NDArray[np.float64]:
+    """(N, A): the share of the planner's continuations that collide within `horizon_s` after
+    taking each action first (1 where the action is doomed). The same continuations (structured
+    and random, drawn per world) follow every first action, so actions are judged alike; the
+    share grades how close to doom an action is, where the doom label is all or nothing."""
     horizon = doom_horizon_steps(config, horizon_s)
     tails = keyed_sequences(state, horizon, random_sequences, salt)[:, :, : horizon - 1]
     worlds, tail_count = tails.shape[:2]
@@ -184,7 +201,7 @@ def doomed_actions(
         axis=2,
     )
     collided = simulate(config, state, sequences).outcome == Outcome.COLLISION
-    return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).all(axis=2), dtype=bool)
+    return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
 
 
 class OracleDriver:

@@ -14,15 +14,18 @@ The probe is a diagnostic: nothing in training or the product imports it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
+from numpy.typing import NDArray
 from tqdm import tqdm
 
+from contracts.actions import NUM_ACTIONS
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
+from sim.world import WorldState
 from training.agent import greedy_actions
 from training.networks import QNetwork
 
@@ -50,6 +53,13 @@ class ProbeSettings:
     """Weight of a decisive window's loss against an ordinary one's."""
     scan_difference: bool = False
     """Give the encoder each frame's change since the previous one as a second channel."""
+    inputs: Literal["lidar", "state"] = "lidar"
+    """What the fitted network sees: "lidar" (the paper's network on the policy's window) or
+    "state" (the exact world state, per obstacle, through `ObstacleSetNetwork`): the state
+    probe bounds what the labels teach when perception is perfect."""
+    label: Literal["doom", "collide_share"] = "doom"
+    """What it is fitted to per action: "doom" (0/1: every continuation collides) or
+    "collide_share" (the share of continuations that collide, graded)."""
     threads: int = 2
     """Torch threads."""
 
@@ -80,10 +90,77 @@ class ProbeEpoch(NamedTuple):
 
 def decisive_only(states: DecisiveStates) -> DecisiveStates:
     """The states of a set where some action is doomed and another is not."""
-    keep = is_decisive(states.doomed)
-    return states._replace(
-        windows=states.windows[keep], doomed=states.doomed[keep], driver=states.driver[keep]
+    return states.subset(is_decisive(states.doomed))
+
+
+def state_features(world: WorldState, arena_size_m: float) -> tuple[NDArray[np.float32], ...]:
+    """The exact state as a perceiver of it would give it: (context (K, 8), obstacles (K, M, 7)).
+
+    Context: the robot's speed and turn rate, the target in the robot's frame, the robot's
+    position in the arena and its heading (for the walls). Per obstacle: its position and
+    velocity in the robot's frame, its distance, and its place in the arena (for its bounces).
+    Lengths are in units of half the arena.
+    """
+    half = arena_size_m / 2
+    pose = world.pose
+    cos, sin = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    to_robot = np.stack([np.stack([cos, sin], -1), np.stack([-sin, cos], -1)], axis=1)
+    offset = world.obstacle_xy - pose[:, None, :2]
+    context = np.concatenate(
+        [
+            world.velocity,
+            np.einsum("kij,kj->ki", to_robot, world.target_xy - pose[:, :2]) / half,
+            pose[:, :2] / half - 1,
+            np.stack([cos, sin], axis=-1),
+        ],
+        axis=1,
     )
+    obstacles = np.concatenate(
+        [
+            np.einsum("kij,kmj->kmi", to_robot, offset) / half,
+            np.einsum("kij,kmj->kmi", to_robot, world.obstacle_velocity),
+            np.linalg.norm(offset, axis=-1, keepdims=True) / half,
+            world.obstacle_xy / half - 1,
+        ],
+        axis=2,
+    )
+    return context.astype(np.float32), obstacles.astype(np.float32)
+
+
+class ObstacleSetNetwork(torch.nn.Module):
+    """Doom from exact state, one source at a time: a network shared by all obstacles gives each
+    obstacle's logit of dooming each action, another the walls' from the context alone, and an
+    action is safe when no source dooms it. Sharing across obstacles is the structure a lidar
+    convolution shares across bearings."""
+
+    def __init__(self, context_size: int = 8, obstacle_size: int = 7, hidden: int = 128) -> None:
+        super().__init__()
+        self.per_obstacle = torch.nn.Sequential(
+            torch.nn.Linear(context_size + obstacle_size, hidden),
+            torch.nn.ReLU(),
+            torch.nn.Linear(hidden, hidden),
+            torch.nn.ReLU(),
+            torch.nn.Linear(hidden, NUM_ACTIONS),
+        )
+        self.walls = torch.nn.Sequential(
+            torch.nn.Linear(context_size, hidden // 2),
+            torch.nn.ReLU(),
+            torch.nn.Linear(hidden // 2, NUM_ACTIONS),
+        )
+
+    def forward(self, context: torch.Tensor, obstacles: torch.Tensor) -> torch.Tensor:
+        """(K, A) logits that each action is safe."""
+        shared = context[:, None, :].expand(-1, obstacles.shape[1], -1)
+        doom = torch.cat(
+            [
+                self.per_obstacle(torch.cat([shared, obstacles], dim=-1)),
+                self.walls(context)[:, None],
+            ],
+            dim=1,
+        )
+        log_safe = torch.nn.functional.logsigmoid(-doom).sum(dim=1)
+        # logit(p) = log p - log(1 - p), with p = P(no source dooms the action)
+        return log_safe - torch.log(-torch.expm1(log_safe).clamp(max=-1e-6))
 
 
 def probe(
@@ -92,8 +169,7 @@ def probe(
     gauge: GaugeSettings | None = None,
     progress: bool = False,
 ) -> list[ProbeEpoch]:
-    """Fit the paper's recurrent network to doom labels and judge it on the gauge after each
-    pass."""
+    """Fit a network to doom labels and judge it on the gauge after each pass."""
     gauge = gauge or GaugeSettings()
     torch.set_num_threads(settings.threads)
     labelled = cached(
@@ -110,14 +186,32 @@ def probe(
     held_out = cached(world, gauge, progress)
     fitted = decisive_only(labelled)
     torch.manual_seed(settings.seed)
-    network = QNetwork(
-        "recurrent",
-        world.lidar.num_beams if world.lidar is not None else None,
-        scan_difference=settings.scan_difference,
-    )
+    network: torch.nn.Module
+    if settings.inputs == "state":
+        network = ObstacleSetNetwork()
+    else:
+        network = QNetwork(
+            "recurrent",
+            world.lidar.num_beams if world.lidar is not None else None,
+            scan_difference=settings.scan_difference,
+        )
+
+    def inputs(states: DecisiveStates) -> tuple[torch.Tensor, ...]:
+        if settings.inputs == "state":
+            features = state_features(states.world, world.arena.size_m)
+            return tuple(torch.from_numpy(part) for part in features)
+        return (torch.from_numpy(states.windows),)
+
+    def choices(states: DecisiveStates) -> NDArray[np.int64]:
+        if isinstance(network, QNetwork):
+            return greedy_actions(network, states.windows)
+        with torch.no_grad():
+            return np.asarray(network(*inputs(states)).argmax(dim=1).numpy(), dtype=np.int64)
+
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
-    windows = torch.from_numpy(labelled.windows)
-    safe = torch.from_numpy((~labelled.doomed).astype(np.float32))
+    given = inputs(labelled)
+    unsafe = labelled.doomed if settings.label == "doom" else labelled.collide_share
+    safe = torch.from_numpy(1.0 - np.asarray(unsafe, dtype=np.float32))
     weight = torch.from_numpy(
         np.where(is_decisive(labelled.doomed), settings.decisive_weight, 1.0).astype(np.float32)
     )
@@ -126,11 +220,11 @@ def probe(
     for epoch in tqdm(range(1, settings.epochs + 1), desc="probe", disable=not progress):
         network.train()
         total = 0.0
-        permutation = order.permutation(len(windows))
-        for start in range(0, len(windows), settings.batch_size):
+        permutation = order.permutation(len(safe))
+        for start in range(0, len(safe), settings.batch_size):
             rows = torch.from_numpy(permutation[start : start + settings.batch_size])
             per_window = torch.nn.functional.binary_cross_entropy_with_logits(
-                network(windows[rows]), safe[rows], reduction="none"
+                network(*(part[rows] for part in given)), safe[rows], reduction="none"
             ).mean(dim=1)
             loss = (per_window * weight[rows]).sum() / weight[rows].sum()
             optimizer.zero_grad()
@@ -138,9 +232,9 @@ def probe(
             optimizer.step()
             total += loss.item() * len(rows)
         network.eval()
-        judged = score(held_out, greedy_actions(network, held_out.windows))
-        fit = score(fitted, greedy_actions(network, fitted.windows))
+        judged = score(held_out, choices(held_out))
+        fit = score(fitted, choices(fitted))
         history.append(
-            ProbeEpoch(epoch, total / len(windows), fit.balanced, judged.safe, judged.balanced)
+            ProbeEpoch(epoch, total / len(safe), fit.balanced, judged.safe, judged.balanced)
         )
     return history

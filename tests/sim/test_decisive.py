@@ -12,10 +12,12 @@ from sim.decisive import (
     DRIVERS,
     DecisiveStates,
     GaugeSettings,
+    StateError,
     cached,
     collect,
     constant_choice,
     go_to_target_choices,
+    perception_ceiling,
     random_expectation,
     score,
 )
@@ -55,9 +57,13 @@ def test_a_blind_choice_scores_one_half_balanced_whatever_the_mix_of_patterns() 
     patterns = [[1, 0, 0]] * 50 + [[0, 1, 0]] * 3 + [[0, 0, 1]] * 7
     patterns += [[1, 1, 0]] * 2 + [[1, 0, 1]] * 4 + [[0, 1, 1]] * 30
     doomed = np.array(patterns, dtype=bool)
+    count = len(doomed)
+    world = reset(scenario("obstacles-increment"), np.zeros(count, np.int64), np.arange(count))
     states = DecisiveStates(
-        windows=np.zeros((len(doomed), 1, 4), dtype=np.float32),
+        windows=np.zeros((count, 1, 4), dtype=np.float32),
         doomed=doomed,
+        collide_share=doomed.astype(np.float32),
+        world=world,
         driver=np.zeros(len(doomed), dtype=np.int8),
         visited=np.array([len(doomed), 0]),
     )
@@ -67,6 +73,27 @@ def test_a_blind_choice_scores_one_half_balanced_whatever_the_mix_of_patterns() 
     assert constant_choice(states, 0).safe != pytest.approx(0.5)
     assert score(states, np.argmin(doomed, axis=1)).balanced == 1.0
     assert score(states, np.argmax(doomed, axis=1)).balanced == 0.0
+
+
+def test_an_action_is_doomed_exactly_where_all_its_continuations_collide(
+    states: DecisiveStates,
+) -> None:
+    assert ((states.collide_share >= 0) & (states.collide_share <= 1)).all()
+    np.testing.assert_array_equal(states.doomed, states.collide_share == 1.0)
+    # Kept world states are the true states: doom recomputed from them is the label.
+    np.testing.assert_array_equal(
+        doomed_actions(scenario("obstacles-increment"), states.world), states.doomed
+    )
+
+
+def test_the_best_choice_knowing_the_exact_state_is_always_safe_and_errors_cost(
+    states: DecisiveStates,
+) -> None:
+    world = scenario("obstacles-increment")
+    exact = perception_ceiling(world, states, StateError(0.0, 0.0, 0.0, 0.0), draws=2)
+    assert exact.safe == 1.0 and exact.balanced == 1.0
+    blurred = perception_ceiling(world, states, StateError(2.0, 2.0, 0.0, 0.0), draws=4)
+    assert blurred.safe < 1.0
 
 
 def test_go_to_target_is_judged_on_the_newest_frames_bearing(states: DecisiveStates) -> None:
@@ -93,7 +120,10 @@ def test_the_cache_returns_what_was_collected_and_keys_on_the_settings(tmp_path:
     tiny = GaugeSettings(episodes_per_driver=2, max_episode_steps=10, num_worlds=2)
     first = cached(world, tiny, directory=tmp_path)
     again = cached(world, tiny, directory=tmp_path)
-    for a, b in zip(first, again, strict=True):
+    for name in DecisiveStates._fields:
+        if name != "world":
+            np.testing.assert_array_equal(getattr(first, name), getattr(again, name))
+    for a, b in zip(first.world, again.world, strict=True):
         np.testing.assert_array_equal(a, b)
     cached(world, GaugeSettings(episodes_per_driver=1, max_episode_steps=10), directory=tmp_path)
     assert len(list((tmp_path / "decisive").glob("*.npz"))) == 2

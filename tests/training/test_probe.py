@@ -11,8 +11,9 @@ import pytest
 from contracts.errors import ConfigError
 from sim.config import scenario
 from sim.decisive import GaugeSettings, collect
+from sim.world import reset
 from tests.test_cli import _qnav
-from training.probe import ProbeSettings, decisive_only, probe
+from training.probe import ProbeSettings, decisive_only, probe, state_features
 
 SMALL_GAUGE = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6)
 SMALL = ProbeSettings(episodes_per_driver=6, epochs=2, batch_size=32, threads=1)
@@ -35,12 +36,40 @@ def test_each_pass_reports_its_fit_and_the_held_out_gauge() -> None:
         assert 0.0 <= epoch.safe <= 1.0 and 0.0 <= epoch.balanced <= 1.0
 
 
+@pytest.mark.parametrize(
+    ("inputs", "label"), [("state", "doom"), ("lidar", "collide_share"), ("state", "collide_share")]
+)
+def test_the_probe_fits_exact_state_and_graded_labels_too(inputs: str, label: str) -> None:
+    settings = replace(SMALL, inputs=inputs, label=label)  # type: ignore[arg-type]
+    history = probe(scenario("obstacles-increment"), settings, SMALL_GAUGE)
+    assert len(history) == 2
+    assert all(np.isfinite(epoch.loss) and 0.0 <= epoch.balanced <= 1.0 for epoch in history)
+
+
+def test_state_features_are_in_the_robots_frame() -> None:
+    world = scenario("obstacles-increment")
+    state = reset(world, np.zeros(1, np.int64), np.zeros(1, np.int64))
+    heading = state.pose[0, 2]
+    ahead = state.pose[0, :2] + 1.0 * np.array([np.cos(heading), np.sin(heading)])
+    state = state._replace(obstacle_xy=np.tile(ahead, (1, world.obstacles.count, 1)))
+    context, obstacles = state_features(state, world.arena.size_m)
+    half = world.arena.size_m / 2
+    assert context.shape == (1, 8) and obstacles.shape == (1, world.obstacles.count, 7)
+    np.testing.assert_allclose(
+        obstacles[0, :, :2], [[1.0 / half, 0.0]] * world.obstacles.count, atol=1e-6
+    )
+    np.testing.assert_allclose(obstacles[0, :, 4], 1.0 / half, rtol=1e-6)
+
+
 def test_a_wrong_probe_setting_names_itself() -> None:
     with pytest.raises(ConfigError, match="epochs"):
         ProbeSettings(epochs=0)
     result = _qnav("probe", "--probe-set", "probe.learning_rate=0", "--json")
     assert result.returncode != 0
     assert "learning_rate" in result.stderr
+    result = _qnav("probe", "--probe-set", "probe.inputs=radar", "--json")
+    assert result.returncode != 0
+    assert "probe.inputs" in result.stderr
 
 
 def test_qnav_probe_prints_its_settings() -> None:
