@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-stack test-sitl stack-sitl fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
+.PHONY: install demo test test-slow test-stack test-sitl stack-sitl test-cluster bench-cluster fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 # constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
 $(STAMP): pyproject.toml constraints.txt
@@ -37,6 +37,17 @@ pytest: $(STAMP)
 # Long checks (many-episode evaluations, training runs): not part of `make test`.
 test-slow: $(STAMP)
 	$(BIN)/pytest -m slow
+
+# Studies on Ray (docs/cluster.md): installs the [cluster] extra into .venv, then a local
+# instance with two workers, a worker killed mid-run, and a two-node cluster on this machine.
+test-cluster: $(STAMP)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev,cluster]'
+	$(BIN)/pytest -m cluster tests/training/test_cluster_ray.py -p no:cacheprovider -rs
+
+# A small fixed study on 1 Ray worker, then on 2: the wall times and their ratio (docs/cluster.md).
+bench-cluster: $(STAMP)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev,cluster]'
+	$(BIN)/qnav bench cluster
 
 # Malformed payloads against the real controller and bridge processes (issue 18 part 7):
 # 10,000 per controller key, 2,000 per bridge key; `make test` runs a 150-per-key slice.

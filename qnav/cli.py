@@ -333,32 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce = verbs.add_parser(
         "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
     )
-    reproduce.add_argument("--jobs", type=int, default=1, help="trainings at once (1)")
-    reproduce.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="torch threads per training (default: the machine's cores / --jobs)",
-    )
-    reproduce.add_argument("--preset", default="fast", choices=["fast", "paper"], help="schedule")
-    reproduce.add_argument(
-        "--scenarios",
-        default=",".join(
-            ["obstacles-inertia", "walls-inertia", "walls-increment", "obstacles-increment"]
-        ),
-        help="comma-separated scenarios (default: the paper's four)",
-    )
-    reproduce.add_argument(
-        "--models", default="recurrent,feedforward", help="comma-separated models"
-    )
-    reproduce.add_argument("--seeds", default="0,1,2,3,4", help="comma-separated seeds")
-    reproduce.add_argument(
-        "--time-budget-min",
-        type=float,
-        default=None,
-        help="start no new run after this many minutes (the rest waits for the next batch)",
-    )
-    reproduce.add_argument("--runs-dir", type=Path, default=Path("runs/study"), help="run folders")
+    _study_options(reproduce, Path("runs/study"))
     reproduce.add_argument(
         "--results-dir", type=Path, default=Path("results"), help="one JSON per run (committed)"
     )
@@ -378,6 +353,35 @@ def build_parser() -> argparse.ArgumentParser:
         "--tables-only", action="store_true", help="rewrite the tables from results/, train nothing"
     )
     reproduce.set_defaults(handler=_lazy("qnav.commands:reproduce"))
+
+    sweep = verbs.add_parser(
+        "sweep", help="train every point of a settings grid (resumable; locally or on Ray)"
+    )
+    _study_options(sweep, Path("runs/sweep"), scenarios="walls-inertia", models="recurrent",
+                   seeds="0")  # fmt: skip
+    sweep.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=V1,V2,...",
+        help="one setting and its values, e.g. --grid train.learning_rate=1e-4,3e-4 (repeatable: "
+        "every combination is a run; train.* are learner settings, other sections the world's)",
+    )
+    sweep.add_argument(
+        "--set",
+        dest="common",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="a setting of every run, e.g. --set train.episodes=100 (repeatable)",
+    )
+    sweep.add_argument(
+        "--results-dir",
+        type=Path,
+        default=Path("runs/sweep/results"),
+        help="one JSON per run (a run with one is skipped)",
+    )
+    sweep.set_defaults(handler=_lazy("qnav.commands:sweep"))
 
     controller = verbs.add_parser(
         "controller",
@@ -659,8 +663,86 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench_controller.add_argument("--json", action="store_true", help="print one JSON object")
     bench_controller.set_defaults(handler=_lazy("qnav.commands:bench_controller"))
+    bench_cluster = benches.add_parser(
+        "cluster", help="a small fixed study on 1 Ray worker, then on 2: wall times and ratio"
+    )
+    bench_cluster.add_argument("--repeats", type=int, default=3, help="timed pairs (3)")
+    bench_cluster.add_argument("--json", action="store_true", help="print one JSON object")
+    bench_cluster.set_defaults(handler=_lazy("training.bench_cluster:bench"))
     _bench_bridge(benches)
     return parser
+
+
+def _study_options(
+    parser: argparse.ArgumentParser,
+    runs_dir: Path,
+    scenarios: str = "obstacles-inertia,walls-inertia,walls-increment,obstacles-increment",
+    models: str = "recurrent,feedforward",
+    seeds: str = "0,1,2,3,4",
+) -> None:
+    """What runs a study or a sweep, and where: its plan, the local runner or Ray."""
+    parser.add_argument("--jobs", type=int, default=1, help="local runner: trainings at once (1)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads per training, and CPUs of its Ray task (default: the machine's "
+        "cores / --jobs; with --engine ray, 2)",
+    )
+    parser.add_argument("--preset", default="fast", choices=["fast", "paper"], help="schedule")
+    parser.add_argument("--scenarios", default=scenarios, help=f"comma-separated ({scenarios})")
+    parser.add_argument("--models", default=models, help=f"comma-separated models ({models})")
+    parser.add_argument("--seeds", default=seeds, help=f"comma-separated seeds ({seeds})")
+    parser.add_argument(
+        "--time-budget-min",
+        type=float,
+        default=None,
+        help="start no new run after this many minutes (the rest waits for the next batch)",
+    )
+    parser.add_argument(
+        "--runs-dir",
+        type=Path,
+        default=runs_dir,
+        help=f"run folders ({runs_dir}); on a cluster without --artifacts, a path every node "
+        "shares",
+    )
+    engine = parser.add_argument_group("engine (docs/cluster.md)")
+    engine.add_argument(
+        "--engine",
+        default="local",
+        choices=["local", "ray"],
+        help="local: `qnav train` processes on this machine (default); ray: one Ray task per run "
+        "(pip install '.[cluster]')",
+    )
+    engine.add_argument(
+        "--address",
+        help="with --engine ray: join the cluster whose head is HOST:PORT (default: start a "
+        "local Ray instance on this machine)",
+    )
+    engine.add_argument(
+        "--connect-timeout-s",
+        type=float,
+        default=15.0,
+        help="with --address: how long the head has to answer before the study gives up (15)",
+    )
+    engine.add_argument(
+        "--cpus", type=int, help="with --engine ray and no --address: the local instance's CPUs"
+    )
+    engine.add_argument(
+        "--artifacts",
+        action="store_true",
+        help="workers share no disk: runs train in a scratch folder on their node and their "
+        "files (checkpoint as it goes, results, policy, progress) come back to --runs-dir",
+    )
+    engine.add_argument(
+        "--scratch-dir", help="with --artifacts: the workers' run folder (their temporary one)"
+    )
+    engine.add_argument(
+        "--max-retries",
+        type=int,
+        default=3,
+        help="times a run whose worker died starts again, from its checkpoint (3)",
+    )
 
 
 def _bench_policy_file(bench: argparse.ArgumentParser) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -16,6 +17,7 @@ from sim.evaluate import evaluate as run_evaluation
 
 if TYPE_CHECKING:
     from training.imitate import ImitationResult, ImitationSettings
+    from training.study import Engine, StudySettings
 
 
 def evaluate(args: argparse.Namespace) -> int:
@@ -166,9 +168,10 @@ def reproduce(args: argparse.Namespace) -> int:
             args.runs_dir,
             results_root=args.results_dir,
             jobs=args.jobs,
-            threads=args.threads,
+            threads=_threads(args),
             preset=args.preset,
             time_budget_s=budget,
+            engine=_engine(args),
         )
     random_rows = {}
     for name in paper.RANDOM:
@@ -182,6 +185,72 @@ def reproduce(args: argparse.Namespace) -> int:
     args.docs.parent.mkdir(parents=True, exist_ok=True)
     args.docs.write_text(results_markdown(args.results_dir, random_rows))
     print(f"wrote {args.docs}")
+    return 0
+
+
+def _threads(args: argparse.Namespace) -> int | None:
+    """Torch threads per run: as given; else on Ray 2 (the fast preset's, sized for any node),
+    else the local runner shares this machine's cores among its jobs (None)."""
+    if args.threads is not None or args.engine == "local":
+        return int(args.threads) if args.threads is not None else None
+    return 2
+
+
+def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | None:
+    """The engine a study's options ask for: None for the local runner, else Ray's."""
+    if args.engine == "local":
+        for option in ("address", "cpus", "scratch_dir"):
+            if getattr(args, option) is not None:
+                raise ConfigError(f"--{option.replace('_', '-')} needs --engine ray")
+        if args.artifacts:
+            raise ConfigError("--artifacts needs --engine ray")
+        return None
+    from training.cluster import ClusterSettings, RayEngine, parse_address
+
+    if args.address is not None:
+        parse_address(args.address)  # a malformed one is named before anything else
+    settings = ClusterSettings(
+        address=args.address,
+        local_cpus=args.cpus,
+        artifacts=args.artifacts,
+        scratch_dir=args.scratch_dir,
+        max_retries=args.max_retries,
+        connect_timeout_s=args.connect_timeout_s,
+    )
+    return lambda study: RayEngine(args.runs_dir, study, settings)
+
+
+def sweep(args: argparse.Namespace) -> int:
+    """Train every point of a settings grid, then print each run's test figures."""
+    from training.study import (
+        MODELS,
+        SCENARIOS,
+        parse_choices,
+        parse_grid,
+        parse_seeds,
+        run_study,
+        sweep_plan,
+        sweep_table,
+    )
+
+    grid = parse_grid(args.grid)
+    scenarios = parse_choices("--scenarios", args.scenarios, SCENARIOS)
+    specs = sweep_plan(
+        scenarios, parse_choices("--models", args.models, MODELS), parse_seeds(args.seeds), grid
+    )
+    budget = None if args.time_budget_min is None else args.time_budget_min * 60
+    run_study(
+        specs,
+        args.runs_dir,
+        results_root=args.results_dir,
+        jobs=args.jobs,
+        threads=_threads(args),
+        preset=args.preset,
+        time_budget_s=budget,
+        common=tuple(args.common),
+        engine=_engine(args),
+    )
+    print(sweep_table(specs, args.results_dir))
     return 0
 
 

@@ -5,22 +5,32 @@ two cross-dynamics tests and the feedforward agent with 10% random test actions.
 `runs/study/`, their results to `results/` (one JSON per run, committed), and the tables to
 `docs/results.md`. A run whose result exists is skipped, so the study can be stopped and
 started again at any point; an interrupted run resumes from its checkpoint.
+
+`qnav sweep` plans one run per point of a settings grid instead. Either plan is run by an
+engine: the local runner here (`qnav train` processes, `--jobs` at a time) or Ray
+(`training/cluster.py`, docs/cluster.md); the plan, the skip of finished runs, a run's `qnav
+train` arguments, its result record and the progress lines are this module's, whichever runs it.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
+import re
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from contracts.errors import ConfigError
+from contracts.settings import parse_assignments, with_overrides
 from sim import paper
 
 SCENARIOS = ("obstacles-inertia", "walls-inertia", "walls-increment", "obstacles-increment")
@@ -43,13 +53,42 @@ class RunSpec:
     relabel: str = "paper"
     ablation: bool = False
     """An ablation run: validated after every round, to time when 0.9 is first reached."""
+    overrides: tuple[str, ...] = ()
+    """This run's own settings as SECTION.FIELD=VALUE (a sweep's grid point; train.* are the
+    learner's, any other section the world's)."""
 
     @property
     def name(self) -> str:
         if self.ablation:
             return f"{self.scenario}-{self.model}-seed{self.seed}-ablation-{self.relabel}"
         suffix = "" if self.relabel == "paper" else f"-{self.relabel}"
-        return f"{self.scenario}-{self.model}-seed{self.seed}{suffix}"
+        point = "".join(f"-{_label(o)}" for o in self.overrides)
+        return f"{self.scenario}-{self.model}-seed{self.seed}{suffix}{point}"
+
+
+def _label(assignment: str) -> str:
+    """`train.learning_rate=1e-4` -> `learning_rate=1e-4`, safe as part of a file name."""
+    key, value = assignment.split("=", 1)
+    text = f"{key.split('.')[-1]}={value}"
+    return re.sub(r"[^A-Za-z0-9._=+-]", "_", text)
+
+
+@dataclass(frozen=True)
+class StudySettings:
+    """How every run of a study is trained, whichever engine runs it."""
+
+    preset: str = "fast"
+    """Learner schedule: fast (ours for 2 CPU cores) or paper."""
+    threads: int = 2
+    """Torch threads of each run (a Ray task asks for as many CPUs)."""
+    common: tuple[str, ...] = ()
+    """Settings of every run as SECTION.FIELD=VALUE, applied before a run's own overrides."""
+
+    def __post_init__(self) -> None:
+        if self.preset not in ("fast", "paper"):
+            raise ConfigError(f"--preset = {self.preset!r}: expected fast or paper")
+        if self.threads < 1:
+            raise ConfigError(f"--threads = {self.threads}: give at least 1")
 
 
 def parse_choices(setting: str, text: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
@@ -112,19 +151,118 @@ def ablation_plan(seeds: tuple[int, ...] = (0,)) -> list[RunSpec]:
     ]
 
 
-def _train_command(spec: RunSpec, run_root: Path, threads: int, preset: str) -> list[str]:
+def parse_grid(items: list[str]) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """`["train.learning_rate=1e-4,3e-4", "train.batch_size=32,64"]` -> each setting with its
+    values, in the order given; a malformed item names `--grid`."""
+    grid: list[tuple[str, tuple[str, ...]]] = []
+    for item in items:
+        key, equals, text = item.partition("=")
+        key = key.strip()
+        values = tuple(v.strip() for v in text.split(","))
+        if not equals or "." not in key or not all(values):
+            raise ConfigError(
+                f"--grid {item!r}: expected SECTION.FIELD=VALUE,VALUE,... "
+                "(e.g. train.learning_rate=1e-4,3e-4)"
+            )
+        if key in (k for k, _ in grid):
+            raise ConfigError(f"--grid {key} is given twice; list all its values in one --grid")
+        grid.append((key, values))
+    return tuple(grid)
+
+
+def grid_points(grid: tuple[tuple[str, tuple[str, ...]], ...]) -> list[tuple[str, ...]]:
+    """Every combination of the grid's values, as SECTION.FIELD=VALUE assignments; the last
+    setting varies fastest. An empty grid has one point: no change."""
+    return [
+        tuple(f"{key}={value}" for (key, _), value in zip(grid, values, strict=True))
+        for values in itertools.product(*(values for _, values in grid))
+    ]
+
+
+RUN_OPTIONS = {"train.seed": "--seeds", "train.model": "--models", "train.threads": "--threads"}
+"""Learner settings a study gives each run through its own options (an assignment would be
+overridden by them, silently)."""
+
+
+def check_assignments(assignments: tuple[str, ...], option: str) -> None:
+    """Refuse, by name, a setting that no run could take (an unknown field, a bad value), before
+    any run starts: train.* against the learner's settings, anything else the world's."""
+    from sim.config import load_world
+    from training.config import TrainSettings
+
+    for assignment in assignments:
+        key = assignment.partition("=")[0].strip()
+        if key in RUN_OPTIONS:
+            raise ConfigError(
+                f"{option} {assignment}: a run's {key} is set by {RUN_OPTIONS[key]} instead"
+            )
+        nested = parse_assignments([assignment])
+        try:
+            if "train" in nested:
+                with_overrides(TrainSettings(), nested["train"])
+            else:
+                load_world("walls-inertia", None, [assignment])
+        except ConfigError as error:
+            raise ConfigError(f"{option} {assignment}: {error}") from None
+
+
+def sweep_plan(
+    scenarios: tuple[str, ...],
+    models: tuple[str, ...],
+    seeds: tuple[int, ...],
+    grid: tuple[tuple[str, tuple[str, ...]], ...],
+) -> list[RunSpec]:
+    """One run per grid point, scenario, model and seed; grid point by grid point, so that a
+    partial sweep has every seed of the first points."""
+    return [
+        RunSpec(scenario, model, seed, overrides=point)
+        for point in grid_points(grid)
+        for seed in seeds
+        for scenario in scenarios
+        for model in models
+    ]
+
+
+def result_path(results_root: Path, spec: RunSpec) -> Path:
+    """Where a run's result record lives; its existence means the run is finished."""
+    return results_root / f"{spec.name}.json"
+
+
+def pending(specs: list[RunSpec], results_root: Path) -> list[RunSpec]:
+    """The runs still to do, in plan order: a run with a result is skipped (and an unfinished
+    one resumes from its run folder's checkpoint when started again)."""
+    return [s for s in specs if not result_path(results_root, s).exists()]
+
+
+def train_argv(spec: RunSpec, run_dir: Path, study: StudySettings) -> list[str]:
+    """The `qnav train` arguments of one run: every engine trains a run with exactly these."""
     options = [
         "--scenario", spec.scenario, "--model", spec.model, "--seed", str(spec.seed),
-        "--relabel", spec.relabel, "--preset", preset, "--run-dir", str(run_root / spec.name),
-        "--train-set", f"train.threads={threads}",
+        "--preset", study.preset, "--run-dir", str(run_dir),
+        "--train-set", f"train.threads={study.threads}",
     ]  # fmt: skip
+    if spec.relabel != "paper":  # both presets' own rule, which a sweep may vary (train.relabel)
+        options += ["--relabel", spec.relabel]
+    for assignment in (*study.common, *spec.overrides):
+        options += ["--train-set" if assignment.startswith("train.") else "--set", assignment]
     if spec.ablation:
         options += [
             "--episodes", str(ABLATION_EPISODES[spec.scenario]),
             "--train-set",
             f"train.eval_every_episodes={ABLATION_EVAL_EVERY_EPISODES[spec.scenario]}",
         ]  # fmt: skip
-    return [sys.executable, "-m", "qnav", "train", "--quiet", *options]
+    return ["train", "--quiet", *options]
+
+
+def execute(spec: RunSpec, run_dir: Path, study: StudySettings) -> dict[str, Any]:
+    """Train (or resume) one run in this process and return its result record: what a Ray
+    task does (the local runner starts the same `qnav train` as a process of its own)."""
+    from qnav.cli import main
+
+    code = main(train_argv(spec, run_dir, study))
+    if code != 0:
+        raise RuntimeError(f"qnav train of {spec.name} exited {code}")
+    return record(spec, run_dir)
 
 
 def _eval_json(run_dir: Path, extra: list[str]) -> dict[str, Any]:
@@ -137,6 +275,108 @@ def _eval_json(run_dir: Path, extra: list[str]) -> dict[str, Any]:
     return dict(json.loads(output.stdout))
 
 
+def record(spec: RunSpec, run_dir: Path) -> dict[str, Any]:
+    """A finished run's result record: its results.json with the study's extra tests of it."""
+    results: dict[str, Any] = json.loads((run_dir / "results.json").read_text())
+    extra: dict[str, Any] = {"ablation": True} if spec.ablation else {}
+    if spec.overrides:
+        extra["overrides"] = list(spec.overrides)
+    if spec.scenario in CROSS:
+        extra["cross_dynamics"] = {
+            "tested_on": CROSS[spec.scenario],
+            "test": _eval_json(run_dir, ["--scenario", CROSS[spec.scenario]]),
+        }
+    if spec.model == "feedforward" and spec.scenario == "walls-increment":
+        extra["random_actions_10pct"] = _eval_json(run_dir, ["--random-action-prob", "0.1"])
+    return results | extra
+
+
+def write_result(results_root: Path, spec: RunSpec, result: dict[str, Any]) -> Path:
+    """Store a run's record (written whole, then renamed: a half-written one never counts)."""
+    path = result_path(results_root, spec)
+    partial = path.with_suffix(".json.partial")
+    partial.write_text(json.dumps(result, indent=2) + "\n")
+    partial.replace(path)
+    return path
+
+
+def run_progress(run_dir: Path) -> tuple[int, int] | None:
+    """(episodes done, episodes planned) of a run folder, or None before its first round."""
+    try:
+        planned = int(tomllib.loads((run_dir / "settings.toml").read_text())["train"]["episodes"])
+        rows = (run_dir / "progress.csv").read_text().splitlines()
+    except (OSError, KeyError, ValueError, tomllib.TOMLDecodeError):
+        return None
+    if len(rows) < 2:
+        return None
+    done = dict(zip(rows[0].split(","), rows[-1].split(","), strict=False)).get("episodes", "0")
+    return int(float(done or 0)), planned
+
+
+Outcome = tuple[RunSpec, dict[str, Any] | str]
+"""A run that ended: its result record, or why it failed."""
+
+
+class Engine(Protocol):
+    """What runs a study's trainings: the local runner below, or Ray (training/cluster.py)."""
+
+    def capacity(self) -> int:
+        """How many runs may be in flight now."""
+        ...
+
+    def start(self, spec: RunSpec) -> None:
+        """Start (or resume) one run."""
+        ...
+
+    def ended(self) -> list[Outcome]:
+        """The runs that ended since the last call (without waiting)."""
+        ...
+
+    def run_dir(self, spec: RunSpec) -> Path:
+        """Where the driver sees the run's folder (for progress and, when done, its files)."""
+        ...
+
+    def close(self) -> None:
+        """Let go of what the engine holds (runs still going are not waited for)."""
+        ...
+
+
+@dataclass
+class LocalRunner:
+    """Each run a `qnav train` process on this machine, `jobs` at a time."""
+
+    run_root: Path
+    study: StudySettings
+    jobs: int = 1
+    running: dict[RunSpec, subprocess.Popen[bytes]] = field(default_factory=dict)
+
+    def capacity(self) -> int:
+        return self.jobs
+
+    def run_dir(self, spec: RunSpec) -> Path:
+        return self.run_root / spec.name
+
+    def start(self, spec: RunSpec) -> None:
+        argv = train_argv(spec, self.run_dir(spec), self.study)
+        self.running[spec] = subprocess.Popen([sys.executable, "-m", "qnav", *argv])
+
+    def ended(self) -> list[Outcome]:
+        ended: list[Outcome] = []
+        for spec, process in list(self.running.items()):
+            if process.poll() is None:
+                continue
+            del self.running[spec]
+            if process.returncode != 0:
+                ended.append((spec, f"exit {process.returncode}"))
+            else:
+                ended.append((spec, record(spec, self.run_dir(spec))))
+        return ended
+
+    def close(self) -> None:
+        for process in self.running.values():
+            process.terminate()  # it resumes from its checkpoint next time
+
+
 def run_study(
     specs: list[RunSpec],
     run_root: Path,
@@ -146,56 +386,83 @@ def run_study(
     threads: int | None = None,
     preset: str = "fast",
     time_budget_s: float | None = None,
+    common: tuple[str, ...] = (),
+    engine: Callable[[StudySettings], Engine] | None = None,
+    poll_s: float = 1.0,
 ) -> list[RunSpec]:
-    """Train every spec without a result, `jobs` at a time with `threads` torch threads each
-    (default: the cores shared among the jobs); returns those finished now."""
+    """Train every spec without a result, on `engine` (default: the local runner, `jobs` at a
+    time with `threads` torch threads each, by default the cores shared among the jobs);
+    returns those finished now."""
     if jobs < 1:
         raise ConfigError(f"--jobs = {jobs}: give at least 1")
     if threads is not None and threads < 1:
         raise ConfigError(f"--threads = {threads}: give at least 1")
+    study = StudySettings(preset, threads or max(1, (os.cpu_count() or 2) // jobs), common)
+    check_assignments(study.common, "--set")
+    for spec in specs:
+        check_assignments(spec.overrides, "--grid")
+    todo = pending(specs, results_root)
+    print(f"{len(specs) - len(todo)} of {len(specs)} runs already have results", flush=True)
+    if not todo:
+        return []
     results_root.mkdir(parents=True, exist_ok=True)
-    pending = [s for s in specs if not (results_root / f"{s.name}.json").exists()]
-    threads = threads or max(1, (os.cpu_count() or 2) // jobs)
-    started = time.monotonic()
-    running: dict[RunSpec, subprocess.Popen[bytes]] = {}
-    finished: list[RunSpec] = []
-    print(f"{len(specs) - len(pending)} of {len(specs)} runs already have results")
-    while pending or running:
-        out_of_time = time_budget_s is not None and time.monotonic() - started > time_budget_s
-        while pending and len(running) < jobs and not out_of_time:
-            spec = pending.pop(0)
-            print(f"start  {spec.name}", flush=True)
-            running[spec] = subprocess.Popen(_train_command(spec, run_root, threads, preset))
-        for spec, process in list(running.items()):
-            if process.poll() is None:
-                continue
-            del running[spec]
-            if process.returncode != 0:
-                print(f"FAILED {spec.name} (exit {process.returncode})", flush=True)
-                continue
-            _record(spec, run_root / spec.name, results_root)
-            finished.append(spec)
-            print(f"done   {spec.name}", flush=True)
-        if out_of_time and not running:
-            print(f"time budget spent; {len(pending)} runs left for the next batch")
-            break
-        time.sleep(1.0)
+    runner = engine(study) if engine else LocalRunner(run_root, study, jobs)
+    try:
+        started = time.monotonic()
+        running: list[RunSpec] = []
+        finished: list[RunSpec] = []
+        failed = 0
+        shown: dict[RunSpec, tuple[int, int] | None] = {}
+        while todo or running:
+            out_of_time = time_budget_s is not None and time.monotonic() - started > time_budget_s
+            while todo and len(running) < runner.capacity() and not out_of_time:
+                spec = todo.pop(0)
+                print(f"start  {spec.name}", flush=True)
+                runner.start(spec)
+                running.append(spec)
+            for spec, outcome in runner.ended():
+                running.remove(spec)
+                if isinstance(outcome, str):
+                    failed += 1
+                    print(f"FAILED {spec.name} ({outcome})", flush=True)
+                    continue
+                write_result(results_root, spec, outcome)
+                finished.append(spec)
+                done = len(specs) - len(pending(specs, results_root))
+                print(f"done   {spec.name} ({done} of {len(specs)} runs done)", flush=True)
+            for spec in running:
+                now = run_progress(runner.run_dir(spec))
+                if now is not None and now != shown.get(spec):
+                    shown[spec] = now
+                    print(f"       {spec.name}: {now[0]} of {now[1]} episodes", flush=True)
+            if out_of_time and not running:
+                print(f"time budget spent; {len(todo)} runs left for the next batch")
+                break
+            if todo or running:
+                time.sleep(poll_s)
+    finally:
+        runner.close()
+    done = len(specs) - len(pending(specs, results_root))
+    print(f"study: {done} of {len(specs)} runs have results ({failed} failed now)", flush=True)
     return finished
 
 
-def _record(spec: RunSpec, run_dir: Path, results_root: Path) -> None:
-    """Copy the run's results and add the study's extra tests of it."""
-    results = json.loads((run_dir / "results.json").read_text())
-    extra: dict[str, Any] = {"ablation": True} if spec.ablation else {}
-    if spec.scenario in CROSS:
-        extra["cross_dynamics"] = {
-            "tested_on": CROSS[spec.scenario],
-            "test": _eval_json(run_dir, ["--scenario", CROSS[spec.scenario]]),
-        }
-    if spec.model == "feedforward" and spec.scenario == "walls-increment":
-        extra["random_actions_10pct"] = _eval_json(run_dir, ["--random-action-prob", "0.1"])
-    results |= extra
-    (results_root / f"{spec.name}.json").write_text(json.dumps(results, indent=2) + "\n")
+def sweep_table(specs: list[RunSpec], results_root: Path) -> str:
+    """A sweep's runs as a Markdown table: settings, seed, test figures (or 'not run yet')."""
+    lines = [
+        _row("scenario", "model", "settings", "seed", "success", "collision", "unfinished"),
+        _row(*["---"] * 7),
+    ]
+    for spec in specs:
+        path = result_path(results_root, spec)
+        point = ", ".join(spec.overrides) or "-"
+        if not path.exists():
+            lines.append(_row(spec.scenario, spec.model, point, spec.seed, "not run yet", "", ""))
+            continue
+        test = json.loads(path.read_text())["test"]
+        figures = (f"{test[k]:.3f}" for k in ("success", "collision", "unfinished"))
+        lines.append(_row(spec.scenario, spec.model, point, spec.seed, *figures))
+    return "\n".join(lines)
 
 
 def _load(results_root: Path) -> dict[str, dict[str, Any]]:
