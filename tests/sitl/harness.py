@@ -70,6 +70,8 @@ OBSERVED = {
 has an absolute position (without one Rover's failsafe and GUIDED cannot brake)."""
 EKF_POS_HORIZ_ABS = 16
 """EKF_STATUS_REPORT.flags: the EKF has a horizontal position relative to its origin."""
+EKF_CONST_POS_MODE = 128
+"""EKF_STATUS_REPORT.flags: the EKF holds a constant position (no aiding)."""
 REST_SPEED_MPS = 0.05
 """Below this the vehicle is at rest."""
 

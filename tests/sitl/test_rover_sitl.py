@@ -25,6 +25,7 @@ from contracts.settings import from_dict
 from firmware_bridge.calibrate import Calibrator, Pattern
 from firmware_bridge.settings import BridgeSettings
 from tests.sitl.harness import (
+    EKF_CONST_POS_MODE,
     EKF_POS_HORIZ_ABS,
     BridgeProcess,
     LinkCutter,
@@ -101,7 +102,11 @@ def _drive_and_check_motion(zenoh: Zenoh, observer: Observer) -> float:
     start, yaw0 = observer.position(), observer.yaw_ned()
     zenoh.drive(DRIVE_SPEED_MPS, 0.0, 4.0)
     travelled = _forward_m(observer, start, yaw0)
-    assert travelled > 1.5, f"moved {travelled:.2f} m forward in 4 s at {DRIVE_SPEED_MPS} m/s"
+    assert travelled > 1.5, (
+        f"moved {travelled:.2f} m forward in 4 s at {DRIVE_SPEED_MPS} m/s; "
+        f"modes {[(round(t - time.monotonic(), 2), m) for t, _, m in observer.changes[-4:]]}; "
+        f"texts {observer.texts[-6:]}"
+    )
     speed = observer.speed()
     assert 0.5 * DRIVE_SPEED_MPS < speed < 2.0 * DRIVE_SPEED_MPS, f"speed {speed:.2f} m/s"
     # angular.z > 0 turns counter-clockwise seen from above: the NED yaw decreases.
@@ -227,16 +232,29 @@ MOCAP_OUTPUTS = {
 def _mocap_position(observer: Observer, mode: str, since_s: float) -> None:
     """Wait for the output's mode and for the EKF to take the forwarded pose as its position."""
     wait_until(lambda: observer.mode == mode, BOOT_TIMEOUT_S, f"{mode} on the mocap pose")
+
     # Without a position the brake mode (GUIDED) is refused and FS_ACTION 6 falls back to
     # Hold, which coasts: only with the pose as the EKF's position can either brake.
-    wait_until(
-        lambda: any(
-            int(r.fields["flags"]) & EKF_POS_HORIZ_ABS
-            for r in observer.since("EKF_STATUS_REPORT", since_s)[-1:]
-        ),
-        BOOT_TIMEOUT_S,
-        "the EKF's position from the motion-capture pose",
-    )
+    # After a link loss the poses stopped with it: the EKF's position drifted ("EKF variance",
+    # "EKF failsafe") and resets when they come back, which moves LOCAL_POSITION_NED: wait
+    # until it is healthy again (variances below half of Rover's FS_EKF_THRESH 0.8, not in
+    # constant-position mode) for a second.
+    def healthy() -> bool:
+        reports = observer.since("EKF_STATUS_REPORT", since_s)
+        recent = [r for r in reports if r.time_s > time.monotonic() - 1.0]
+        return (
+            len(recent) >= 2
+            and all(
+                int(r.fields["flags"]) & EKF_POS_HORIZ_ABS
+                and not int(r.fields["flags"]) & EKF_CONST_POS_MODE
+                and r.fields["pos_horiz_variance"] < 0.4
+                and r.fields["velocity_variance"] < 0.4
+                for r in recent
+            )
+            and recent[0].time_s - reports[0].time_s >= 1.0
+        )
+
+    wait_until(healthy, BOOT_TIMEOUT_S, "the EKF's position from the motion-capture pose")
 
 
 @pytest.mark.parametrize("output", list(MOCAP_OUTPUTS))
