@@ -27,6 +27,7 @@ from firmware_bridge.settings import BridgeSettings
 from tests.sitl.harness import (
     EKF_CONST_POS_MODE,
     EKF_POS_HORIZ_ABS,
+    HOME,
     BridgeProcess,
     LinkCutter,
     MotionCapture,
@@ -35,6 +36,7 @@ from tests.sitl.harness import (
     StopMeasure,
     Zenoh,
     measure_stop,
+    true_pose,
     wait_until,
 )
 
@@ -236,22 +238,26 @@ def _mocap_position(observer: Observer, mode: str, since_s: float) -> None:
     # Without a position the brake mode (GUIDED) is refused and FS_ACTION 6 falls back to
     # Hold, which coasts: only with the pose as the EKF's position can either brake.
     # After a link loss the poses stopped with it: the EKF's position drifted ("EKF variance",
-    # "EKF failsafe") and resets when they come back, which moves LOCAL_POSITION_NED: wait
-    # until it is healthy again (variances below half of Rover's FS_EKF_THRESH 0.8, not in
-    # constant-position mode) for a second.
+    # "EKF failsafe") and converges back when they return, which moves LOCAL_POSITION_NED
+    # (the drive's measure) on its own: wait until it is healthy again (variances below half
+    # of Rover's FS_EKF_THRESH 0.8, not in constant-position mode) for a second, and agrees
+    # with the true pose (SIMSTATE, what the motion capture publishes) within 0.1 m.
+    home = (float(HOME.split(",")[0]), float(HOME.split(",")[1]))
+
     def healthy() -> bool:
         reports = observer.since("EKF_STATUS_REPORT", since_s)
         recent = [r for r in reports if r.time_s > time.monotonic() - 1.0]
-        return (
-            len(recent) >= 2
-            and all(
-                int(r.fields["flags"]) & EKF_POS_HORIZ_ABS
-                and not int(r.fields["flags"]) & EKF_CONST_POS_MODE
-                and r.fields["pos_horiz_variance"] < 0.4
-                and r.fields["velocity_variance"] < 0.4
-                for r in recent
-            )
-            and recent[0].time_s - reports[0].time_s >= 1.0
+        truth = observer.latest("SIMSTATE")
+        if len(recent) < 2 or truth is None or recent[0].time_s - reports[0].time_s < 1.0:
+            return False
+        east, north, _ = true_pose(truth.fields, home)
+        estimate = observer.position()
+        return math.hypot(estimate[0] - north, estimate[1] - east) < 0.1 and all(
+            int(r.fields["flags"]) & EKF_POS_HORIZ_ABS
+            and not int(r.fields["flags"]) & EKF_CONST_POS_MODE
+            and r.fields["pos_horiz_variance"] < 0.4
+            and r.fields["velocity_variance"] < 0.4
+            for r in recent
         )
 
     wait_until(healthy, BOOT_TIMEOUT_S, "the EKF's position from the motion-capture pose")
