@@ -241,7 +241,8 @@ def _mocap_position(observer: Observer, mode: str, since_s: float) -> None:
     # "EKF failsafe") and converges back when they return, which moves LOCAL_POSITION_NED
     # (the drive's measure) on its own: wait until it is healthy again (variances below half
     # of Rover's FS_EKF_THRESH 0.8, not in constant-position mode) for a second, and agrees
-    # with the true pose (SIMSTATE, what the motion capture publishes) within 0.1 m.
+    # with the true pose (SIMSTATE, what the motion capture publishes) within 0.1 m and 0.05
+    # rad (the drive is measured along the EKF's heading).
     home = (float(HOME.split(",")[0]), float(HOME.split(",")[1]))
 
     def healthy() -> bool:
@@ -252,12 +253,18 @@ def _mocap_position(observer: Observer, mode: str, since_s: float) -> None:
             return False
         east, north, _ = true_pose(truth.fields, home)
         estimate = observer.position()
-        return math.hypot(estimate[0] - north, estimate[1] - east) < 0.1 and all(
-            int(r.fields["flags"]) & EKF_POS_HORIZ_ABS
-            and not int(r.fields["flags"]) & EKF_CONST_POS_MODE
-            and r.fields["pos_horiz_variance"] < 0.4
-            and r.fields["velocity_variance"] < 0.4
-            for r in recent
+        yaw_error = wrap_pi(observer.yaw_ned() - float(truth.fields["yaw"]))
+        close = math.hypot(estimate[0] - north, estimate[1] - east) < 0.1
+        return (
+            close
+            and abs(yaw_error) < 0.05
+            and all(
+                int(r.fields["flags"]) & EKF_POS_HORIZ_ABS
+                and not int(r.fields["flags"]) & EKF_CONST_POS_MODE
+                and r.fields["pos_horiz_variance"] < 0.4
+                and r.fields["velocity_variance"] < 0.4
+                for r in recent
+            )
         )
 
     wait_until(healthy, BOOT_TIMEOUT_S, "the EKF's position from the motion-capture pose")
