@@ -262,8 +262,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="probe.FIELD=VALUE",
-        help="change one probe setting, e.g. probe.epochs=20 (repeatable; `qnav probe "
-        "--print-config` lists them)",
+        help="change one probe setting, e.g. probe.epochs=20 or, with --perception, "
+        "perception.epochs=20 (repeatable; `qnav probe [--perception] --print-config` lists them)",
+    )
+    probe.add_argument(
+        "--perception",
+        action="store_true",
+        help="instead: can the network's encoder and LSTM locate the nearest obstacle and its "
+        "velocity in a window? (median errors per pass)",
     )
     probe.add_argument("--print-config", action="store_true", help="print the probe settings")
     probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")

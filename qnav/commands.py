@@ -17,6 +17,7 @@ from sim.evaluate import evaluate as run_evaluation
 
 if TYPE_CHECKING:
     from training.imitate import ImitationResult, ImitationSettings
+    from training.probe import PerceptionSettings
     from training.study import Engine, StudySettings
 
 
@@ -353,24 +354,29 @@ def gauge(args: argparse.Namespace) -> int:
 
 
 def probe(args: argparse.Namespace) -> int:
-    """Fit the paper's network to the planner's doom labels; print the gauge after each pass."""
+    """Fit the paper's network to the planner's doom labels and print the gauge after each pass,
+    or (--perception) fit it to locate the nearest obstacle and print the median errors."""
     from contracts.settings import to_toml
-    from training.probe import ProbeSettings
+    from training.probe import PerceptionSettings, ProbeSettings
     from training.probe import probe as fit
 
-    settings = ProbeSettings()
+    settings: ProbeSettings | PerceptionSettings
+    settings = PerceptionSettings() if args.perception else ProbeSettings()
+    section = settings.SECTION
     if args.probe_assignments:
         overrides = parse_assignments(args.probe_assignments)
-        unknown = set(overrides) - {"probe"}
+        unknown = set(overrides) - {section}
         if unknown:
-            raise ConfigError(f"--probe-set takes probe.FIELD=VALUE, not {sorted(unknown)}")
-        settings = with_overrides(settings, overrides["probe"], "probe")
+            raise ConfigError(f"--probe-set takes {section}.FIELD=VALUE, not {sorted(unknown)}")
+        settings = with_overrides(settings, overrides[section], section)
     if args.print_config:
         print(to_toml(settings))
         return 0
     world = load_world(args.scenario, args.world_config, args.assignments)
     if not world.obstacles.count:
         raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
+    if isinstance(settings, PerceptionSettings):
+        return _perceive(world, settings, args.json)
     for epoch in fit(world, settings, progress=not args.json):
         if args.json:
             print(json.dumps(epoch._asdict()))
@@ -380,6 +386,19 @@ def probe(args: argparse.Namespace) -> int:
                 f"{epoch.train_balanced:.3f}, gauge safe {epoch.safe:.3f}, "
                 f"balanced {epoch.balanced:.3f} (blind choices 0.500)"
             )
+    return 0
+
+
+def _perceive(world: WorldConfig, settings: PerceptionSettings, as_json: bool) -> int:
+    from training.probe import perceive
+
+    for epoch in perceive(world, settings, progress=not as_json):
+        if as_json:
+            print(json.dumps(epoch._asdict()))
+        else:
+            name = f"epoch {epoch.epoch}" if epoch.epoch else "predicting the mean"
+            errors = ", ".join(f"{key} {value:.3f}" for key, value in epoch.errors.items())
+            print(f"{name}: median absolute error {errors}")
     return 0
 
 

@@ -13,6 +13,7 @@ The probe is a diagnostic: nothing in training or the product imports it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -22,10 +23,14 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.actions import NUM_ACTIONS
+from contracts.errors import ConfigError
+from contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from contracts.policy_file import CONV_CHANNELS
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
-from sim.world import WorldState
+from sim.evaluate import go_to_target
+from sim.world import BatchedWorld, WorldState, observe
 from training.agent import greedy_actions
 from training.networks import QNetwork
 
@@ -236,5 +241,160 @@ def probe(
         fit = score(fitted, choices(fitted))
         history.append(
             ProbeEpoch(epoch, total / len(safe), fit.balanced, judged.safe, judged.balanced)
+        )
+    return history
+
+
+@dataclass(frozen=True)
+class PerceptionSettings:
+    """Windows and fit of the perception probe (`qnav probe --perception`)."""
+
+    SECTION = "perception"
+
+    windows: int = 30_000
+    """Training windows (each with the nearest obstacle within `max_distance_m`)."""
+    held_out_windows: int = 4_000
+    """Windows it is judged on, from other layouts."""
+    max_distance_m: float = 4.0
+    """Windows whose nearest obstacle is farther than this are skipped (4 s of the robot's
+    reach plus an obstacle's: what matters for doom)."""
+    explore_share: float = 0.3
+    """Share of steps where a held random action replaces go-to-target's, so windows show
+    turns and stops too."""
+    epochs: int = 12
+    """Passes over the training windows."""
+    batch_size: int = 128
+    """Windows per gradient step."""
+    learning_rate: float = 1e-3
+    """Adam's learning rate."""
+    conv_channels: int = CONV_CHANNELS
+    """Channels of each of the encoder's three convolutions (the paper: 8)."""
+    seed: int = 5
+    """Seed of the training layouts and the fit; the held-out layouts use seed + 1000."""
+    threads: int = 2
+    """Torch threads."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "windows", self.windows, 1, 10**7)
+        check_range(self, "held_out_windows", self.held_out_windows, 1, 10**7)
+        check_range(self, "max_distance_m", self.max_distance_m, 0.0, 1e3, exclusive_low=True)
+        check_range(self, "explore_share", self.explore_share, 0.0, 1.0)
+        check_range(self, "epochs", self.epochs, 1, 10**6)
+        check_range(self, "batch_size", self.batch_size, 1, 10**6)
+        check_range(self, "learning_rate", self.learning_rate, 0.0, 1.0, exclusive_low=True)
+        check_range(self, "conv_channels", self.conv_channels, 1, 4096)
+        check_range(self, "threads", self.threads, 1, 1024)
+
+
+PERCEIVED = (
+    "obstacle_ahead_m",
+    "obstacle_left_m",
+    "obstacle_forward_mps",
+    "obstacle_leftward_mps",
+    "robot_speed_mps",
+    "robot_turn_radps",
+)
+"""What the perception probe asks of a window: the nearest obstacle's position and velocity in
+the robot's frame, and the robot's own speed and turn rate (hidden under inertia)."""
+
+
+class PerceptionEpoch(NamedTuple):
+    """Median absolute errors on the held-out windows after one pass, by `PERCEIVED` name."""
+
+    epoch: int
+    """1-based pass (0: predicting the training mean, the blind baseline)."""
+    loss: float
+    """Mean squared error of the pass, in standard deviations (nan for the baseline)."""
+    errors: dict[str, float]
+    """Median absolute error of each perceived quantity, in its unit."""
+
+
+def perception_windows(
+    world: WorldConfig, count: int, settings: PerceptionSettings, seed: int
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """`count` windows (count, k, F) from go-to-target driving with held random actions, and
+    the quantities (count, len(PERCEIVED)) they should reveal."""
+    worlds = 200
+    batched = BatchedWorld(world, worlds, seed=seed)
+    observation = observe(world, batched.state)
+    window = FrameWindow(worlds, world.lidar.num_beams + 3 if world.lidar else 3)
+    chance = np.random.default_rng(seed)
+    held = chance.integers(0, NUM_ACTIONS, worlds)
+    windows, truths = [], []
+    found = 0
+    while found < count:
+        frames = window.advance(
+            encode_frame(
+                observation.scan_m, observation.target_features(), distance_scale_m(world.lidar)
+            )
+        )
+        context, obstacles = state_features(batched.state, 2.0)  # lengths in metres
+        nearest = np.argmin(obstacles[:, :, 4], axis=1)
+        closest = obstacles[np.arange(worlds), nearest]
+        keep = closest[:, 4] <= settings.max_distance_m
+        windows.append(frames[keep].copy())
+        truths.append(np.concatenate([closest[:, :4], context[:, :2]], axis=1)[keep])
+        found += int(keep.sum())
+        held = np.where(chance.random(worlds) < 0.2, chance.integers(0, NUM_ACTIONS, worlds), held)
+        explore = chance.random(worlds) < settings.explore_share
+        action = np.where(explore, held, go_to_target(observation.target_features()))
+        result = batched.step(action)
+        observation = result.observation
+        window.restart(np.flatnonzero(result.transition.terminated | result.transition.truncated))
+    return np.concatenate(windows)[:count], np.concatenate(truths)[:count].astype(np.float32)
+
+
+def perceive(
+    world: WorldConfig, settings: PerceptionSettings = PerceptionSettings(), progress: bool = False
+) -> list[PerceptionEpoch]:
+    """Fit the paper's recurrent network (its encoder and LSTM, with a linear head in place of
+    the Q head) to regress `PERCEIVED` from windows; the first entry is the blind baseline."""
+    if world.lidar is None or not world.obstacles.count:
+        raise ConfigError(f"scenario {world.name!r} has no lidar and moving obstacles to perceive")
+    torch.set_num_threads(settings.threads)
+    windows, truth = perception_windows(world, settings.windows, settings, settings.seed)
+    held_windows, held_truth = perception_windows(
+        world, settings.held_out_windows, settings, settings.seed + 1000
+    )
+    mean, spread = truth.mean(axis=0), truth.std(axis=0) + 1e-6
+
+    def errors(predicted: NDArray[np.float32]) -> dict[str, float]:
+        median = np.median(np.abs(predicted - held_truth), axis=0)
+        return dict(zip(PERCEIVED, median.tolist(), strict=True))
+
+    history = [PerceptionEpoch(0, math.nan, errors(np.broadcast_to(mean, held_truth.shape)))]
+    torch.manual_seed(settings.seed)
+    network = QNetwork("recurrent", world.lidar.num_beams, conv_channels=settings.conv_channels)
+    head = torch.nn.Linear(network.summary_size, len(PERCEIVED))
+    optimizer = torch.optim.Adam(
+        [*network.parameters(), *head.parameters()], lr=settings.learning_rate
+    )
+
+    def predict(frames: torch.Tensor) -> torch.Tensor:
+        summary = network.window_summary(network.frame_features(frames))
+        return torch.as_tensor(head(summary))
+
+    inputs = torch.from_numpy(windows)
+    targets = torch.from_numpy((truth - mean) / spread)
+    order = np.random.default_rng(settings.seed)
+    for epoch in tqdm(range(1, settings.epochs + 1), desc="perceive", disable=not progress):
+        total = 0.0
+        permutation = order.permutation(len(inputs))
+        for start in range(0, len(inputs), settings.batch_size):
+            rows = torch.from_numpy(permutation[start : start + settings.batch_size])
+            loss = torch.nn.functional.mse_loss(predict(inputs[rows]), targets[rows])
+            optimizer.zero_grad()
+            loss.backward()  # type: ignore[no-untyped-call]
+            optimizer.step()
+            total += loss.item() * len(rows)
+        with torch.no_grad():
+            predicted = torch.cat(
+                [
+                    predict(torch.from_numpy(held_windows[start : start + 512]))
+                    for start in range(0, len(held_windows), 512)
+                ]
+            ).numpy()
+        history.append(
+            PerceptionEpoch(epoch, total / len(inputs), errors(predicted * spread + mean))
         )
     return history

@@ -9,11 +9,21 @@ import numpy as np
 import pytest
 
 from contracts.errors import ConfigError
+from contracts.observation import distance_scale_m
 from sim.config import scenario
 from sim.decisive import GaugeSettings, collect
 from sim.world import reset
 from tests.test_cli import _qnav
-from training.probe import ProbeSettings, decisive_only, probe, state_features
+from training.probe import (
+    PERCEIVED,
+    PerceptionSettings,
+    ProbeSettings,
+    decisive_only,
+    perceive,
+    perception_windows,
+    probe,
+    state_features,
+)
 
 SMALL_GAUGE = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6)
 SMALL = ProbeSettings(episodes_per_driver=6, epochs=2, batch_size=32, threads=1)
@@ -77,3 +87,37 @@ def test_qnav_probe_prints_its_settings() -> None:
     assert result.returncode == 0, result.stderr
     assert "ordinary_share" in result.stdout
     assert json.dumps(True) not in result.stdout or "scan_difference" in result.stdout
+
+
+SMALL_PERCEPTION = PerceptionSettings(
+    windows=300, held_out_windows=100, epochs=2, batch_size=64, threads=1
+)
+
+
+def test_perception_windows_label_the_nearest_obstacle_within_reach() -> None:
+    world = scenario("obstacles-inertia")
+    windows, truth = perception_windows(world, 50, SMALL_PERCEPTION, seed=1)
+    assert windows.shape == (50, 5, 723) and truth.shape == (50, len(PERCEIVED))
+    ahead, left = truth[:, 0], truth[:, 1]
+    assert (np.hypot(ahead, left) <= SMALL_PERCEPTION.max_distance_m + 1e-5).all()
+    # The newest scan sees that obstacle's near surface, or something nearer in front of it.
+    max_range_m = distance_scale_m(world.lidar)
+    nearest_return_m = windows[:, -1, :-3].astype(np.float64).min(axis=1) * max_range_m
+    assert (nearest_return_m <= np.hypot(ahead, left) - world.obstacles.radius_m + 0.05).all()
+
+
+def test_the_perception_probe_reports_the_blind_baseline_then_each_pass() -> None:
+    history = perceive(scenario("obstacles-inertia"), SMALL_PERCEPTION)
+    assert [epoch.epoch for epoch in history] == [0, 1, 2]
+    for epoch in history:
+        assert set(epoch.errors) == set(PERCEIVED)
+        assert all(np.isfinite(value) and value >= 0 for value in epoch.errors.values())
+
+
+def test_qnav_probe_perception_names_its_settings() -> None:
+    result = _qnav("probe", "--perception", "--print-config")
+    assert result.returncode == 0, result.stderr
+    assert "conv_channels" in result.stdout
+    result = _qnav("probe", "--perception", "--probe-set", "perception.windows=0")
+    assert result.returncode != 0
+    assert "perception.windows" in result.stderr
