@@ -100,6 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
         "an upper bound on success; slow)",
     )
     evaluate.add_argument(
+        "--state-error",
+        choices=["exact", "lidar-grade", "tracker", "coarse"],
+        help="with --agent oracle: plan on a noisy estimate of the state, as a perceive-then-plan "
+        "controller would (errors in sim.oracle.PERCEPTION_LEVELS)",
+    )
+    evaluate.add_argument(
         "--policy",
         type=Path,
         metavar="RUN_DIR|FILE.onnx",

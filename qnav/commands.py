@@ -76,12 +76,17 @@ def evaluate(args: argparse.Namespace) -> int:
             seed=args.seed,
         )
         label = f"{run.train.model} policy {args.policy}"
+    if args.state_error and (args.policy is not None or args.agent != "oracle"):
+        raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
     if args.random_action_prob:
         label += f" with {args.random_action_prob:.0%} random actions"
     if args.policy is None and args.agent == "oracle":
-        from sim.oracle import run_oracle
+        from sim.oracle import PERCEPTION_LEVELS, run_oracle
 
-        result = run_oracle(world, eval_settings, progress=not args.json)
+        error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
+        if error is not None:
+            label += f", planning on a {args.state_error} estimate of the state"
+        result = run_oracle(world, eval_settings, state_error=error, progress=not args.json)
     else:
         result = run_evaluation(world, agent, eval_settings, progress=not args.json)
     if args.json:
@@ -277,7 +282,6 @@ def gauge(args: argparse.Namespace) -> int:
     own world's states beside its test success."""
     from contracts.actions import Action
     from sim.decisive import (
-        PERCEPTION_LEVELS,
         GaugeResult,
         GaugeSettings,
         cached,
@@ -287,6 +291,7 @@ def gauge(args: argparse.Namespace) -> int:
         random_expectation,
     )
     from sim.decisive import score as judge
+    from sim.oracle import PERCEPTION_LEVELS
 
     rows: list[dict[str, object]] = []
     if not args.runs:

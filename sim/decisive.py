@@ -32,10 +32,9 @@ from contracts.observation import FrameWindow, distance_scale_m, encode_frame
 from contracts.settings import check_range, to_toml
 from sim.config import WorldConfig
 from sim.evaluate import go_to_target
-from sim.oracle import OracleDriver, collision_shares, doomed_actions
+from sim.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
 from sim.world import Observation, WorldState, observe, reset, step, take_rows
 
-F64 = NDArray[np.float64]
 StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]
 
 
@@ -285,32 +284,6 @@ def _result(states: DecisiveStates, safe: NDArray[np.float64]) -> GaugeResult:
     return GaugeResult(float(safe.mean()), float(balanced), by_driver, len(safe))
 
 
-class StateError(NamedTuple):
-    """How far from the true state a perceiver's estimate is: the spread (one standard
-    deviation, per axis) of zero-mean Gaussian errors."""
-
-    obstacle_position_m: float
-    """Error of each obstacle's position."""
-    obstacle_velocity_mps: float
-    """Error of each obstacle's velocity."""
-    robot_speed_mps: float
-    """Error of the robot's own forward speed (hidden under inertia dynamics)."""
-    robot_turn_radps: float
-    """Error of the robot's own turn rate."""
-
-
-PERCEPTION_LEVELS: dict[str, StateError] = {
-    "exact": StateError(0.0, 0.0, 0.0, 0.0),
-    "lidar-grade": StateError(0.01, 0.02, 0.0, 0.0),
-    "tracker": StateError(0.03, 0.05, 0.05, 0.1),
-    "coarse": StateError(0.1, 0.2, 0.1, 0.2),
-}
-"""Perception errors `qnav gauge --ceiling` reports. A 720-beam lidar resolves 0.5 degree, a
-few centimetres at the ranges that matter, and five frames 0.2 s apart give velocities to a
-few cm/s: "lidar-grade" is what a perfect perceiver of the window could know, "tracker" a
-good hand-built obstacle tracker, "coarse" a sloppy one."""
-
-
 def perception_ceiling(
     config: WorldConfig,
     states: DecisiveStates,
@@ -325,21 +298,9 @@ def perception_ceiling(
     random = np.random.default_rng(seed)
     doomed_count = np.zeros(states.doomed.shape)
     for _ in range(draws):
-        doomed_count += doomed_actions(config, _with_error(states.world, error, random))
+        doomed_count += doomed_actions(config, with_error(states.world, error, random))
     tie_break = random.random(doomed_count.shape) * 1e-3
     return score(states, np.argmin(doomed_count + tie_break, axis=1))
-
-
-def _with_error(world: WorldState, error: StateError, random: np.random.Generator) -> WorldState:
-    def noisy(value: F64, sigma: F64 | float) -> F64:
-        return value + random.normal(size=value.shape) * sigma
-
-    robot_sigma = np.array([error.robot_speed_mps, error.robot_turn_radps])
-    return world._replace(
-        obstacle_xy=noisy(world.obstacle_xy, error.obstacle_position_m),
-        obstacle_velocity=noisy(world.obstacle_velocity, error.obstacle_velocity_mps),
-        velocity=noisy(world.velocity, robot_sigma),
-    )
 
 
 def go_to_target_choices(states: DecisiveStates) -> NDArray[np.int64]:

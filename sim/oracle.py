@@ -36,6 +36,8 @@ from sim.geometry import clearance
 from sim.task import Outcome, outcome
 from sim.world import WorldState
 
+F64 = NDArray[np.float64]
+
 _HOLDS = (1, 3, 6, 10)
 _SEQUENCE_STREAM = 211
 _RANDOM_HOLD_STEPS = 3
@@ -204,6 +206,46 @@ def collision_shares(
     return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
 
 
+class StateError(NamedTuple):
+    """How far from the true state a perceiver's estimate is: the spread (one standard
+    deviation, per axis) of zero-mean Gaussian errors."""
+
+    obstacle_position_m: float
+    """Error of each obstacle's position."""
+    obstacle_velocity_mps: float
+    """Error of each obstacle's velocity."""
+    robot_speed_mps: float
+    """Error of the robot's own forward speed (hidden under inertia dynamics)."""
+    robot_turn_radps: float
+    """Error of the robot's own turn rate."""
+
+
+PERCEPTION_LEVELS: dict[str, StateError] = {
+    "exact": StateError(0.0, 0.0, 0.0, 0.0),
+    "lidar-grade": StateError(0.01, 0.02, 0.0, 0.0),
+    "tracker": StateError(0.03, 0.05, 0.05, 0.1),
+    "coarse": StateError(0.1, 0.2, 0.1, 0.2),
+}
+"""Perception errors `qnav gauge --ceiling` and `qnav eval --agent oracle --state-error` know.
+A 720-beam lidar resolves 0.5 degree, a few centimetres at the ranges that matter, and five
+frames 0.2 s apart give velocities to a few cm/s: "lidar-grade" is what a perfect perceiver of
+the window could know, "tracker" a good hand-built obstacle tracker, "coarse" a sloppy one."""
+
+
+def with_error(world: WorldState, error: StateError, random: np.random.Generator) -> WorldState:
+    """A copy of the state as a perceiver with `error` would estimate it (fresh draws)."""
+
+    def noisy(value: F64, sigma: F64 | float) -> F64:
+        return value + random.normal(size=value.shape) * sigma
+
+    robot_sigma = np.array([error.robot_speed_mps, error.robot_turn_radps])
+    return world._replace(
+        obstacle_xy=noisy(world.obstacle_xy, error.obstacle_position_m),
+        obstacle_velocity=noisy(world.obstacle_velocity, error.obstacle_velocity_mps),
+        velocity=noisy(world.velocity, robot_sigma),
+    )
+
+
 class OracleDriver:
     """The planner driving N worlds at once: `act(state)` gives each world's action.
 
@@ -212,16 +254,27 @@ class OracleDriver:
     """
 
     def __init__(
-        self, config: WorldConfig, seed: int, *, horizon: int = 20, random_sequences: int = 128
+        self,
+        config: WorldConfig,
+        seed: int,
+        *,
+        horizon: int = 20,
+        random_sequences: int = 128,
+        state_error: StateError | None = None,
     ) -> None:
         self.config = config
         self.seed = seed
         self.horizon = horizon
         self.random_sequences = random_sequences
+        self.state_error = state_error
+        self._random = np.random.default_rng([seed, 7])
 
     def act(self, state: WorldState) -> NDArray[np.int64]:
-        """(N,) the planner's action in each world."""
+        """(N,) the planner's action in each world: planned on the true state, or on a fresh
+        estimate of it with `state_error` (a perceive-then-plan controller's view)."""
         sequences = keyed_sequences(state, self.horizon, self.random_sequences, self.seed)
+        if self.state_error is not None:
+            state = with_error(state, self.state_error, self._random)
         return plan(self.config, state, sequences)
 
 
@@ -231,12 +284,21 @@ def run_oracle(
     *,
     horizon: int = 20,
     random_sequences: int = 128,
+    state_error: StateError | None = None,
     progress: bool = False,
 ) -> EvalResult:
     """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner,
-    `settings.num_worlds` episodes at a time."""
+    `settings.num_worlds` episodes at a time; with `state_error`, planning on noisy estimates
+    of the state (its error drawn afresh each step, and from the whole batch, so results
+    depend on num_worlds)."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
-    driver = OracleDriver(config, settings.seed, horizon=horizon, random_sequences=random_sequences)
+    driver = OracleDriver(
+        config,
+        settings.seed,
+        horizon=horizon,
+        random_sequences=random_sequences,
+        state_error=state_error,
+    )
     batches = np.array_split(
         np.arange(settings.episodes), -(-settings.episodes // settings.num_worlds)
     )

@@ -12,7 +12,6 @@ from sim.decisive import (
     DRIVERS,
     DecisiveStates,
     GaugeSettings,
-    StateError,
     cached,
     collect,
     constant_choice,
@@ -21,7 +20,7 @@ from sim.decisive import (
     random_expectation,
     score,
 )
-from sim.oracle import doomed_actions
+from sim.oracle import StateError, doomed_actions
 from sim.world import reset
 from tests.test_cli import _qnav
 

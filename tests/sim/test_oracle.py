@@ -1,10 +1,11 @@
 """The oracle planner: knowing the future, it reaches targets that a blind walk would not."""
 
 import numpy as np
+import pytest
 
 from sim.config import scenario
 from sim.evaluate import EvalSettings
-from sim.oracle import held_sequences, plan, run_oracle
+from sim.oracle import PERCEPTION_LEVELS, StateError, held_sequences, plan, run_oracle, with_error
 from sim.world import WorldState, reset
 
 
@@ -25,3 +26,30 @@ def test_planning_worlds_together_picks_what_planning_each_alone_picks() -> None
         for i in range(6)
     ]
     np.testing.assert_array_equal(together, alone)
+
+
+def test_a_planner_with_no_state_error_plans_as_the_oracle_and_a_large_error_costs() -> None:
+    config = scenario("obstacles-increment")
+    settings = EvalSettings(episodes=12, num_worlds=12)
+    fast = {"horizon": 10, "random_sequences": 16}
+    exact = run_oracle(config, settings, **fast)  # type: ignore[arg-type]
+    zero = run_oracle(config, settings, state_error=PERCEPTION_LEVELS["exact"], **fast)  # type: ignore[arg-type]
+    assert (zero.success, zero.collision, zero.mean_steps) == (
+        exact.success,
+        exact.collision,
+        exact.mean_steps,
+    )
+    state = reset(config, np.zeros(3, dtype=np.int64), np.arange(3))
+    blurred = with_error(state, StateError(1.0, 1.0, 0.0, 0.0), np.random.default_rng(0))
+    assert not np.allclose(blurred.obstacle_xy, state.obstacle_xy)
+    np.testing.assert_array_equal(blurred.pose, state.pose)
+
+
+def test_qnav_eval_offers_every_perception_level_and_refuses_others() -> None:
+    from qnav.cli import build_parser
+
+    parser = build_parser()
+    for level in PERCEPTION_LEVELS:
+        assert parser.parse_args(["eval", "--state-error", level]).state_error == level
+    with pytest.raises(SystemExit):
+        parser.parse_args(["eval", "--state-error", "psychic"])
