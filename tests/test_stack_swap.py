@@ -10,6 +10,7 @@ every step after, with its own Q values.
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 import time
@@ -56,8 +57,10 @@ def shifted_policy(source: Path, output: Path) -> Path:
     network = network_from_weights(
         float_weights(contents.initializers), contract.model_kind, contract.num_beams
     )
+    last = network.head[2]
+    assert isinstance(last, torch.nn.Linear)
     with torch.no_grad():
-        network.head[2].bias += BIAS_SHIFT
+        last.bias.add_(BIAS_SHIFT)
     training_run = f"{contract.training_run} (head.2.bias + {BIAS_SHIFT})"
     export_onnx(network, replace(contract, training_run=training_run, evaluation={}), output)
     return output
@@ -68,7 +71,7 @@ def first_decisions(statuses: list[dict[str, Any]]) -> list[dict[str, Any]]:
     restarts at every stop and at a swap), so the decision depends on its inputs alone."""
     return [
         status
-        for before, status in zip(statuses, statuses[1:], strict=False)
+        for before, status in itertools.pairwise(statuses)
         if status["reason"] == "policy" and before["reason"] != "policy"
     ]
 
@@ -86,17 +89,19 @@ def replayed_q(
     for message in messages:
         if message.topic in topics:
             latest[topics[message.topic]] = message.payload
-        elif message.topic == "/" + wire.SCAN.name:
-            if wire.decode_scan_msg(message.payload).stamp_s == scan_stamp_s:
-                runtime.reset()
-                controller = Controller(runtime, config.safety, config.lidar)
-                for source in (Input.TARGET, Input.POSE):
-                    assert controller.receive(source, latest[source], 0.0) is None
-                assert controller.receive(Input.SCAN, message.payload, 0.0) is None
-                status = controller.decide(0.0).status
-                assert status.reason.value == "policy", status
-                assert status.q_values is not None
-                return list(status.q_values)
+        elif (
+            message.topic == "/" + wire.SCAN.name
+            and wire.decode_scan_msg(message.payload).stamp_s == scan_stamp_s
+        ):
+            runtime.reset()
+            controller = Controller(runtime, config.safety, config.lidar)
+            for source in (Input.TARGET, Input.POSE):
+                assert controller.receive(source, latest[source], 0.0) is None
+            assert controller.receive(Input.SCAN, message.payload, 0.0) is None
+            status = controller.decide(0.0).status
+            assert status.reason.value == "policy", status
+            assert status.q_values is not None
+            return list(status.q_values)
     raise AssertionError(f"no recorded scan stamped {scan_stamp_s}")
 
 
@@ -126,7 +131,7 @@ def test_a_policy_served_during_a_stack_run_is_swapped_in_at_the_next_stop_and_d
                 progress=False,
                 serve=StackServe(served, keys),
             )
-        except BaseException as error:  # noqa: BLE001 - reported by the test below
+        except BaseException as error:  # reported by the test below
             outcome["error"] = error
 
     thread = threading.Thread(target=stack, daemon=True)
