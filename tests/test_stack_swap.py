@@ -207,3 +207,39 @@ def test_a_policy_served_during_a_stack_run_is_swapped_in_at_the_next_stop_and_d
     mean_after = float(np.mean([s["q_values"] for s in after]))
     print(f"swap at status {swap} of {len(statuses)}; first decisions checked {checked}; ")
     print(f"mean Q after the swap {mean_after:.3f}; outcomes {result['outcomes']}")
+
+
+def test_the_stack_with_a_server_writes_a_controller_on_the_servers_key_and_refuses_half_options(
+    tmp_path: Path,
+) -> None:
+    # The quick part of the above (default suite): the controller's settings `run_stack` writes
+    # for a served stack load as the daemon loads them, and the options name what is missing.
+    import subprocess
+    import sys
+
+    from qnav.stack import write_configs
+
+    public = tmp_path / "keys" / delivery.PUBLIC_KEY_FILE
+    public.parent.mkdir()
+    public.write_bytes(delivery.generate_key_pair()[1])
+    files = StackFiles(tmp_path / "stack")
+    write_configs(files, POLICY, "tcp/127.0.0.1:7447", 14550, 0.1, public_key=public)
+    config = load_config(files.controller_toml)
+    assert config.policy.source == "server"
+    assert config.policy.public_key_path() == public.resolve()
+    assert Path(config.controller.policy) == POLICY.resolve()
+    write_configs(files, POLICY, "tcp/127.0.0.1:7447", 14550, 0.1)
+    assert load_config(files.controller_toml).policy.source == "file"
+
+    base = [sys.executable, "-m", "qnav", "stack", "--policy", str(POLICY), "--out",
+            str(tmp_path / "out")]  # fmt: skip
+    for extra, says in (
+        (["--keys", str(public.parent)], "--serve-folder and --keys go together"),
+        (["--serve-folder", str(tmp_path / "none"), "--keys", str(public.parent)], "not a folder"),
+        (["--serve-folder", str(tmp_path), "--keys", str(public.parent)], "policy-signing.key"),
+    ):
+        done = subprocess.run(
+            [*base, *extra], capture_output=True, text=True, timeout=60, check=False
+        )
+        assert done.returncode == 2 and says in done.stderr, (extra, done.stderr)
+    assert not (tmp_path / "out").exists(), "nothing was started"
