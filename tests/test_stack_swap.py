@@ -79,30 +79,28 @@ def first_decisions(statuses: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def replayed_q(
     messages: list[RecordedMessage], scan_stamp_s: float, runtime: PolicyRuntime, config: Any
 ) -> list[float]:
-    """The Q values a fresh controller gives on the recorded scan stamped `scan_stamp_s` with the
-    target and pose recorded last before it (the sim-car publishes target, pose, scan in order)."""
-    latest: dict[Input, bytes] = {}
-    topics = {
-        "/" + wire.POSE.name: Input.POSE,
-        "/" + wire.TARGET_POSE.name: Input.TARGET,
-    }
+    """The Q values a fresh controller gives on the recorded scan stamped `scan_stamp_s`, the
+    pose stamped alike and the newest target stamped no later (the sim-car stamps the target,
+    pose and scan it publishes together with one time; the recorder's arrival order across
+    topics is not the controller's, so stamps, not log times, pair them)."""
+    scans, poses, targets = {}, {}, []
     for message in messages:
-        if message.topic in topics:
-            latest[topics[message.topic]] = message.payload
-        elif (
-            message.topic == "/" + wire.SCAN.name
-            and wire.decode_scan_msg(message.payload).stamp_s == scan_stamp_s
-        ):
-            runtime.reset()
-            controller = Controller(runtime, config.safety, config.lidar)
-            for source in (Input.TARGET, Input.POSE):
-                assert controller.receive(source, latest[source], 0.0) is None
-            assert controller.receive(Input.SCAN, message.payload, 0.0) is None
-            status = controller.decide(0.0).status
-            assert status.reason.value == "policy", status
-            assert status.q_values is not None
-            return list(status.q_values)
-    raise AssertionError(f"no recorded scan stamped {scan_stamp_s}")
+        if message.topic == "/" + wire.SCAN.name:
+            scans[wire.decode_scan_msg(message.payload).stamp_s] = message.payload
+        elif message.topic == "/" + wire.POSE.name:
+            poses[wire.decode_pose_msg(message.payload).stamp_s] = message.payload
+        elif message.topic == "/" + wire.TARGET_POSE.name:
+            targets.append((wire.decode_pose_msg(message.payload).stamp_s, message.payload))
+    target = max((t for t in targets if t[0] <= scan_stamp_s), key=lambda t: t[0])[1]
+    runtime.reset()
+    controller = Controller(runtime, config.safety, config.lidar)
+    assert controller.receive(Input.TARGET, target, 0.0) is None
+    assert controller.receive(Input.POSE, poses[scan_stamp_s], 0.0) is None
+    assert controller.receive(Input.SCAN, scans[scan_stamp_s], 0.0) is None
+    status = controller.decide(0.0).status
+    assert status.reason.value == "policy", status
+    assert status.q_values is not None
+    return list(status.q_values)
 
 
 @pytest.mark.stack
