@@ -248,7 +248,10 @@ class Bridge:
             self._subscribers.append(
                 session.declare_subscriber(key(VEHICLE_REQUEST, namespace), self._on_request)
             )
-            if self._guided and self.settings.vision.forward_pose:
+            # Every output, not only guided: indoors the forwarded pose is the autopilot's only
+            # position, without which its GCS failsafe (FS_ACTION 6) and the brake mode
+            # (GUIDED) cannot brake and the car coasts (issue 20: 6.6 s, 2.4 m in SITL).
+            if self.settings.vision.forward_pose:
                 self._subscribers.append(
                     session.declare_subscriber(key(POSE, namespace), self._on_pose)
                 )
@@ -577,9 +580,14 @@ class Bridge:
         vehicle = self.settings.vehicle
         self._next_request_s = now + vehicle.request_retry_s
         # GUIDED needs a position estimate: ask for it only once a pose went to the autopilot.
-        needs_pose = self._guided and self.settings.vision.forward_pose
+        forward_pose = self.settings.vision.forward_pose
+        needs_pose = self._guided and forward_pose
+        # The EKF origin: in guided output from the link's start (as the mode waits on it); in
+        # a manual output only once a pose went out, so a car on GPS without a motion-capture
+        # publisher never gets an origin from the bridge.
+        wants_origin = needs_pose or (forward_pose and self._pose_since_link_up)
         if (
-            needs_pose
+            wants_origin
             and not self._origin_confirmed
             and self._custom_mode not in (None, ROVER_MODES["INITIALISING"])
         ):

@@ -228,12 +228,12 @@ class VehicleSettings:
 
 @dataclass(frozen=True)
 class VisionSettings:
-    """guided mode: the motion-capture pose forwarded to the autopilot as its position."""
+    """The motion-capture pose forwarded to the autopilot as its position, in every output mode."""
 
     SECTION = "vision"
 
     forward_pose: bool = True
-    """guided mode: send each pose from zenoh as VISION_POSITION_ESTIMATE (EK3_SRC1_POSXY=6)."""
+    """Every output: send each pose from zenoh as VISION_POSITION_ESTIMATE (EK3_SRC1_POSXY=6)."""
     origin_lat_deg: float = -35.363261
     """Latitude of the EKF origin set once with SET_GPS_GLOBAL_ORIGIN (any place will do)."""
     origin_lon_deg: float = 149.165230
@@ -287,7 +287,7 @@ class BridgeSettings:
     vehicle: VehicleSettings = field(default_factory=VehicleSettings)
     """Arming, mode and state reports."""
     vision: VisionSettings = field(default_factory=VisionSettings)
-    """Motion-capture pose forwarding (guided mode)."""
+    """Motion-capture pose forwarding (every output mode)."""
     signing: SigningSettings = field(default_factory=SigningSettings)
     """MAVLink 2 signing."""
 

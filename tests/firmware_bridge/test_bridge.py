@@ -25,6 +25,7 @@ from contracts.wire import (
 )
 from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
+from firmware_bridge.mapping import vision_pose
 from firmware_bridge.settings import BridgeSettings
 from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from tests.firmware_bridge.rig import (
@@ -277,6 +278,48 @@ def test_guided_output_forwards_the_pose_and_drives_with_velocity_targets(
     time.sleep(0.3)
     assert len(rig.vehicle.received("SET_GPS_GLOBAL_ORIGIN")) == origins
     assert len(rig.vehicle.received("VISION_POSITION_ESTIMATE")) >= 5
+
+
+@pytest.mark.parametrize("manual_message", ["rc_override", "manual_control"])
+def test_a_manual_output_forwards_the_pose_without_arming_on_it(
+    make_rig: MakeRig, manual_message: str
+) -> None:
+    # Indoors the forwarded pose is the autopilot's only position, which its GCS failsafe and
+    # the brake mode need to brake (issue 20): manual outputs forward it too. Arming must not
+    # wait on it, and no origin goes out before a pose did (a car on GPS keeps its own).
+    rig = make_rig(bridge={"output": {"mode": "manual", "manual_message": manual_message}})
+    rig.ready()
+    assert rig.vehicle.mode == "MANUAL"
+    time.sleep(0.3)
+    assert not rig.vehicle.received("SET_GPS_GLOBAL_ORIGIN")
+    assert not rig.vehicle.received("VISION_POSITION_ESTIMATE")
+    for _ in range(5):
+        rig.publish_pose()
+    estimates = wait_until(
+        lambda: rig.vehicle.received("VISION_POSITION_ESTIMATE")[4:], what="poses forwarded"
+    )
+    assert rig.counters().get("poses") == 5
+    x, y, yaw = rig.vehicle.pose()  # standing still: what the last pose said
+    ned = vision_pose(Pose2D(0.0, "map", x, y, yaw))
+    assert estimates[-1].fields["x"] == pytest.approx(ned.north_m, abs=1e-3)
+    assert estimates[-1].fields["y"] == pytest.approx(ned.east_m, abs=1e-3)
+    wait_until(
+        lambda: rig.vehicle.received("SET_GPS_GLOBAL_ORIGIN"), what="the origin once poses flow"
+    )
+    rig.drive(0.5, 0.0, 0.5)
+    assert rig.vehicle.pose()[0] > 0.03
+    assert rig.vehicle.mode == "MANUAL"
+
+
+def test_no_pose_is_forwarded_when_forwarding_is_off(make_rig: MakeRig) -> None:
+    rig = make_rig(bridge={"vision": {"forward_pose": False}})
+    rig.ready()
+    for _ in range(5):
+        rig.publish_pose()
+    rig.drive(0.5, 0.0, 0.5)
+    assert not rig.vehicle.received("VISION_POSITION_ESTIMATE")
+    assert not rig.vehicle.received("SET_GPS_GLOBAL_ORIGIN")
+    assert not rig.counters().get("poses")
 
 
 def test_guided_mode_waits_for_a_pose_before_asking_for_guided(make_rig: MakeRig) -> None:

@@ -59,8 +59,19 @@ OBSERVER_SYSTEM_ID = 250
 MESSAGE_INTERVAL_US = 50_000
 """The observer asks for its messages at 20 Hz."""
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
-OBSERVED = {"LOCAL_POSITION_NED": 32, "GLOBAL_POSITION_INT": 33, "ATTITUDE": 30, "SIMSTATE": 164}
-"""SIMSTATE is SITL's true pose: the test's motion capture."""
+OBSERVED = {
+    "LOCAL_POSITION_NED": 32,
+    "GLOBAL_POSITION_INT": 33,
+    "ATTITUDE": 30,
+    "SIMSTATE": 164,
+    "EKF_STATUS_REPORT": 193,
+}
+"""SIMSTATE is SITL's true pose: the test's motion capture. EKF_STATUS_REPORT: whether the EKF
+has an absolute position (without one Rover's failsafe and GUIDED cannot brake)."""
+EKF_POS_HORIZ_ABS = 16
+"""EKF_STATUS_REPORT.flags: the EKF has a horizontal position relative to its origin."""
+EKF_CONST_POS_MODE = 128
+"""EKF_STATUS_REPORT.flags: the EKF holds a constant position (no aiding)."""
 REST_SPEED_MPS = 0.05
 """Below this the vehicle is at rest."""
 

@@ -25,6 +25,9 @@ from contracts.settings import from_dict
 from firmware_bridge.calibrate import Calibrator, Pattern
 from firmware_bridge.settings import BridgeSettings
 from tests.sitl.harness import (
+    EKF_CONST_POS_MODE,
+    EKF_POS_HORIZ_ABS,
+    HOME,
     BridgeProcess,
     LinkCutter,
     MotionCapture,
@@ -33,6 +36,7 @@ from tests.sitl.harness import (
     StopMeasure,
     Zenoh,
     measure_stop,
+    true_pose,
     wait_until,
 )
 
@@ -100,7 +104,11 @@ def _drive_and_check_motion(zenoh: Zenoh, observer: Observer) -> float:
     start, yaw0 = observer.position(), observer.yaw_ned()
     zenoh.drive(DRIVE_SPEED_MPS, 0.0, 4.0)
     travelled = _forward_m(observer, start, yaw0)
-    assert travelled > 1.5, f"moved {travelled:.2f} m forward in 4 s at {DRIVE_SPEED_MPS} m/s"
+    assert travelled > 1.5, (
+        f"moved {travelled:.2f} m forward in 4 s at {DRIVE_SPEED_MPS} m/s; "
+        f"modes {[(round(t - time.monotonic(), 2), m) for t, _, m in observer.changes[-4:]]}; "
+        f"texts {observer.texts[-6:]}"
+    )
     speed = observer.speed()
     assert 0.5 * DRIVE_SPEED_MPS < speed < 2.0 * DRIVE_SPEED_MPS, f"speed {speed:.2f} m/s"
     # angular.z > 0 turns counter-clockwise seen from above: the NED yaw decreases.
@@ -212,32 +220,85 @@ def test_signing_on_a_telemetry_port_refuses_unsigned_and_wrongly_signed_senders
     assert "SIGNING PROTECTS NOTHING" not in right.log()
 
 
-def test_mocap_only_guided_drives_and_stops(
-    start_sitl: StartSitl, start_bridge: StartBridge, zenoh: Zenoh, tmp_path: Path
+MOCAP_OUTPUTS = {
+    "guided": ['output.mode="guided"'],
+    "manual": [
+        'output.mode="manual"',
+        f"output.speed_at_full_throttle_mps={SITL_FULL_THROTTLE_MPS}",
+        'failsafe.brake_mode="GUIDED"',
+    ],
+}
+"""Bridge settings per output on a mocap-only autopilot (the pose forwarded in both)."""
+
+
+def _mocap_position(observer: Observer, mode: str, since_s: float) -> None:
+    """Wait for the output's mode and for the EKF to take the forwarded pose as its position."""
+    wait_until(lambda: observer.mode == mode, BOOT_TIMEOUT_S, f"{mode} on the mocap pose")
+
+    # Without a position the brake mode (GUIDED) is refused and FS_ACTION 6 falls back to
+    # Hold, which coasts: only with the pose as the EKF's position can either brake.
+    # After a link loss the poses stopped with it: the EKF's position drifted ("EKF variance",
+    # "EKF failsafe") and converges back when they return, which moves LOCAL_POSITION_NED
+    # (the drive's measure) on its own: wait until it is healthy again (variances below half
+    # of Rover's FS_EKF_THRESH 0.8, not in constant-position mode) for a second, and agrees
+    # with the true pose (SIMSTATE, what the motion capture publishes) within 0.1 m and 0.05
+    # rad (the drive is measured along the EKF's heading).
+    home = (float(HOME.split(",")[0]), float(HOME.split(",")[1]))
+
+    def healthy() -> bool:
+        reports = observer.since("EKF_STATUS_REPORT", since_s)
+        recent = [r for r in reports if r.time_s > time.monotonic() - 1.0]
+        truth = observer.latest("SIMSTATE")
+        if len(recent) < 2 or truth is None or recent[0].time_s - reports[0].time_s < 1.0:
+            return False
+        east, north, _ = true_pose(truth.fields, home)
+        estimate = observer.position()
+        yaw_error = wrap_pi(observer.yaw_ned() - float(truth.fields["yaw"]))
+        close = math.hypot(estimate[0] - north, estimate[1] - east) < 0.1
+        return (
+            close
+            and abs(yaw_error) < 0.05
+            and all(
+                int(r.fields["flags"]) & EKF_POS_HORIZ_ABS
+                and not int(r.fields["flags"]) & EKF_CONST_POS_MODE
+                and r.fields["pos_horiz_variance"] < 0.4
+                and r.fields["velocity_variance"] < 0.4
+                for r in recent
+            )
+        )
+
+    wait_until(healthy, BOOT_TIMEOUT_S, "the EKF's position from the motion-capture pose")
+
+
+@pytest.mark.parametrize("output", list(MOCAP_OUTPUTS))
+def test_mocap_only_drives_and_stops(
+    output: str, start_sitl: StartSitl, start_bridge: StartBridge, zenoh: Zenoh, tmp_path: Path
 ) -> None:
     # Indoors: no GPS (SITL's simulated receiver off too), no compass; the EKF's position and
-    # yaw come only from the pose the bridge forwards (config/ardupilot-mocap.parm).
+    # yaw come only from the pose the bridge forwards (config/ardupilot-mocap.parm), in the
+    # manual output as in guided.
     no_gps = tmp_path / "no-gps.parm"
     no_gps.write_text("SIM_GPS1_ENABLE 0\n")
     sitl, observer = start_sitl([ROOT / "config" / "ardupilot-mocap.parm", no_gps])
     mocap = MotionCapture(zenoh, observer)
     try:
-        bridge = start_bridge(sitl.serial1, 'output.mode="guided"')
+        bridge = start_bridge(sitl.serial1, *MOCAP_OUTPUTS[output])
         _armed(zenoh, observer)
-        wait_until(lambda: observer.mode == "GUIDED", 30.0, "GUIDED on the mocap pose")
+        _mocap_position(observer, output.upper(), 0.0)
         assert observer.since("GLOBAL_POSITION_INT", 0.0), "the EKF has a position"
         last = _drive_and_check_motion(zenoh, observer)
         silence = measure_stop(observer, last, timeout_s=30.0)
-        _report("mocap-only guided, command silence", silence)
+        _report(f"mocap-only {output}, command silence", silence)
         assert silence.rested and silence.stop_time_s <= STOP_GOAL_S + 0.5
         assert mocap.published > 100
+        assert zenoh.state()["counters"]["poses"] > 100
         assert "giving up" not in bridge.log()
         # SIGTERM while driving: stop, brake, disarm once at rest (SIGKILL and link loss:
         # test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss).
         _drive_and_check_motion(zenoh, observer)
         sent = bridge.signal(signal.SIGTERM)
         term = measure_stop(observer, sent, timeout_s=30.0)
-        _report("mocap-only guided, SIGTERM", term)
+        _report(f"mocap-only {output}, SIGTERM", term)
         assert bridge.wait(timeout_s=15.0) == 0
         assert term.rested and term.stop_time_s <= STOP_GOAL_S
         wait_until(lambda: observer.armed is False, 5.0, "the disarm on exit")
@@ -302,7 +363,8 @@ FAULT_REPEATS = 3
 FAULT_CASES = {
     "manual": (OUTPUTS["manual-neutral"], False),
     "guided": (OUTPUTS["guided"], False),
-    "mocap-guided": (['output.mode="guided"'], True),
+    "mocap-guided": (MOCAP_OUTPUTS["guided"], True),
+    "mocap-manual": (MOCAP_OUTPUTS["manual"], True),
 }
 """Bridge settings, and whether the autopilot runs mocap-only (config/ardupilot-mocap.parm)."""
 
@@ -324,11 +386,12 @@ def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
         extra = [ROOT / "config" / "ardupilot-mocap.parm", no_gps]
     sitl, observer = start_sitl(extra)
     mocap = MotionCapture(zenoh, observer) if mocap_only else None
-    mode = "MANUAL" if case == "manual" else "GUIDED"
+    mode = "GUIDED" if case.endswith("guided") else "MANUAL"
     measures: dict[str, list[StopMeasure]] = {"SIGKILL": [], "link loss": []}
     try:
         for fault in [*measures] * FAULT_REPEATS:
             relay = LinkCutter(sitl.base_port + 2) if fault == "link loss" else None
+            started_s = time.monotonic()
             bridge = start_bridge(relay.connection if relay else sitl.serial1, *assignments)
             _armed(zenoh, observer)
             wait_until(
@@ -336,7 +399,9 @@ def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
                 BOOT_TIMEOUT_S,
                 mode,
             )
-            if not mocap_only:
+            if mocap_only:
+                _mocap_position(observer, mode, started_s)
+            else:
                 # FS_ACTION 6 is Loiter only with the EKF's position (GPS here, some 20 s after
                 # boot); without one it is Hold, which coasts: 6.6 s, 2.4 m in manual, seen.
                 wait_until(
