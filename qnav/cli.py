@@ -566,6 +566,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim_car.add_argument("--first-episode", type=int, default=0, help="index of the first")
     sim_car.add_argument("--seed", type=int, default=12345, help="layout seed (the test seed)")
     sim_car.add_argument(
+        "--rest-s",
+        type=float,
+        default=0.0,
+        help="after each episode, stay at rest this long (pose and scan still published) before "
+        "the next target (0)",
+    )
+    sim_car.add_argument(
         "--vehicle",
         default="udpout:127.0.0.1:14550",
         help="MAVLink connection of the simulated autopilot (udpout:127.0.0.1:14550, where "
@@ -600,6 +607,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     stack.add_argument(
         "--sitl-binary", type=Path, help="ardurover binary for --vehicle sitl ($ARDUPILOT_SITL)"
+    )
+    stack.add_argument(
+        "--serve-folder",
+        type=Path,
+        metavar="DIR",
+        help="also run `qnav serve DIR` on the stack's zenoh hub; the controller takes its "
+        "policies (policy.source = server), --policy being its starting file (docs/serve.md)",
+    )
+    stack.add_argument(
+        "--keys",
+        type=Path,
+        metavar="DIR",
+        help="with --serve-folder: the key pair `qnav keys DIR` made (the server signs with its "
+        "private key, the controller trusts its public key)",
     )
     stack.set_defaults(handler=_lazy("qnav.stack:stack_verb"))
 

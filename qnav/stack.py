@@ -7,6 +7,9 @@
     qnav controller  the policy file, deciding on each scan
     qnav bridge      Twist to RC overrides over MAVLink, arming the car
     qnav record      every topic to MCAP
+    qnav serve       with `--serve-folder DIR --keys KEYS`: the policies in DIR, signed, to the
+                     controller, which starts on the policy file and swaps a better one in at a
+                     stop (policy.source = "server", docs/serve.md)
 
 as a user would start them, waits for the sim-car's episodes, stops the daemons with SIGTERM and
 reports the outcomes beside `qnav eval` of the same file on the same episodes.
@@ -69,6 +72,46 @@ class StackFiles:
         return self.root / f"{name}.log"
 
 
+@dataclass(frozen=True)
+class StackServe:
+    """`qnav serve` in the stack: what it serves and the key pair it signs with."""
+
+    folder: Path
+    """The folder it serves (exported policy files, or run folders)."""
+    keys: Path
+    """The folder `qnav keys` wrote the key pair into."""
+    poll_s: float = 0.5
+    """How often the server looks at the folder."""
+    announce_interval_s: float = 1.0
+    """How often it repeats its announcement."""
+    rest_s: float = 1.0
+    """The sim-car's rest after each episode (`sim-car --rest-s`): the stop at which the
+    controller may swap a delivered policy in (without one, the next target follows at once and
+    the car is never at rest while the stack runs)."""
+
+    @property
+    def private_key(self) -> Path:
+        """The server's signing key."""
+        from contracts.delivery import PRIVATE_KEY_FILE
+
+        return self.keys / PRIVATE_KEY_FILE
+
+    @property
+    def public_key(self) -> Path:
+        """The key the controller trusts."""
+        from contracts.delivery import PUBLIC_KEY_FILE
+
+        return self.keys / PUBLIC_KEY_FILE
+
+    def check(self) -> None:
+        """ConfigError naming the option if a path is missing."""
+        if not self.folder.is_dir():
+            raise ConfigError(f"--serve-folder {self.folder} is not a folder")
+        for key in (self.private_key, self.public_key):
+            if not key.is_file():
+                raise ConfigError(f"--keys {self.keys}: no {key.name} (make one with qnav keys)")
+
+
 def sitl_bridge_settings(connection: str) -> dict[str, Any]:
     """The bridge on the firmware: GUIDED velocity and yaw rate (Rover's own speed and turn-rate
     controllers, braking on a stop), SITL's GPS as the EKF's position (no pose forwarded), and
@@ -89,9 +132,11 @@ def write_configs(
     tolerance_m: float,
     *,
     bridge_values: dict[str, Any] | None = None,
+    public_key: Path | None = None,
 ) -> None:
     """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
-    bridge's settings other than zenoh, instead of the test vehicle's)."""
+    bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
+    controller takes policies from a server signed with its private key, `policy` first)."""
     from controller.config import DaemonConfig
     from firmware_bridge.settings import BridgeSettings
 
@@ -102,7 +147,18 @@ def write_configs(
             "controller": {"policy": str(policy.resolve()), "trigger": "scan"},
             "safety": {"target_tolerance_m": tolerance_m},
             "zenoh": zenoh,
-        },
+        }
+        | (
+            {}
+            if public_key is None
+            else {
+                "policy": {
+                    "source": "server",
+                    "public_key": str(public_key.resolve()),
+                    "cache_dir": str((files.root / "policy-cache").resolve()),
+                }
+            }
+        ),
     )
     values = bridge_values or {
         "mavlink": {"connection": f"udpout:127.0.0.1:{mavlink_port}"},
@@ -179,8 +235,12 @@ def run_stack(
     record: bool = True,
     progress: bool = True,
     sitl_binary: Path | None = None,
+    serve: StackServe | None = None,
 ) -> dict[str, Any]:
     """Run the full stack for `episodes` episodes; returns its outcome fractions and paths.
+
+    With `serve`, `qnav serve` runs on the stack's hub too and the controller takes its policies
+    from it, starting on `policy`; the sim-car rests `serve.rest_s` after each episode.
 
     With `sitl_binary`, the car is ArduPilot Rover SITL (a skid-steered rover, `qnav.sitl`):
     the bridge drives it in GUIDED and the sim-car takes the robot's pose from the autopilot's
@@ -209,8 +269,15 @@ def run_stack(
         vehicle_args = ["--firmware", sitl.serial0]
         bridge_values = sitl_bridge_settings(sitl.serial1)
     write_configs(
-        files, policy, hub, mavlink_port, world.robot_radius_m, bridge_values=bridge_values
+        files,
+        policy,
+        hub,
+        mavlink_port,
+        world.robot_radius_m,
+        bridge_values=bridge_values,
+        public_key=None if serve is None else serve.public_key,
     )
+    rest_args = [] if serve is None else ["--rest-s", str(serve.rest_s)]
     daemons = Daemons(files)
     outcomes: list[str] = []
     steps: list[int] = []
@@ -224,6 +291,12 @@ def run_stack(
             daemons.start("recorder", "record", "--folder", str(files.recording), "--connect", hub)
         daemons.start("controller", "controller", "--config", str(files.controller_toml))
         daemons.start("bridge", "bridge", "--config", str(files.bridge_toml))
+        if serve is not None:
+            daemons.start(
+                "server", "serve", str(serve.folder), "--key", str(serve.private_key),
+                "--connect", hub, "--poll-s", str(serve.poll_s),
+                "--announce-interval-s", str(serve.announce_interval_s),
+            )  # fmt: skip
         sim_car = daemons.start(
             "sim-car",
             "sim-car",
@@ -233,6 +306,7 @@ def run_stack(
             "--listen", hub,
             *vehicle_args,
             "--log", str(files.episodes),
+            *rest_args,
             stdout=subprocess.PIPE,
         )  # fmt: skip
         assert sim_car.stdout is not None
@@ -265,6 +339,7 @@ def run_stack(
         "wall_s": round(time.monotonic() - started, 1),
         "exit_codes": codes,
         "folder": str(out),
+        "served": None if serve is None else str(serve.folder),
         "recording": sorted(str(p) for p in files.recording.glob("*.mcap")),
     }
 
@@ -273,6 +348,12 @@ def stack_verb(args: argparse.Namespace) -> int:
     """`qnav stack`: the full stack, then the same episodes in process, side by side."""
     if not args.policy.is_file():
         raise ConfigError(f"--policy {args.policy} does not exist")
+    serve = None
+    if args.serve_folder is not None or args.keys is not None:
+        if args.serve_folder is None or args.keys is None:
+            raise ConfigError("--serve-folder and --keys go together (docs/serve.md)")
+        serve = StackServe(args.serve_folder, args.keys)
+        serve.check()
     sitl_binary = None
     if args.vehicle == "sitl":
         from qnav.sitl import SITL_ENV, network_is_isolated, sitl_binary_from_env
@@ -294,6 +375,7 @@ def stack_verb(args: argparse.Namespace) -> int:
         record=not args.no_record,
         progress=not args.json,
         sitl_binary=sitl_binary,
+        serve=serve,
     )
     if sitl_binary is not None:
         result["in_process"] = in_process_outcomes(args.policy, result["scenario"], args.episodes)
@@ -424,6 +506,7 @@ def sim_car_verb(args: argparse.Namespace) -> int:
         episodes=args.episodes,
         first_episode=args.first_episode,
         seed=args.seed,
+        rest_s=args.rest_s,
         vehicle_connection=args.vehicle,
         firmware_connection=args.firmware or "",
         # An autopilot boots, finds GPS and arms in tens of seconds.

@@ -78,6 +78,11 @@ class SimCarSettings:
     """Longest wait for the car to be armed before the first episode."""
     settle_s: float = 1.0
     """Pause after publishing a new target before the episode's clock starts."""
+    rest_s: float = 0.0
+    """After an episode, the car stays where it ended this long, its pose and scan still
+    published every control period, before the next target: the controller sees the target
+    reached and stops the car, as a real car at rest between two missions (the stop at which a
+    delivered policy is swapped in, docs/serve.md). 0: the next target at once."""
     firmware_connection: str = ""
     """A real autopilot's MAVLink port (e.g. SITL's SERIAL0, tcp:127.0.0.1:5760): its own pose
     estimate moves the robot (`sim.firmware_vehicle`) instead of the test vehicle; empty: the
@@ -95,6 +100,7 @@ class SimCarSettings:
             self, "full_throttle_speed_mps", self.full_throttle_speed_mps, 0, 20, exclusive_low=True
         )
         check_range(self, "settle_s", self.settle_s, 0, 60)
+        check_range(self, "rest_s", self.rest_s, 0, 60)
         check_range(self, "rest_speed_mps", self.rest_speed_mps, 0, 10, exclusive_low=True)
         check_range(self, "rest_timeout_s", self.rest_timeout_s, 0, 600)
 
@@ -269,7 +275,19 @@ class SimCar:
                 break
             published_s = time.monotonic()
             self._publish(state, publish, observation_scan=observation.scan_m)
+        self._rest(state, publish, stop)
         return None if stop.is_set() else entry
+
+    def _rest(self, state: WorldState, publish: dict[str, Any], stop: threading.Event) -> None:
+        """`rest_s` of control periods at the episode's end: the car's own pose and the scan
+        there, as it comes to a stop under the controller's commands."""
+        period = self.world.control_period_s
+        deadline = time.monotonic()
+        end = deadline + self.settings.rest_s
+        while self.settings.rest_s > 0 and not stop.is_set() and deadline < end:
+            self._publish(state._replace(pose=np.array([self.vehicle.pose()])), publish)
+            deadline += period
+            stop.wait(max(0.0, deadline - time.monotonic()))
 
     def _wait_for_rest(self, index: int) -> None:
         """A firmware vehicle keeps the speed it had: the episode starts once it is at rest."""
