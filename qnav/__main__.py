@@ -1,3 +1,3 @@
-from qnav.cli import main
+from qnav.cli import console_main
 
-raise SystemExit(main())
+console_main()
