@@ -919,9 +919,9 @@ def console_main() -> None:
 
     A daemon verb that returned has closed its session, sent its last stop and flushed its
     files; it then leaves without interpreter finalisation. The zenoh runtime's threads outlive
-    a closed session, and one that enters Python while the interpreter finalises is unwound by
-    force, which the binding turns into an abort ("FATAL: exception not rethrown", exit -6:
-    seen once in a loaded `make test`, after the bridge had logged "bridge closed").
+    a closed session; the bridge once aborted after logging "bridge closed" ("FATAL: exception
+    not rethrown", exit -6, in a loaded `make test`), most likely such a thread entering Python
+    while the interpreter finalised, which unwinds it by force through the binding.
     """
     code = main()
     if len(sys.argv) > 1 and sys.argv[1] in ZENOH_DAEMONS:
