@@ -8,9 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from qnav.sitl import SITL_ENV, SITL_PARAMS
 from tests.sitl.harness import (
-    SITL_ENV,
-    SITL_PARAMS,
     BridgeProcess,
     Observer,
     Sitl,

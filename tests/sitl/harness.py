@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -46,15 +45,11 @@ from contracts.wire import (
     key,
 )
 from firmware_bridge.bench import free_port
+from qnav.sitl import HOME, SITL_ENV, SitlProcess
 
 T = TypeVar("T")
 
 ROOT = Path(__file__).resolve().parents[2]
-SITL_PARAMS = ROOT / "config" / "ardupilot-sitl.parm"
-"""Our Rover parameters for SITL: the failsafes, stream rates and RC ranges (docs/bridge.md)."""
-SITL_ENV = "ARDUPILOT_SITL"
-HOME = "-35.363261,149.165230,584,0"
-"""ArduPilot's SITL home (CMAC), heading north."""
 OBSERVER_SYSTEM_ID = 250
 MESSAGE_INTERVAL_US = 50_000
 """The observer asks for its messages at 20 Hz."""
@@ -94,24 +89,6 @@ def wait_until(condition: Callable[[], T], timeout_s: float, what: str) -> T:
         time.sleep(0.02)
 
 
-def _port_is_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        try:
-            probe.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
-def free_instance() -> int:
-    """A SITL instance number whose TCP ports (5760 + 10 i ... + 3) are free."""
-    for instance in range(0, 40):
-        base = 5760 + 10 * instance
-        if all(_port_is_free(base + offset) for offset in range(4)):
-            return instance
-    raise RuntimeError("no free SITL instance among 0..39")
-
-
 @dataclass
 class Sample:
     """One telemetry message as the observer received it."""
@@ -122,56 +99,14 @@ class Sample:
     fields: dict[str, Any]
 
 
-class Sitl:
-    """One `ardurover` process in a work directory of its own."""
+class Sitl(SitlProcess):
+    """`qnav.sitl.SitlProcess` with what a test reports when the autopilot dies."""
 
-    def __init__(
-        self, binary: Path, workdir: Path, params: list[Path], instance: int | None = None
-    ) -> None:
-        self.binary = binary
-        self.workdir = workdir
-        self.params = params
-        self.instance = free_instance() if instance is None else instance
-        self.base_port = 5760 + 10 * self.instance
-        self.process: subprocess.Popen[bytes] | None = None
-        self.log_path = workdir / "ardurover.log"
-
-    @property
-    def serial0(self) -> str:
-        """SERIAL0 ("USB"; unsigned packets always accepted there)."""
-        return f"tcp:127.0.0.1:{self.base_port}"
-
-    @property
-    def serial1(self) -> str:
-        """SERIAL1 (a telemetry port; signing enforced once a key is set)."""
-        return f"tcp:127.0.0.1:{self.base_port + 2}"
-
-    def command_line(self) -> list[str]:
-        return [
-            str(self.binary),
-            "-w",
-            "--model", "rover",
-            "--speedup", "1",
-            "--home", HOME,
-            "--defaults", ",".join(str(p) for p in self.params),
-            "--serial0", "tcp:0",
-            "--serial1", "tcp:2",
-            "-I", str(self.instance),
-        ]  # fmt: skip
-
-    def start(self) -> None:
-        self.workdir.mkdir(parents=True, exist_ok=True)
-        with self.log_path.open("wb") as out:
-            self.process = subprocess.Popen(
-                self.command_line(), cwd=self.workdir, stdout=out, stderr=subprocess.STDOUT
-            )
-        wait_until(
-            lambda: not _port_is_free(self.base_port + 2) or self.process_died(),
-            20.0,
-            "SITL's serial ports",
-        )
-        if self.process_died():
-            raise AssertionError(f"ardurover exited: {self.log_tail()}")
+    def start(self, timeout_s: float = 20.0) -> None:
+        try:
+            super().start(timeout_s)
+        except RuntimeError as error:
+            raise AssertionError(f"{error}: {self.log_tail()}") from None
 
     def process_died(self) -> bool:
         return self.process is not None and self.process.poll() is not None
@@ -181,17 +116,6 @@ class Sitl:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
         except OSError:
             return ""
-
-    def stop(self) -> None:
-        if self.process is None:
-            return
-        self.process.send_signal(signal.SIGTERM)
-        try:
-            self.process.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-        self.process = None
 
 
 class Observer:

@@ -24,10 +24,10 @@ from contracts.mavlink import signing_timestamp_now, wrap_pi
 from contracts.settings import from_dict
 from firmware_bridge.calibrate import Calibrator, Pattern
 from firmware_bridge.settings import BridgeSettings
+from qnav.sitl import HOME
 from tests.sitl.harness import (
     EKF_CONST_POS_MODE,
     EKF_POS_HORIZ_ABS,
-    HOME,
     BridgeProcess,
     LinkCutter,
     MotionCapture,

@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from qnav.sitl import network_is_isolated
-from tests.sitl.harness import SITL_ENV
+from qnav.sitl import SITL_ENV, network_is_isolated
 
 pytestmark = pytest.mark.sitl
 
