@@ -18,7 +18,7 @@ from sim.evaluate import evaluate as run_evaluation
 if TYPE_CHECKING:
     from training.imitate import ImitationResult, ImitationSettings
     from training.probe import PerceptionSettings
-    from training.study import Engine, StudySettings
+    from training.study import Engine, RunSpec, StudySettings
 
 
 def evaluate(args: argparse.Namespace) -> int:
@@ -157,7 +157,6 @@ def reproduce(args: argparse.Namespace) -> int:
         parse_seeds,
         plan,
         results_markdown,
-        run_study,
     )
 
     seeds = parse_seeds(args.seeds)
@@ -168,17 +167,7 @@ def reproduce(args: argparse.Namespace) -> int:
         ablation_seeds = parse_seeds(args.ablation_seeds, "--ablation-seeds")
         specs += [s for s in ablation_plan(ablation_seeds) if s.scenario in scenarios]
     if not args.tables_only:
-        budget = None if args.time_budget_min is None else args.time_budget_min * 60
-        run_study(
-            specs,
-            args.runs_dir,
-            results_root=args.results_dir,
-            jobs=args.jobs,
-            threads=_threads(args),
-            preset=args.preset,
-            time_budget_s=budget,
-            engine=_engine(args),
-        )
+        _run_study(args, specs)
     random_rows = {}
     for name in paper.RANDOM:
         result = run_evaluation(
@@ -192,6 +181,27 @@ def reproduce(args: argparse.Namespace) -> int:
     args.docs.write_text(results_markdown(args.results_dir, random_rows))
     print(f"wrote {args.docs}")
     return 0
+
+
+def _run_study(
+    args: argparse.Namespace, specs: list[RunSpec], common: tuple[str, ...] = ()
+) -> None:
+    """Train the study's missing runs with the engine, threads, jobs and budget its options ask
+    for (`qnav reproduce` and `qnav sweep` alike)."""
+    from training.study import run_study
+
+    budget = None if args.time_budget_min is None else args.time_budget_min * 60
+    run_study(
+        specs,
+        args.runs_dir,
+        results_root=args.results_dir,
+        jobs=args.jobs,
+        threads=_threads(args),
+        preset=args.preset,
+        time_budget_s=budget,
+        common=common,
+        engine=_engine(args),
+    )
 
 
 def _threads(args: argparse.Namespace) -> int | None:
@@ -234,7 +244,6 @@ def sweep(args: argparse.Namespace) -> int:
         parse_choices,
         parse_grid,
         parse_seeds,
-        run_study,
         sweep_plan,
         sweep_table,
     )
@@ -244,18 +253,7 @@ def sweep(args: argparse.Namespace) -> int:
     specs = sweep_plan(
         scenarios, parse_choices("--models", args.models, MODELS), parse_seeds(args.seeds), grid
     )
-    budget = None if args.time_budget_min is None else args.time_budget_min * 60
-    run_study(
-        specs,
-        args.runs_dir,
-        results_root=args.results_dir,
-        jobs=args.jobs,
-        threads=_threads(args),
-        preset=args.preset,
-        time_budget_s=budget,
-        common=tuple(args.common),
-        engine=_engine(args),
-    )
+    _run_study(args, specs, common=tuple(args.common))
     print(sweep_table(specs, args.results_dir))
     return 0
 
