@@ -76,8 +76,6 @@ class DecisiveStates(NamedTuple):
 
     windows: NDArray[np.float32]
     """(K, k, F) the last k encoded frames (scan and target features), oldest first."""
-    doomed: NDArray[np.bool_]
-    """(K, A) the actions that are doomed there."""
     collide_share: NDArray[np.float32]
     """(K, A) the share of the planner's continuations after each action that collide (1 where
     doomed): how close to doom each action is."""
@@ -87,6 +85,11 @@ class DecisiveStates(NamedTuple):
     """(K,) index into `DRIVERS` of who drove to this state."""
     visited: NDArray[np.int64]
     """(len(DRIVERS),) states visited by each driver, decisive or not."""
+
+    @property
+    def doomed(self) -> NDArray[np.bool_]:
+        """(K, A) the actions that are doomed there (every continuation collides)."""
+        return np.asarray(self.collide_share == 1.0)
 
     def save(self, path: Path) -> None:
         """Write to an .npz file (atomically)."""
@@ -107,7 +110,6 @@ class DecisiveStates(NamedTuple):
         """The states `keep` selects (a mask or indices), with the visit counts unchanged."""
         return self._replace(
             windows=self.windows[keep],
-            doomed=self.doomed[keep],
             collide_share=self.collide_share[keep],
             world=take_rows(self.world, np.arange(len(self.doomed))[keep]),
             driver=self.driver[keep],
@@ -132,7 +134,6 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
     collide_share = np.concatenate(share)
     return DecisiveStates(
         windows=np.concatenate(windows),
-        doomed=collide_share == 1.0,
         collide_share=collide_share,
         world=WorldState(*(np.concatenate(column) for column in zip(*world, strict=True))),
         driver=np.concatenate(driver),
