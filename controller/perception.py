@@ -41,11 +41,16 @@ class TrackerSettings:
     obstacle_radius_m: float = 0.2
     """Radius of the (cylindrical) obstacles the circle fit assumes."""
     wall_band_m: float = 0.1
-    """Returns within this distance of a known wall belong to the wall."""
+    """Returns within this distance of a known wall belong to the wall (keep it above three
+    times the lidar's range noise, or the walls' noisy returns become obstacles)."""
+    min_returns: int = 3
+    """Fewest neighbouring returns that make an obstacle (a lone stray return does not)."""
     cluster_gap_m: float = 0.3
     """Neighbouring returns farther apart than this belong to different objects."""
-    gate_m: float = 0.6
+    gate_m: float = 0.3
     """A detection farther than this from every track's prediction starts a new track."""
+    max_obstacle_speed_mps: float = 2.0
+    """Fastest obstacle expected: a track seen once (no velocity yet) reaches this far."""
     velocity_frames: int = 5
     """Most recent centres a velocity is fitted to."""
     straight_tolerance_m: float = 0.03
@@ -58,8 +63,10 @@ class TrackerSettings:
             self, "obstacle_radius_m", self.obstacle_radius_m, 0.0, 100.0, exclusive_low=True
         )
         check_range(self, "wall_band_m", self.wall_band_m, 0.0, 10.0)
+        check_range(self, "min_returns", self.min_returns, 1, 100_000)
         check_range(self, "cluster_gap_m", self.cluster_gap_m, 0.0, 10.0, exclusive_low=True)
         check_range(self, "gate_m", self.gate_m, 0.0, 100.0, exclusive_low=True)
+        check_range(self, "max_obstacle_speed_mps", self.max_obstacle_speed_mps, 0.0, 100.0)
         check_range(self, "velocity_frames", self.velocity_frames, 2, 1000)
         check_range(self, "straight_tolerance_m", self.straight_tolerance_m, 0.0, 10.0)
         check_range(self, "coast_frames", self.coast_frames, 0, 1000)
@@ -129,11 +136,20 @@ def fit_circle(points: F64, sensor_xy: F64, radius_m: float, iterations: int = 5
         return np.asarray(centre)
     for _ in range(iterations):
         offset = points - centre
-        distance = np.maximum(np.linalg.norm(offset, axis=1), 1e-9)
-        residual = distance - radius_m
+        distance = np.maximum(np.sqrt(np.einsum("ij,ij->i", offset, offset)), 1e-9)
         jacobian = -offset / distance[:, None]
-        step, *_ = np.linalg.lstsq(jacobian, -residual, rcond=None)
-        centre = centre + step
+        normal = jacobian.T @ jacobian  # 2 x 2: solved by hand, it is the hot loop
+        gradient = jacobian.T @ (distance - radius_m)
+        determinant = normal[0, 0] * normal[1, 1] - normal[0, 1] * normal[1, 0]
+        if abs(determinant) < 1e-12:
+            break
+        step = np.array(
+            [
+                normal[1, 1] * gradient[0] - normal[0, 1] * gradient[1],
+                normal[0, 0] * gradient[1] - normal[1, 0] * gradient[0],
+            ]
+        )
+        centre = centre - step / determinant
     return np.asarray(centre)
 
 
@@ -197,7 +213,11 @@ class ObstacleTracker:
         s = self.settings
         points = scan_points(scan_m, pose, self.beam_angles_rad)
         runs = clusters(points, off_the_walls(points, self.walls, s.wall_band_m), s.cluster_gap_m)
-        centres = [fit_circle(points[run], pose[:2], s.obstacle_radius_m) for run in runs]
+        centres = [
+            fit_circle(points[run], pose[:2], s.obstacle_radius_m)
+            for run in runs
+            if len(run) >= s.min_returns
+        ]
         return np.array(centres, dtype=np.float64).reshape(-1, 2)
 
     def update(self, time_s: float, scan_m: NDArray[np.floating], pose: F64) -> Tracks:
@@ -209,9 +229,11 @@ class ObstacleTracker:
         taken_detections: set[int] = set()
         if len(predicted) and len(detections):
             distance = np.linalg.norm(predicted[:, None] - detections[None], axis=2)
+            gate = np.array([self._gate_m(track, time_s) for track in self._tracks])
+            distance[distance > gate[:, None]] = np.inf
             for flat in np.argsort(distance, axis=None):
                 row, detection = divmod(int(flat), len(detections))
-                if distance[row, detection] > s.gate_m:
+                if not np.isfinite(distance[row, detection]):
                     break
                 if row in taken_tracks or detection in taken_detections:
                     continue
@@ -235,6 +257,14 @@ class ObstacleTracker:
         self._tracks = kept
         self._time_s = time_s
         return self.tracks()
+
+    def _gate_m(self, track: _Track, time_s: float) -> float:
+        """How far from its prediction a track's next detection may be: a track seen once has
+        no velocity yet, so it may have gone as far as the fastest obstacle goes."""
+        if len(track.centres) > 1:
+            return self.settings.gate_m
+        elapsed = time_s - track.times_s[-1]
+        return self.settings.gate_m + self.settings.max_obstacle_speed_mps * elapsed
 
     def _extend(self, track: _Track, time_s: float, centre: F64) -> None:
         track.times_s.append(time_s)

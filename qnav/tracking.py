@@ -44,9 +44,17 @@ class WorldTrackers:
     keys and step count of each episode, and builds the state a planner needs from them.
     """
 
-    def __init__(self, world: WorldConfig, settings: TrackerSettings) -> None:
+    def __init__(
+        self,
+        world: WorldConfig,
+        settings: TrackerSettings,
+        range_noise_m: float = 0.0,
+        seed: int = 0,
+    ) -> None:
         self.world = world
         self.settings = settings
+        self.range_noise_m = range_noise_m
+        self._noise = np.random.default_rng([seed, 31])
         self._trackers: dict[tuple[int, int], ObstacleTracker] = {}
         self._poses: dict[tuple[int, int], F64] = {}
 
@@ -64,6 +72,10 @@ class WorldTrackers:
             raise ConfigError(f"scenario {self.world.name!r} has no lidar to track obstacles with")
         period = self.world.control_period_s
         worlds, count = observation.pose.shape[0], self.world.obstacles.count
+        scans = observation.scan_m
+        if self.range_noise_m:
+            noise = self._noise.normal(0.0, self.range_noise_m, scans.shape)
+            scans = (scans + noise).astype(np.float32)
         xy = np.full((worlds, count, 2), FAR_AWAY_M)
         velocity = np.zeros((worlds, count, 2))
         own = np.zeros((worlds, 2))
@@ -74,9 +86,7 @@ class WorldTrackers:
             if key not in self._trackers:
                 self._trackers[key] = new_tracker(self.world, self.settings)
             pose = observation.pose[row]
-            tracks = self._trackers[key].update(
-                float(steps[row]) * period, observation.scan_m[row], pose
-            )
+            tracks = self._trackers[key].update(float(steps[row]) * period, scans[row], pose)
             nearest = _nearest_first(tracks, pose[:2], count)
             xy[row, : len(nearest.xy_m)] = nearest.xy_m
             velocity[row, : len(nearest.xy_m)] = nearest.velocity_mps
@@ -113,6 +123,7 @@ def run_perceiving_oracle(
     settings: EvalSettings,
     tracker: TrackerSettings,
     *,
+    range_noise_m: float = 0.0,
     horizon: int = 20,
     random_sequences: int = 128,
     progress: bool = False,
@@ -121,7 +132,7 @@ def run_perceiving_oracle(
     state (the walls and the target it knows, as a car indoors does)."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(config, settings.seed, horizon=horizon, random_sequences=random_sequences)
-    trackers = WorldTrackers(config, tracker)
+    trackers = WorldTrackers(config, tracker, range_noise_m, settings.seed)
 
     def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
         return driver.act_on(state, trackers.perceive_state(state, observation))
@@ -151,6 +162,9 @@ class TrackerCheckSettings:
     """Frames of an episode before its states are judged (the policy's window)."""
     seed: int = 1005
     """Seed of the layouts (the perception probe's held-out layouts)."""
+    range_noise_m: float = 0.0
+    """Gaussian noise (one standard deviation) added to each range the tracker reads: the
+    simulator's lidar is exact, a real one is not."""
 
 
 class TrackerErrors(NamedTuple):
@@ -183,7 +197,7 @@ def measure_tracker(
     worlds = 200
     batched = BatchedWorld(world, worlds, seed=check.seed)
     observation = batched.reset(check.seed)
-    trackers = WorldTrackers(world, tracker)
+    trackers = WorldTrackers(world, tracker, check.range_noise_m, check.seed)
     chance = np.random.default_rng(check.seed)
     held = chance.integers(0, NUM_ACTIONS, worlds)
     errors: list[F64] = []
@@ -273,12 +287,13 @@ class ShieldedAgent:
         *,
         tracker: TrackerSettings,
         tolerance: float = 0.0,
+        range_noise_m: float = 0.0,
         seed: int = 0,
     ) -> None:
         self.inner = inner
         self.world = world
         self.tolerance = tolerance
-        self.trackers = WorldTrackers(world, tracker)
+        self.trackers = WorldTrackers(world, tracker, range_noise_m, seed)
         self.seed = np.full(num_worlds, seed, dtype=np.int64)
         self.episode = np.zeros(num_worlds, dtype=np.int64)
         self.steps = np.zeros(num_worlds, dtype=np.int64)
