@@ -152,6 +152,8 @@ def run_perceiving_oracle(
 class TrackerCheckSettings:
     """The drive the tracker is judged on (`qnav probe --tracker`), as the perception probe's."""
 
+    SECTION = "tracker_check"
+
     samples: int = 4_000
     """States judged (each with the nearest obstacle within `max_distance_m`)."""
     max_distance_m: float = 4.0
@@ -202,7 +204,7 @@ def measure_tracker(
     held = chance.integers(0, NUM_ACTIONS, worlds)
     errors: list[F64] = []
     missed = 0
-    bar = tqdm(total=check.samples, desc="tracker", disable=not progress)
+    bar = tqdm(total=check.samples, desc="tracker", unit="state", disable=not progress)
     while len(errors) < check.samples:
         state = batched.state
         perceived = trackers.perceive_state(state, observation)
@@ -219,7 +221,7 @@ def measure_tracker(
                     )
                 )
             )
-            bar.update()
+            bar.update(int(len(errors) <= check.samples))
         held = np.where(chance.random(worlds) < 0.2, chance.integers(0, NUM_ACTIONS, worlds), held)
         explore = chance.random(worlds) < check.explore_share
         action = np.where(explore, held, go_to_target(observation.target_features()))
@@ -298,7 +300,14 @@ class ShieldedAgent:
         self.episode = np.zeros(num_worlds, dtype=np.int64)
         self.steps = np.zeros(num_worlds, dtype=np.int64)
         self.overruled = 0
+        """Decisions where the look ahead changed the policy's action."""
         self.decisions = 0
+        """Decisions taken."""
+
+    @property
+    def overruled_share(self) -> float:
+        """Share of the decisions so far where the look ahead changed the policy's action."""
+        return self.overruled / max(self.decisions, 1)
 
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
         self.inner.start(worlds, episodes)
