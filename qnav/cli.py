@@ -611,6 +611,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="a real autopilot's MAVLink port (e.g. SITL's SERIAL0, tcp:127.0.0.1:5760): its own "
         "pose moves the robot, instead of the test vehicle on --vehicle",
     )
+    sim_car.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="step the world only once the command decided on the period's scan has reached the "
+        "test vehicle, then move the car one control period under it (the in-process episodes, "
+        "whatever the latency); default: real time",
+    )
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
     sim_car.set_defaults(handler=_lazy("qnav.stack:sim_car_verb"))
@@ -631,6 +638,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="sim",
         help="the car: the MAVLink test vehicle (sim), or ArduPilot Rover SITL driven in GUIDED "
         "with the pose from the autopilot (sitl; loopback-only namespace, `make stack-sitl`)",
+    )
+    stack.add_argument(
+        "--real-time",
+        action="store_true",
+        help="the sim-car in real time: the car moves under whatever command it has while the "
+        "next is decided (latency and load included); default: lockstep (`sim-car --lockstep`), "
+        "the same episodes as in process. --vehicle sitl always runs in real time",
     )
     stack.add_argument(
         "--sitl-binary", type=Path, help="ardurover binary for --vehicle sitl ($ARDUPILOT_SITL)"

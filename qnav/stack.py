@@ -236,6 +236,7 @@ def run_stack(
     progress: bool = True,
     sitl_binary: Path | None = None,
     serve: StackServe | None = None,
+    lockstep: bool = True,
 ) -> dict[str, Any]:
     """Run the full stack for `episodes` episodes; returns its outcome fractions and paths.
 
@@ -245,6 +246,9 @@ def run_stack(
     With `sitl_binary`, the car is ArduPilot Rover SITL (a skid-steered rover, `qnav.sitl`):
     the bridge drives it in GUIDED and the sim-car takes the robot's pose from the autopilot's
     own LOCAL_POSITION_NED and ATTITUDE, simulating lidar and walls around it.
+
+    With `lockstep` (the test vehicle only), the sim-car steps the world once the command
+    decided on each scan has reached the car (`sim-car --lockstep`); else in real time.
     """
     from tqdm import tqdm
 
@@ -259,6 +263,9 @@ def run_stack(
     mavlink_port = free_port(socket.SOCK_DGRAM)
     sitl = None
     vehicle_args = ["--vehicle", f"udpin:127.0.0.1:{mavlink_port}"]
+    lockstep = lockstep and sitl_binary is None  # the firmware keeps its own time
+    if lockstep:
+        vehicle_args.append("--lockstep")
     bridge_values = None
     if sitl_binary is not None:
         from qnav.sitl import SITL_PARAMS, SKID_PARAMS, SitlProcess
@@ -334,7 +341,9 @@ def run_stack(
         "collision": outcomes.count("collision") / count,
         "unfinished": outcomes.count("unfinished") / count,
         "vehicle": "sitl" if sitl is not None else "sim",
+        "timing": "lockstep" if lockstep else "real time",
         "outcomes": outcomes,
+        "health": episode_health(files.episodes),
         "mean_steps": round(sum(steps) / count, 1),
         "wall_s": round(time.monotonic() - started, 1),
         "exit_codes": codes,
@@ -342,6 +351,22 @@ def run_stack(
         "served": None if serve is None else str(serve.folder),
         "recording": sorted(str(p) for p in files.recording.glob("*.mcap")),
     }
+
+
+def episode_health(episodes_log: Path) -> dict[str, int]:
+    """The sim-car's per-period health figures (`sim.car.EpisodeLog`) summed over its episode
+    log: steps, and the periods the controller had not decided on in time (undecided), decided
+    on another pose than the scan's (stale_pose), stopped on (stops), or whose command reached
+    the car too late for lockstep (late)."""
+    totals = {"steps": 0, "undecided": 0, "stale_pose": 0, "stops": 0, "late": 0}
+    if not episodes_log.is_file():
+        return totals
+    for line in episodes_log.read_text().splitlines():
+        entry = json.loads(line)
+        totals["steps"] += int(entry["steps"])
+        for name in ("undecided", "stale_pose", "stop", "late"):
+            totals[name if name != "stop" else "stops"] += int(entry.get(f"{name}_steps", 0))
+    return totals
 
 
 def stack_verb(args: argparse.Namespace) -> int:
@@ -376,25 +401,32 @@ def stack_verb(args: argparse.Namespace) -> int:
         progress=not args.json,
         sitl_binary=sitl_binary,
         serve=serve,
+        lockstep=not args.real_time,
     )
-    if sitl_binary is not None:
-        result["in_process"] = in_process_outcomes(args.policy, result["scenario"], args.episodes)
-        result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
-        result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
+    result["in_process"] = in_process_outcomes(args.policy, result["scenario"], args.episodes)
+    result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
+    result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
     if args.json:
         print(json.dumps(result))
         return 0
     print(
-        f"full stack ({result['vehicle']}), {result['scenario']}, {result['episodes']} episodes "
-        f"({result['wall_s']:.0f} s): success {result['success']:.3f}, "
-        f"collision {result['collision']:.3f}, unfinished {result['unfinished']:.3f}"
+        f"full stack ({result['vehicle']}, {result['timing']}), {result['scenario']}, "
+        f"{result['episodes']} episodes ({result['wall_s']:.0f} s): success "
+        f"{result['success']:.3f}, collision {result['collision']:.3f}, unfinished "
+        f"{result['unfinished']:.3f}"
+    )
+    health = result["health"]
+    print(
+        f"per control period, of {health['steps']}: the controller had not decided on the scan "
+        f"in time {health['undecided']}, decided on another pose {health['stale_pose']}, "
+        f"stopped {health['stops']}; commands too late for lockstep {health['late']}"
     )
     if "in_process" in result:
         same = result["in_process"]
         print(
             f"in process, same episodes: success {same['success']:.3f}, collision "
             f"{same['collision']:.3f}, unfinished {same['unfinished']:.3f}; "
-            f"gap {result['gap']:+.3f}; mean steps {result['mean_steps']} on the firmware, "
+            f"gap {result['gap']:+.3f}; mean steps {result['mean_steps']} in the stack, "
             f"{same['mean_steps']} in process"
         )
         response = result["response"]
@@ -509,6 +541,7 @@ def sim_car_verb(args: argparse.Namespace) -> int:
         rest_s=args.rest_s,
         vehicle_connection=args.vehicle,
         firmware_connection=args.firmware or "",
+        lockstep=args.lockstep,
         # An autopilot boots, finds GPS and arms in tens of seconds.
         start_timeout_s=180.0 if args.firmware else SimCarSettings().start_timeout_s,
     )

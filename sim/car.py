@@ -26,14 +26,16 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from contracts import wire
+from contracts.errors import ConfigError
 from contracts.settings import check_range
 from contracts.transport import ZenohSettings, open_session
 from sim.config import IncrementDynamics, InertiaDynamics, WorldConfig
@@ -92,6 +94,16 @@ class SimCarSettings:
     rest_timeout_s: float = 10.0
     """With a firmware vehicle: the longest wait for rest before an episode (then it starts
     anyway, and the log says so)."""
+    lockstep: bool = False
+    """Step the world only once the command decided on the period's scan has reached the test
+    vehicle (the controller's status names the scan it decided on; the vehicle has taken that
+    command over MAVLink), then move the car exactly one control period under it: the episodes
+    of the in-process evaluation, whatever the decision's latency and the machine's load. The
+    scans still leave at most once per control period. False: real time, the car moving under
+    whatever command it has, latency included. Test vehicle only."""
+    lockstep_timeout_s: float = 2.0
+    """In lockstep, the longest wait for a period's command; then the world steps anyway and
+    the period counts in `EpisodeLog.late_steps`."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes", self.episodes, 1, 10_000_000)
@@ -103,6 +115,12 @@ class SimCarSettings:
         check_range(self, "rest_s", self.rest_s, 0, 60)
         check_range(self, "rest_speed_mps", self.rest_speed_mps, 0, 10, exclusive_low=True)
         check_range(self, "rest_timeout_s", self.rest_timeout_s, 0, 600)
+        check_range(self, "lockstep_timeout_s", self.lockstep_timeout_s, 0, 600, exclusive_low=True)
+        if self.lockstep and self.firmware_connection:
+            raise ConfigError(
+                "lockstep = true needs the test vehicle: a firmware vehicle (firmware_connection) "
+                "moves in its own real time"
+            )
 
 
 @dataclass
@@ -126,6 +144,62 @@ class EpisodeLog:
     command_delays_s: list[float] = field(default_factory=list)
     """Per period, from publishing the scan to the arrival of a command after it (the
     controller's decision and zenoh both ways); periods without one are left out."""
+    undecided_steps: int = 0
+    """Periods whose scan the controller had not decided on (no status naming it) by the time
+    the world stepped: the car moved on an older decision, and the policy's window missed or
+    will take late a frame that in process it takes on time."""
+    stale_pose_steps: int = 0
+    """Periods whose decision used another pose than the one published with its scan (the
+    status's target distance differs from the scan's pose's by more than a millimetre)."""
+    stop_steps: int = 0
+    """Periods whose decision was a stop (a safety rule applied, e.g. `scan_stale`; each stop
+    also restarts the policy's window)."""
+    late_steps: int = 0
+    """In lockstep: periods whose command did not reach the car within `lockstep_timeout_s`."""
+
+
+class Decision(NamedTuple):
+    """What the controller's status says it decided on one scan."""
+
+    scan_stamp_s: float
+    """Header stamp of the scan it decided on."""
+    reason: str
+    """Why the command is what it is (`policy`, or the stop's rule)."""
+    linear_mps: float
+    """The command's forward speed."""
+    angular_radps: float
+    """The command's turn rate."""
+    target_distance_m: float | None
+    """Distance from the pose it used to the target."""
+
+
+STAMP_MATCH_S = 1e-4
+"""A status names a scan when its scan stamp is this close to the scan's (the stamp crosses the
+wire as seconds and nanoseconds; scans are a control period apart)."""
+
+POSE_MATCH_M = 1e-3
+"""A decision used the scan's own pose when its target distance is this close to the pose's."""
+
+COMMAND_MATCH = 0.01
+"""The car has taken a command when its commanded velocities are this close to it (m/s, rad/s;
+the bridge's RC overrides are quantised to 1 us of PWM, 0.0025 of full travel)."""
+
+
+def decision_of(report: dict[str, Any]) -> Decision | None:
+    """The decision a controller status reports (None: it names no scan); KeyError, TypeError
+    or ValueError if it is not a status."""
+    stamp = report["scan_stamp_s"]
+    if stamp is None:
+        return None
+    distance = report["target_distance_m"]
+    command = report["command"]
+    return Decision(
+        float(stamp),
+        str(report["reason"]),
+        float(command["linear_mps"]),
+        float(command["angular_radps"]),
+        None if distance is None else float(distance),
+    )
 
 
 def vehicle_dynamics(world: WorldConfig, settings: SimCarSettings) -> InertiaDynamics:
@@ -184,12 +258,16 @@ class SimCar:
                     connection=settings.vehicle_connection,
                     dynamics=vehicle_dynamics(world, settings),
                     require_position_for_guided=False,
+                    external_physics=settings.lockstep,
                 )
             )
         self.episodes: list[EpisodeLog] = []
         self._velocities = np.array(action_velocities(world.dynamics, world.control_period_s))
         self._last_command: wire.Twist2D | None = None
         self._command_arrival_s = -math.inf
+        self._decisions: deque[Decision] = deque(maxlen=32)
+        """The newest decisions the controller's status reported (under `_decided`)."""
+        self._decided = threading.Condition()
 
     def action_of(self, command: wire.Twist2D | None) -> int:
         """The action whose velocity the command is (-1 for a stop or none)."""
@@ -213,7 +291,19 @@ class SimCar:
                     self._last_command = wire.decode_twist_msg(bytes(sample.payload.to_bytes()))
                     self._command_arrival_s = time.monotonic()
 
+            def on_status(sample: Any) -> None:
+                with contextlib.suppress(wire.WireError, KeyError, TypeError, ValueError):
+                    report = wire.decode_json_msg(bytes(sample.payload.to_bytes()))
+                    decision = decision_of(report)
+                    if decision is not None:
+                        with self._decided:
+                            self._decisions.append(decision)
+                            self._decided.notify_all()
+
             commands = session.declare_subscriber(wire.key(wire.COMMAND, namespace), on_command)
+            statuses = session.declare_subscriber(
+                wire.key(wire.CONTROLLER_STATUS, namespace), on_status
+            )
             self._wait_until_armed(stop)
             for index in range(settings.first_episode, settings.first_episode + settings.episodes):
                 if stop.is_set():
@@ -226,6 +316,7 @@ class SimCar:
                 if progress is not None:
                     progress(log_entry)
             commands.undeclare()
+            statuses.undeclare()
         return self.episodes
 
     def _wait_until_armed(self, stop: threading.Event) -> None:
@@ -255,13 +346,28 @@ class SimCar:
         deadline = time.monotonic()
         self._record(state, entry)
         published_s = time.monotonic()
-        self._publish(state, publish)
+        stamp = self._publish(state, publish)
+        distance = np.linalg.norm(state.target_xy - state.pose[:, :2], axis=1)
         while not stop.is_set():
             deadline += period
-            stop.wait(max(0.0, deadline - time.monotonic()))
+            if settings.lockstep:
+                if not self._await_command(stamp, published_s + settings.lockstep_timeout_s, stop):
+                    entry.late_steps += 1
+                stop.wait(max(0.0, deadline - time.monotonic()))
+                # A late command delays the next scan; it does not shorten the period after.
+                deadline = max(deadline, time.monotonic())
+            else:
+                stop.wait(max(0.0, deadline - time.monotonic()))
+            decision = self._decision_for(stamp)
+            note_decision(entry, decision, float(distance[0]))
             if self._command_arrival_s > published_s:
                 entry.command_delays_s.append(self._command_arrival_s - published_s)
-            entry.actions.append(self.action_of(self._last_command))
+            command = self._last_command
+            if settings.lockstep and decision is not None:
+                command = wire.Twist2D(decision.linear_mps, decision.angular_radps)
+            entry.actions.append(self.action_of(command))
+            if settings.lockstep and isinstance(self.vehicle, MavlinkVehicle):
+                self.vehicle.advance(period)
             state = self._advance(state)
             self._record(state, entry)
             observation = observe(world, state)
@@ -274,9 +380,35 @@ class SimCar:
             if entry.steps >= world.max_episode_steps:
                 break
             published_s = time.monotonic()
-            self._publish(state, publish, observation_scan=observation.scan_m)
+            stamp = self._publish(state, publish, observation_scan=observation.scan_m)
         self._rest(state, publish, stop)
         return None if stop.is_set() else entry
+
+    def _decision_for(self, stamp_s: float) -> Decision | None:
+        """The controller's first decision on the scan stamped `stamp_s`, if reported yet."""
+        with self._decided:
+            return next(
+                (d for d in self._decisions if abs(d.scan_stamp_s - stamp_s) < STAMP_MATCH_S),
+                None,
+            )
+
+    def _await_command(self, stamp_s: float, until_s: float, stop: threading.Event) -> bool:
+        """Lockstep: wait until the controller has decided on the scan stamped `stamp_s` and
+        the car has taken that command over MAVLink (False: not by `until_s`)."""
+        with self._decided:
+            self._decided.wait_for(
+                lambda: stop.is_set() or self._decision_for(stamp_s) is not None,
+                max(0.0, until_s - time.monotonic()),
+            )
+        decision = self._decision_for(stamp_s)
+        if decision is None or not isinstance(self.vehicle, MavlinkVehicle):
+            return False
+        return self.vehicle.wait_for_targets(
+            decision.linear_mps,
+            decision.angular_radps,
+            COMMAND_MATCH,
+            max(0.0, until_s - time.monotonic()),
+        )
 
     def _rest(self, state: WorldState, publish: dict[str, Any], stop: threading.Event) -> None:
         """`rest_s` of control periods at the episode's end: the car's own pose and the scan
@@ -329,7 +461,8 @@ class SimCar:
         *,
         target: bool = False,
         observation_scan: NDArray[np.float32] | None = None,
-    ) -> None:
+    ) -> float:
+        """Publish the pose (and the target) and the scan, stamped alike; returns the stamp."""
         settings = self.settings
         stamp = time.time()
         x, y, yaw = state.pose[0]
@@ -349,6 +482,20 @@ class SimCar:
             publish[wire.SCAN.name].put(
                 scan_message(scan[0], stamp, settings.lidar_frame_id, self.world.lidar.max_range_m)
             )
+        return stamp
+
+
+def note_decision(entry: EpisodeLog, decision: Decision | None, distance_m: float) -> None:
+    """Count a period's decision in the episode's health figures: none yet, a stop, or one on
+    another pose than the scan's (`distance_m`: the scan's pose to the target)."""
+    if decision is None:
+        entry.undecided_steps += 1
+    elif decision.reason != "policy":
+        entry.stop_steps += 1
+    elif decision.target_distance_m is None or (
+        abs(decision.target_distance_m - distance_m) > POSE_MATCH_M
+    ):
+        entry.stale_pose_steps += 1
 
 
 def episode_record(world: WorldConfig, entry: EpisodeLog) -> EpisodeRecord:

@@ -139,6 +139,10 @@ class MavlinkVehicleSettings:
     """MAVLink 2 signing key file (empty: no signing); see docs/bridge.md for its format."""
     dynamics: InertiaDynamics = field(default_factory=InertiaDynamics)
     """Full-travel speeds and time constants of the motion."""
+    external_physics: bool = False
+    """The car moves only when `advance(duration_s)` is called (the sim-car's lockstep: one
+    control period once that period's command has arrived), not with the clock; messages,
+    heartbeats and telemetry keep real time. False: it moves in real time."""
 
     def __post_init__(self) -> None:
         check_range(self, "system_id", self.system_id, 1, 255)
@@ -228,6 +232,8 @@ class MavlinkVehicle:
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
         self._boot_s = clock()
+        self._handled = threading.Condition()
+        """Notified after each batch of messages is handled (`wait_for_targets` waits on it)."""
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -306,6 +312,39 @@ class MavlinkVehicle:
             self._pose[0] = (x_m, y_m, yaw_rad)
             self._velocity[:] = 0.0
 
+    def targets(self) -> tuple[float, float]:
+        """The (forward m/s, counter-clockwise rad/s) the car is commanded now, under its mode
+        and inputs (what its velocities approach)."""
+        return self._targets(self._clock())
+
+    def wait_for_targets(
+        self, speed_mps: float, rate_radps: float, tolerance: float, timeout_s: float
+    ) -> bool:
+        """Wait until the commanded velocities are within `tolerance` of these (a command has
+        reached the car over MAVLink); False if not within `timeout_s`."""
+
+        def reached() -> bool:
+            speed, rate = self.targets()
+            return abs(speed - speed_mps) <= tolerance and abs(rate - rate_radps) <= tolerance
+
+        with self._handled:
+            return self._handled.wait_for(reached, timeout_s)
+
+    def advance(self, duration_s: float) -> None:
+        """Move the car `duration_s` under its current command (with `external_physics`)."""
+        if not self.settings.external_physics:
+            raise RuntimeError("advance() needs external_physics = true: this car moves itself")
+        speed, rate = self.targets()
+        with self._lock:
+            self._pose, self._velocity = step_velocity_lag(
+                self._pose,
+                self._velocity,
+                np.array([speed]),
+                np.array([rate]),
+                params=self.settings.dynamics,
+                period_s=duration_s,
+            )
+
     # -- the loop -----------------------------------------------------------------------------
 
     def _loop(self) -> None:
@@ -322,9 +361,11 @@ class MavlinkVehicle:
             except Exception:  # a malformed packet must not stop the car's clock
                 log.debug("receive error", exc_info=True)
                 messages = []
-            if self._link_enabled:
+            if self._link_enabled and messages:
                 for message in messages:
                     self._handle(message, self._clock())
+                with self._handled:
+                    self._handled.notify_all()
             now = self._clock()
             # Absolute deadlines: a late tick is followed by a short one, not by drift.
             while now >= next_physics:
@@ -342,6 +383,8 @@ class MavlinkVehicle:
             self._initialising = False
             self._mode = mode_number(self.settings.initial_mode)
         speed, rate = self._targets(now)
+        if self.settings.external_physics:
+            return  # the sim-car moves it (`advance`)
         with self._lock:
             self._pose, self._velocity = step_velocity_lag(
                 self._pose,

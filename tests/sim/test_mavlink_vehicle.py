@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from contracts.mavlink import (
@@ -27,6 +28,7 @@ from contracts.mavlink import (
     open_connection,
 )
 from contracts.settings import with_overrides
+from sim.dynamics import step_velocity_lag
 from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 IGNORE = 65535
@@ -158,6 +160,31 @@ def test_rc_override_moves_the_armed_car_forward_and_left(rig: Callable[..., Any
     assert x > 0.1 and abs(y) < 1e-6 and abs(yaw) < 1e-6
     _drive(station, 1100, 1500, 0.4)  # below-trim steering is a left turn
     assert vehicle.pose()[2] > 0.1
+
+
+def test_with_external_physics_the_car_moves_only_by_advance_exactly_as_the_simulator_does(
+    rig: Callable[..., Any],
+) -> None:
+    # The sim-car's lockstep: the override is taken over MAVLink, but the car stays put until
+    # advance() moves it one control period, as `step_velocity_lag` moves the simulator's robot.
+    vehicle, station = rig(external_physics=True)
+    station.command(MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    station.wait("HEARTBEAT", _armed)
+    station.override(1500, 1700)  # half throttle
+    params = vehicle.settings.dynamics
+    half = 0.5 * params.max_speed_mps
+    assert vehicle.wait_for_targets(half, 0.0, 0.01, timeout_s=3.0)
+    assert not vehicle.wait_for_targets(2 * half, 0.0, 0.01, timeout_s=0.1)
+    time.sleep(0.2)
+    assert vehicle.pose() == (0.0, 0.0, 0.0), "it moved with the clock"
+    vehicle.advance(0.2)
+    expected, _ = step_velocity_lag(
+        np.zeros((1, 3)), np.zeros((1, 2)), np.array([half]), np.array([0.0]), params=params,
+        period_s=0.2,
+    )  # fmt: skip
+    assert vehicle.pose() == pytest.approx(tuple(expected[0]), abs=1e-12)
+    with pytest.raises(RuntimeError, match="external_physics"):
+        rig()[0].advance(0.2)
 
 
 def test_rc_override_does_nothing_while_disarmed(rig: Callable[..., Any]) -> None:
