@@ -25,7 +25,7 @@ import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -405,6 +405,9 @@ def stack_verb(args: argparse.Namespace) -> int:
     )
     result["in_process"] = in_process_outcomes(args.policy, result["scenario"], args.episodes)
     result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
+    result["agreement"] = episode_agreement(
+        args.policy, result["scenario"], args.out / "episodes.jsonl"
+    )
     result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
     if args.json:
         print(json.dumps(result))
@@ -428,6 +431,12 @@ def stack_verb(args: argparse.Namespace) -> int:
             f"{same['collision']:.3f}, unfinished {same['unfinished']:.3f}; "
             f"gap {result['gap']:+.3f}; mean steps {result['mean_steps']} in the stack, "
             f"{same['mean_steps']} in process"
+        )
+        agreement = result["agreement"]
+        print(
+            f"episode by episode, beside the policy in process on one stream as the controller "
+            f"runs it: the same actions in {agreement['same_actions']} of "
+            f"{agreement['episodes']}, the same outcome in {agreement['same_outcome']}"
         )
         response = result["response"]
         print(
@@ -521,6 +530,45 @@ def in_process_outcomes(policy: Path, scenario_name: str, episodes: int) -> dict
         "unfinished": float(result.unfinished),
         "mean_steps": round(float(result.mean_steps), 1),
     }
+
+
+def episode_agreement(policy: Path, scenario_name: str, episodes_log: Path) -> dict[str, int]:
+    """Each episode of the sim-car's log run again in process one at a time, the policy on one
+    stream as the controller runs it: how many took the same action at every step
+    (`same_actions`) and ended alike (`same_outcome`). In lockstep the stack should match every
+    one; the batched `in_process_outcomes` can differ where an int8 file quantises its
+    activations over the whole batch."""
+    import numpy as np
+
+    from controller.policy import PolicyRuntime
+    from sim.config import scenario as load_scenario
+    from sim.evaluate import EvalSettings, StreamPolicyAgent
+    from sim.task import Outcome
+    from sim.world import observe, reset, step
+
+    test = EvalSettings()
+    world = replace(load_scenario(scenario_name), max_episode_steps=test.max_episode_steps)
+    names = {Outcome.SUCCESS: "success", Outcome.COLLISION: "collision"}
+    runtime = PolicyRuntime(policy)
+    agent = StreamPolicyAgent(runtime, 1)
+    counts = {"episodes": 0, "same_actions": 0, "same_outcome": 0}
+    for line in episodes_log.read_text().splitlines():
+        entry = json.loads(line)
+        state = reset(world, np.array([test.seed]), np.array([entry["episode"]]))
+        observation = observe(world, state)
+        agent.start(np.arange(1), np.array([entry["episode"]]))
+        actions: list[int] = []
+        while True:
+            action = agent.act(observation)
+            actions.append(int(action[0]))
+            state, observation, transition = step(world, state, action)
+            if transition.terminated[0] or transition.truncated[0]:
+                break
+        counts["episodes"] += 1
+        counts["same_actions"] += actions == entry["actions"]
+        ended = names.get(Outcome(int(transition.outcome[0])), "unfinished")
+        counts["same_outcome"] += ended == entry["outcome"]
+    return counts
 
 
 def sim_car_verb(args: argparse.Namespace) -> int:
