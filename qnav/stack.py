@@ -133,10 +133,12 @@ def write_configs(
     *,
     bridge_values: dict[str, Any] | None = None,
     public_key: Path | None = None,
+    input_timeout_s: float = 0.0,
 ) -> None:
     """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
     bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
-    controller takes policies from a server signed with its private key, `policy` first)."""
+    controller takes policies from a server signed with its private key, `policy` first;
+    `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default)."""
     from controller.config import DaemonConfig
     from firmware_bridge.settings import BridgeSettings
 
@@ -145,7 +147,12 @@ def write_configs(
         DaemonConfig,
         {
             "controller": {"policy": str(policy.resolve()), "trigger": "scan"},
-            "safety": {"target_tolerance_m": tolerance_m},
+            "safety": {"target_tolerance_m": tolerance_m}
+            | (
+                {}
+                if input_timeout_s <= 0
+                else {"scan_timeout_s": input_timeout_s, "pose_timeout_s": input_timeout_s}
+            ),
             "zenoh": zenoh,
         }
         | (
@@ -254,6 +261,7 @@ def run_stack(
 
     from contracts.policy_file import PolicyContract
     from controller.onnx_file import read_onnx
+    from sim.car import SimCarSettings
     from sim.config import scenario as load_scenario
 
     contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
@@ -283,6 +291,12 @@ def run_stack(
         world.robot_radius_m,
         bridge_values=bridge_values,
         public_key=None if serve is None else serve.public_key,
+        # In lockstep the world waits for the controller: a scan's age in wall time is the
+        # stack's, not the world's, and a stop for a stale scan would restart the policy's
+        # window mid-episode. The controller waits as long as the sim-car does.
+        input_timeout_s=(
+            SimCarSettings().lockstep_timeout_s + world.control_period_s if lockstep else 0.0
+        ),
     )
     rest_args = [] if serve is None else ["--rest-s", str(serve.rest_s)]
     daemons = Daemons(files)

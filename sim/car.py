@@ -152,8 +152,9 @@ class EpisodeLog:
     """Periods whose decision used another pose than the one published with its scan (the
     status's target distance differs from the scan's pose's by more than a millimetre)."""
     stop_steps: int = 0
-    """Periods whose decision was a stop (a safety rule applied, e.g. `scan_stale`; each stop
-    also restarts the policy's window)."""
+    """Periods in which the controller stopped the car (a safety rule applied, e.g.
+    `scan_stale`, on the scan or before the next; each stop also restarts the policy's
+    window)."""
     late_steps: int = 0
     """In lockstep: periods whose command did not reach the car within `lockstep_timeout_s`."""
 
@@ -268,6 +269,8 @@ class SimCar:
         self._decisions: deque[Decision] = deque(maxlen=32)
         """The newest decisions the controller's status reported (under `_decided`)."""
         self._decided = threading.Condition()
+        self._controller_heard = False
+        """A controller status has arrived (under `_decided`): the controller listens."""
 
     def action_of(self, command: wire.Twist2D | None) -> int:
         """The action whose velocity the command is (-1 for a stop or none)."""
@@ -295,16 +298,18 @@ class SimCar:
                 with contextlib.suppress(wire.WireError, KeyError, TypeError, ValueError):
                     report = wire.decode_json_msg(bytes(sample.payload.to_bytes()))
                     decision = decision_of(report)
-                    if decision is not None:
-                        with self._decided:
+                    with self._decided:
+                        self._controller_heard = True
+                        if decision is not None:
                             self._decisions.append(decision)
-                            self._decided.notify_all()
+                        self._decided.notify_all()
 
             commands = session.declare_subscriber(wire.key(wire.COMMAND, namespace), on_command)
             statuses = session.declare_subscriber(
                 wire.key(wire.CONTROLLER_STATUS, namespace), on_status
             )
             self._wait_until_armed(stop)
+            self._wait_for_controller(stop)
             for index in range(settings.first_episode, settings.first_episode + settings.episodes):
                 if stop.is_set():
                     break
@@ -329,6 +334,17 @@ class SimCar:
                     "vehicle.arm_on_connect = true?"
                 )
             time.sleep(0.05)
+
+    def _wait_for_controller(self, stop: threading.Event) -> None:
+        """The first target goes out once the controller listens (its first status: it
+        publishes one every period while stopped); a target published before it subscribed
+        would never reach it (measured: a loaded machine's controller started late, missed the
+        first episode's target and stood still through it)."""
+        timeout = self.settings.start_timeout_s
+        with self._decided:
+            heard = self._decided.wait_for(lambda: self._controller_heard or stop.is_set(), timeout)
+        if not heard:
+            log.warning("no controller status within %g s: starting anyway", timeout)
 
     def _episode(
         self, index: int, publish: dict[str, Any], stop: threading.Event
@@ -358,8 +374,9 @@ class SimCar:
                 deadline = max(deadline, time.monotonic())
             else:
                 stop.wait(max(0.0, deadline - time.monotonic()))
-            decision = self._decision_for(stamp)
-            note_decision(entry, decision, float(distance[0]))
+            decisions = self._decisions_on(stamp)
+            decision = next(iter(decisions), None)
+            note_decision(entry, decisions, float(distance[0]))
             if self._command_arrival_s > published_s:
                 entry.command_delays_s.append(self._command_arrival_s - published_s)
             command = self._last_command
@@ -384,13 +401,16 @@ class SimCar:
         self._rest(state, publish, stop)
         return None if stop.is_set() else entry
 
+    def _decisions_on(self, stamp_s: float) -> list[Decision]:
+        """The controller's outputs on the scan stamped `stamp_s` reported so far, first first
+        (its decision on the scan, then any stop its periodic safety check made before the
+        next scan)."""
+        with self._decided:
+            return [d for d in self._decisions if abs(d.scan_stamp_s - stamp_s) < STAMP_MATCH_S]
+
     def _decision_for(self, stamp_s: float) -> Decision | None:
         """The controller's first decision on the scan stamped `stamp_s`, if reported yet."""
-        with self._decided:
-            return next(
-                (d for d in self._decisions if abs(d.scan_stamp_s - stamp_s) < STAMP_MATCH_S),
-                None,
-            )
+        return next(iter(self._decisions_on(stamp_s)), None)
 
     def _await_command(self, stamp_s: float, until_s: float, stop: threading.Event) -> bool:
         """Lockstep: wait until the controller has decided on the scan stamped `stamp_s` and
@@ -485,12 +505,15 @@ class SimCar:
         return stamp
 
 
-def note_decision(entry: EpisodeLog, decision: Decision | None, distance_m: float) -> None:
-    """Count a period's decision in the episode's health figures: none yet, a stop, or one on
-    another pose than the scan's (`distance_m`: the scan's pose to the target)."""
-    if decision is None:
+def note_decision(entry: EpisodeLog, decisions: list[Decision], distance_m: float) -> None:
+    """Count a period's outputs on its scan (`decisions`, first first) in the episode's health
+    figures: none yet, a stop among them, or a decision on another pose than the scan's
+    (`distance_m`: the scan's pose to the target)."""
+    if not decisions:
         entry.undecided_steps += 1
-    elif decision.reason != "policy":
+        return
+    decision = decisions[0]
+    if any(d.reason != "policy" for d in decisions):
         entry.stop_steps += 1
     elif decision.target_distance_m is None or (
         abs(decision.target_distance_m - distance_m) > POSE_MATCH_M

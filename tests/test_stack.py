@@ -162,11 +162,12 @@ def test_the_sim_car_tells_which_scan_a_real_controllers_decision_was_on_and_on_
     assert abs(decision.scan_stamp_s - stamp) < 1e-4
     distance = float(np.hypot(tx - x, ty - y))
     entry = EpisodeLog(0, "success", 3)
-    note_decision(entry, decision, distance)  # on time, on the scan's own pose
-    note_decision(entry, decision, distance + 0.05)  # an older pose
-    note_decision(entry, None, distance)  # not decided before the world stepped
-    stop = controller.decide(10.0).status.to_dict()  # everything stale by now: a stop
-    note_decision(entry, decision_of(stop), distance)
+    note_decision(entry, [decision], distance)  # on time, on the scan's own pose
+    note_decision(entry, [decision], distance + 0.05)  # an older pose
+    note_decision(entry, [], distance)  # not decided before the world stepped
+    stop = decision_of(controller.decide(10.0).status.to_dict())  # all stale by now: a stop
+    assert stop is not None and stop.reason == "scan_stale"
+    note_decision(entry, [decision, stop], distance)  # the safety check stopped it after
     assert (entry.stale_pose_steps, entry.undecided_steps, entry.stop_steps) == (1, 1, 1)
     assert decision_of({**report, "scan_stamp_s": None}) is None
     entry.late_steps = 2
