@@ -9,6 +9,13 @@ the car's drivers would: the lidar as a `sensor_msgs/LaserScan` (the world's bea
 bridge); the obstacles move as in the simulator. The episode's outcome is judged by the
 simulator's own rules (`sim.task.outcome`), and the next episode starts at once.
 
+With `lockstep` (`qnav sim-car --lockstep`, as `qnav stack` runs it), the world waits for the
+controller: each period it steps only once the controller's status names the period's scan and
+the test vehicle has taken that decision's command over MAVLink, and then the car moves exactly
+one control period under it (`MavlinkVehicle.advance`), so the episode is the in-process one
+whatever the latency. Either way the episode log counts, per period, the decisions that came
+too late, on another pose, or as stops (`EpisodeLog`).
+
 With `firmware_connection` (`qnav sim-car --firmware`), a real autopilot moves the robot
 instead: its own pose estimate is the robot's pose (`sim.firmware_vehicle`), as in
 `qnav stack --vehicle sitl`.
