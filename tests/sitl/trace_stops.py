@@ -103,7 +103,11 @@ class RecordingRelay:
 
 
 def _print_trace(observer: Observer, relay: RecordingRelay, event_s: float, end_s: float) -> None:
-    """The bridge's messages (each change), then every 0.1 s: the EKF's and the true speed."""
+    """The vehicle's mode changes and the bridge's messages (each change), then every 0.1 s:
+    the EKF's and the true speed."""
+    for t, armed, mode in list(observer.changes):
+        if event_s - 0.7 <= t <= end_s:
+            print(f"  {t - event_s:+.2f} s  vehicle {'armed' if armed else 'disarmed'} in {mode}")
     previous = None
     for t, m in relay.sent:
         kind = m.get_type()
