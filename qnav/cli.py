@@ -108,6 +108,25 @@ def build_parser() -> argparse.ArgumentParser:
         "controller would (errors in sim.oracle.PERCEPTION_LEVELS)",
     )
     evaluate.add_argument(
+        "--tracker",
+        action="store_true",
+        help="with --agent oracle: plan on the onboard obstacle tracker's estimate "
+        "(controller.perception: lidar plus pose, the room's walls known) instead of the truth",
+    )
+    evaluate.add_argument(
+        "--shield",
+        action="store_true",
+        help="with --policy: the tracker feeds a 4 s look ahead that overrules the policy's "
+        "action with its best-valued one among the least likely to collide",
+    )
+    evaluate.add_argument(
+        "--range-noise-m",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --tracker or --shield: Gaussian noise added to the ranges the tracker reads",
+    )
+    evaluate.add_argument(
         "--policy",
         type=Path,
         metavar="RUN_DIR|FILE.onnx",
@@ -278,6 +297,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="instead: can the network's encoder and LSTM locate the nearest obstacle and its "
         "velocity in a window? (median errors per pass)",
+    )
+    probe.add_argument(
+        "--tracker",
+        action="store_true",
+        help="instead: the onboard obstacle tracker's errors on the perception probe's drive "
+        "(settings tracker.FIELD and tracker_check.FIELD)",
     )
     probe.add_argument("--print-config", action="store_true", help="print the probe settings")
     probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")

@@ -7,7 +7,7 @@ import json
 from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 from contracts.errors import ConfigError
 from contracts.settings import load_toml, parse_assignments, with_overrides
@@ -76,11 +76,52 @@ def evaluate(args: argparse.Namespace) -> int:
             seed=args.seed,
         )
         label = f"{run.train.model} policy {args.policy}"
-    if args.state_error and (args.policy is not None or args.agent != "oracle"):
+    planner = args.policy is None and args.agent == "oracle"
+    if args.state_error and not planner:
         raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
+    if args.tracker and not planner:
+        raise ConfigError("--tracker is for --agent oracle (with --policy, use --shield)")
+    if args.state_error and args.tracker:
+        raise ConfigError("--state-error and --tracker are two views of the state: choose one")
+    if args.shield and (args.policy is None or args.random_action_prob):
+        raise ConfigError("--shield overrules a greedy policy: give --policy, no random actions")
+    if args.range_noise_m and not (args.tracker or args.shield):
+        raise ConfigError(
+            "--range-noise-m is the noise the tracker reads: give --tracker or --shield"
+        )
+    if args.range_noise_m < 0:
+        raise ConfigError(
+            f"--range-noise-m = {args.range_noise_m} is out of range: allowed [0, inf)"
+        )
+    shield = None
+    if args.shield:
+        from controller.perception import TrackerSettings
+        from qnav.tracking import QAgent, ShieldedAgent
+
+        shield = agent = ShieldedAgent(
+            cast(QAgent, agent),  # --policy gave a StreamPolicyAgent or a TorchAgent
+            world,
+            worlds,
+            tracker=TrackerSettings(),
+            range_noise_m=args.range_noise_m,
+            seed=args.seed,
+        )
+        label += ", shielded by the tracker's look ahead"
     if args.random_action_prob:
         label += f" with {args.random_action_prob:.0%} random actions"
-    if args.policy is None and args.agent == "oracle":
+    if planner and args.tracker:
+        from controller.perception import TrackerSettings
+        from qnav.tracking import run_perceiving_oracle
+
+        label += ", planning on the onboard tracker's estimate"
+        result = run_perceiving_oracle(
+            world,
+            eval_settings,
+            TrackerSettings(),
+            range_noise_m=args.range_noise_m,
+            progress=not args.json,
+        )
+    elif planner:
         from sim.oracle import PERCEPTION_LEVELS, run_oracle
 
         error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
@@ -97,6 +138,8 @@ def evaluate(args: argparse.Namespace) -> int:
         value = getattr(result, name)
         print(f"  {name:<11} {value:.3f} +- {result.standard_error(value):.3f}")
     print(f"  mean length {result.mean_steps:.1f} steps")
+    if shield is not None:
+        print(f"  overruled  {shield.overruled_share:.3f} of the policy's decisions")
     return 0
 
 
@@ -363,6 +406,8 @@ def probe(args: argparse.Namespace) -> int:
     from training.probe import PerceptionSettings, ProbeSettings
     from training.probe import probe as fit
 
+    if args.tracker:
+        return _track(args)
     settings: ProbeSettings | PerceptionSettings
     settings = PerceptionSettings() if args.perception else ProbeSettings()
     section = settings.SECTION
@@ -389,6 +434,43 @@ def probe(args: argparse.Namespace) -> int:
                 f"{epoch.train_balanced:.3f}, gauge safe {epoch.safe:.3f}, "
                 f"balanced {epoch.balanced:.3f} (blind choices 0.500)"
             )
+    return 0
+
+
+def _track(args: argparse.Namespace) -> int:
+    """The onboard tracker's errors on the perception probe's drive."""
+    from contracts.settings import to_toml
+    from controller.perception import TrackerSettings
+    from qnav.tracking import TrackerCheckSettings, measure_tracker
+
+    tracker, check = TrackerSettings(), TrackerCheckSettings()
+    if args.probe_assignments:
+        overrides = parse_assignments(args.probe_assignments)
+        unknown = set(overrides) - {tracker.SECTION, check.SECTION}
+        if unknown:
+            raise ConfigError(
+                f"--probe-set takes {tracker.SECTION}.FIELD=VALUE or {check.SECTION}.FIELD=VALUE,"
+                f" not {sorted(unknown)}"
+            )
+        tracker = with_overrides(tracker, overrides.get(tracker.SECTION, {}), tracker.SECTION)
+        check = with_overrides(check, overrides.get(check.SECTION, {}), check.SECTION)
+    if args.print_config:
+        print(
+            f"[{tracker.SECTION}]\n{to_toml(tracker)}\n[{check.SECTION}]\n{to_toml(check)}", end=""
+        )
+        return 0
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    errors = measure_tracker(world, tracker, check, progress=not args.json)
+    if args.json:
+        print(json.dumps(errors._asdict()))
+        return 0
+    print(
+        f"{world.name}: the onboard tracker on {errors.samples} states (nearest obstacle within "
+        f"{check.max_distance_m} m), lidar range noise {check.range_noise_m} m"
+    )
+    for name in errors.median:
+        print(f"  {name:<22} median {errors.median[name]:.4f}  p90 {errors.p90[name]:.4f}")
+    print(f"  no track within 1 m of the nearest obstacle: {errors.missed_share:.3f}")
     return 0
 
 

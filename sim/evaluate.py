@@ -140,13 +140,17 @@ class StreamPolicyAgent:
     ) -> None:
         self.policy = policy
         self.exploration = ExplorationHold(num_worlds, epsilon, hold_steps=1, seed=seed)
+        self.last_q = np.zeros((num_worlds, NUM_ACTIONS), dtype=np.float32)
+        """The Q values of the last decision (for a shield that ranks actions by them)."""
 
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
         self.policy.reset(worlds)
         self.exploration.start(worlds)
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
-        greedy, _ = self.policy.step_batch(observation.scan_m, observation.target_features())
+        greedy, self.last_q = self.policy.step_batch(
+            observation.scan_m, observation.target_features()
+        )
         return self.exploration(greedy)
 
 

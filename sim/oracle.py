@@ -232,6 +232,19 @@ frames 0.2 s apart give velocities to a few cm/s: "lidar-grade" is what a perfec
 the window could know, "tracker" a good hand-built obstacle tracker, "coarse" a sloppy one."""
 
 
+PERCEIVED = (
+    "obstacle_ahead_m",
+    "obstacle_left_m",
+    "obstacle_forward_mps",
+    "obstacle_leftward_mps",
+    "robot_speed_mps",
+    "robot_turn_radps",
+)
+"""What a perceiver is judged on (`qnav probe --perception`, `qnav probe --tracker`): the
+nearest obstacle's position and velocity in the robot's frame, and the robot's own speed and
+turn rate (hidden under inertia)."""
+
+
 def with_error(world: WorldState, error: StateError, random: np.random.Generator) -> WorldState:
     """A copy of the state as a perceiver with `error` would estimate it (fresh draws)."""
 
@@ -272,10 +285,15 @@ class OracleDriver:
     def act(self, state: WorldState) -> NDArray[np.int64]:
         """(N,) the planner's action in each world: planned on the true state, or on a fresh
         estimate of it with `state_error` (a perceive-then-plan controller's view)."""
-        sequences = keyed_sequences(state, self.horizon, self.random_sequences, self.seed)
         if self.state_error is not None:
-            state = with_error(state, self.state_error, self._random)
-        return plan(self.config, state, sequences)
+            return self.act_on(state, with_error(state, self.state_error, self._random))
+        return self.act_on(state, state)
+
+    def act_on(self, state: WorldState, perceived: WorldState) -> NDArray[np.int64]:
+        """(N,) the planner's action in each world of `state`, planned on `perceived` (what a
+        perceiver makes of it); the candidates are drawn from `state`'s keys."""
+        sequences = keyed_sequences(state, self.horizon, self.random_sequences, self.seed)
+        return plan(self.config, perceived, sequences)
 
 
 def run_oracle(

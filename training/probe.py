@@ -30,6 +30,7 @@ from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
 from sim.evaluate import go_to_target
+from sim.oracle import PERCEIVED
 from sim.world import BatchedWorld, WorldState, observe
 from training.agent import greedy_actions
 from training.networks import QNetwork
@@ -284,18 +285,6 @@ class PerceptionSettings:
         check_range(self, "learning_rate", self.learning_rate, 0.0, 1.0, exclusive_low=True)
         check_range(self, "conv_channels", self.conv_channels, 1, 4096)
         check_range(self, "threads", self.threads, 1, 1024)
-
-
-PERCEIVED = (
-    "obstacle_ahead_m",
-    "obstacle_left_m",
-    "obstacle_forward_mps",
-    "obstacle_leftward_mps",
-    "robot_speed_mps",
-    "robot_turn_radps",
-)
-"""What the perception probe asks of a window: the nearest obstacle's position and velocity in
-the robot's frame, and the robot's own speed and turn rate (hidden under inertia)."""
 
 
 class PerceptionEpoch(NamedTuple):

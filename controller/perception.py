@@ -1,0 +1,281 @@
+"""Moving obstacles from a lidar and a motion-capture pose: a small tracker, numpy only.
+
+The paper's network is asked to find moving obstacles in raw ranges; measured, it does not
+(docs/learner.md, "Why: perception and the doom function's appetite for data"). Indoors the car
+knows its pose (motion capture) and the room's walls, which makes the job classical and cheap:
+
+1. every return becomes a point in the room's frame (`scan_points`);
+2. returns on a known wall are the wall (`off_the_walls`); the rest is grouped into runs of
+   neighbouring beams (`clusters`);
+3. each cluster is the near side of a cylinder of known radius, whose centre a least-squares
+   fit finds (`fit_circle`);
+4. detections join tracks by nearest prediction within a gate; a track's velocity is the slope
+   of a straight-line fit to its recent centres, over the longest recent stretch that is
+   straight (an obstacle that bounced off a wall starts a new stretch) (`fit_velocity`).
+
+`ObstacleTracker` holds one world's tracks; the functions are pure. The car's own velocity
+comes from its last two poses (`ego_velocity`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts.settings import check_range
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class TrackerSettings:
+    """How the tracker reads a scan and keeps its tracks."""
+
+    SECTION = "tracker"
+
+    obstacle_radius_m: float = 0.2
+    """Radius of the (cylindrical) obstacles the circle fit assumes."""
+    wall_band_m: float = 0.1
+    """Returns within this distance of a known wall belong to the wall (keep it above three
+    times the lidar's range noise, or the walls' noisy returns become obstacles)."""
+    min_returns: int = 3
+    """Fewest neighbouring returns that make an obstacle (a lone stray return does not)."""
+    cluster_gap_m: float = 0.3
+    """Neighbouring returns farther apart than this belong to different objects."""
+    gate_m: float = 0.3
+    """A detection farther than this from every track's prediction starts a new track."""
+    max_obstacle_speed_mps: float = 2.0
+    """Fastest obstacle expected: a track seen once (no velocity yet) reaches this far."""
+    velocity_frames: int = 5
+    """Most recent centres a velocity is fitted to."""
+    straight_tolerance_m: float = 0.03
+    """Largest residual of a centre from the fitted line for a stretch to count as straight."""
+    coast_frames: int = 3
+    """Frames a track is kept (moved by its velocity) without a detection."""
+
+    def __post_init__(self) -> None:
+        check_range(
+            self, "obstacle_radius_m", self.obstacle_radius_m, 0.0, 100.0, exclusive_low=True
+        )
+        check_range(self, "wall_band_m", self.wall_band_m, 0.0, 10.0)
+        check_range(self, "min_returns", self.min_returns, 1, 100_000)
+        check_range(self, "cluster_gap_m", self.cluster_gap_m, 0.0, 10.0, exclusive_low=True)
+        check_range(self, "gate_m", self.gate_m, 0.0, 100.0, exclusive_low=True)
+        check_range(self, "max_obstacle_speed_mps", self.max_obstacle_speed_mps, 0.0, 100.0)
+        check_range(self, "velocity_frames", self.velocity_frames, 2, 1000)
+        check_range(self, "straight_tolerance_m", self.straight_tolerance_m, 0.0, 10.0)
+        check_range(self, "coast_frames", self.coast_frames, 0, 1000)
+
+
+def box_walls(size_m: float) -> F64:
+    """(4, 4) wall segments (x0, y0, x1, y1) of a square room [0, size_m]^2."""
+    s = size_m
+    return np.array([[0, 0, s, 0], [s, 0, s, s], [s, s, 0, s], [0, s, 0, 0]], dtype=np.float64)
+
+
+def scan_points(scan_m: NDArray[np.floating], pose: F64, beam_angles_rad: F64) -> F64:
+    """(B, 2) each return's position in the room's frame (nan where there is no return)."""
+    ranges = np.where(np.isfinite(scan_m), scan_m, np.nan).astype(np.float64)
+    angle = pose[2] + beam_angles_rad
+    return np.stack([pose[0] + ranges * np.cos(angle), pose[1] + ranges * np.sin(angle)], axis=1)
+
+
+def distance_to_walls(points: F64, walls: F64) -> F64:
+    """(P,) each point's distance to the nearest wall segment."""
+    start, end = walls[:, :2], walls[:, 2:]
+    along = end - start
+    length2 = np.maximum(np.sum(along * along, axis=1), 1e-12)
+    offset = points[:, None, :] - start[None]
+    t = np.clip(np.sum(offset * along[None], axis=2) / length2[None], 0.0, 1.0)
+    nearest = start[None] + t[..., None] * along[None]
+    return np.asarray(np.min(np.linalg.norm(points[:, None, :] - nearest, axis=2), axis=1))
+
+
+def off_the_walls(points: F64, walls: F64, band_m: float) -> NDArray[np.bool_]:
+    """(B,) True for returns that are not on a known wall (and are returns at all)."""
+    valid = np.all(np.isfinite(points), axis=1)
+    keep: NDArray[np.bool_] = valid.copy()
+    keep[valid] = distance_to_walls(points[valid], walls) > band_m
+    return keep
+
+
+def clusters(points: F64, keep: NDArray[np.bool_], gap_m: float) -> list[NDArray[np.int64]]:
+    """Runs of neighbouring kept beams whose consecutive points are within `gap_m`, as beam
+    indices; the scan is circular, so a run may wrap past the last beam."""
+    beams = np.flatnonzero(keep)
+    if beams.size == 0:
+        return []
+    step = np.linalg.norm(np.diff(points[beams], axis=0), axis=1)
+    breaks = (np.diff(beams) != 1) | (step > gap_m)
+    runs = np.split(beams, np.flatnonzero(breaks) + 1)
+    count = keep.size
+    wraps = (
+        len(runs) > 1
+        and runs[0][0] == 0
+        and runs[-1][-1] == count - 1
+        and np.linalg.norm(points[0] - points[count - 1]) <= gap_m
+    )
+    if wraps:
+        runs = [np.concatenate([runs[-1], runs[0]]), *runs[1:-1]]
+    return runs
+
+
+def fit_circle(points: F64, sensor_xy: F64, radius_m: float, iterations: int = 5) -> F64:
+    """(2,) centre of the circle of `radius_m` whose near side best fits `points` (P, 2) seen
+    from `sensor_xy`: Gauss-Newton on the radial residuals, from the points' centroid pushed
+    back by the radius along the line of sight."""
+    centroid = points.mean(axis=0)
+    sight = centroid - sensor_xy
+    centre = centroid + radius_m * sight / max(float(np.linalg.norm(sight)), 1e-9)
+    if len(points) < 3:
+        return np.asarray(centre)
+    for _ in range(iterations):
+        offset = points - centre
+        distance = np.maximum(np.sqrt(np.einsum("ij,ij->i", offset, offset)), 1e-9)
+        jacobian = -offset / distance[:, None]
+        normal = jacobian.T @ jacobian  # 2 x 2: solved by hand, it is the hot loop
+        gradient = jacobian.T @ (distance - radius_m)
+        determinant = normal[0, 0] * normal[1, 1] - normal[0, 1] * normal[1, 0]
+        if abs(determinant) < 1e-12:
+            break
+        step = np.array(
+            [
+                normal[1, 1] * gradient[0] - normal[0, 1] * gradient[1],
+                normal[0, 0] * gradient[1] - normal[1, 0] * gradient[0],
+            ]
+        )
+        centre = centre - step / determinant
+    return np.asarray(centre)
+
+
+def fit_velocity(times_s: F64, centres: F64, tolerance_m: float) -> F64:
+    """(2,) velocity of the longest recent stretch of centres that lies on a straight line
+    within `tolerance_m` (at least the last two); zero with fewer than two centres."""
+    if len(times_s) < 2:
+        return np.zeros(2)
+    for first in range(len(times_s) - 1):  # longest stretch first
+        t = times_s[first:] - times_s[-1]
+        xy = centres[first:]
+        design = np.stack([np.ones_like(t), t], axis=1)
+        coefficients, *_ = np.linalg.lstsq(design, xy, rcond=None)
+        residual = xy - design @ coefficients
+        if len(t) == 2 or np.max(np.linalg.norm(residual, axis=1)) <= tolerance_m:
+            return np.asarray(coefficients[1])
+    return np.zeros(2)  # unreachable: a two-point stretch always fits
+
+
+def ego_velocity(previous_pose: F64, pose: F64, period_s: float) -> F64:
+    """(2,) forward speed (m/s) and turn rate (rad/s) over the last period, from two poses."""
+    turn = math.remainder(float(pose[2] - previous_pose[2]), 2 * math.pi)
+    middle = previous_pose[2] + turn / 2
+    moved = pose[:2] - previous_pose[:2]
+    forward = moved[0] * math.cos(middle) + moved[1] * math.sin(middle)
+    return np.array([forward / period_s, turn / period_s])
+
+
+class Tracks(NamedTuple):
+    """What the tracker believes now, in the room's frame."""
+
+    xy_m: F64
+    """(K, 2) obstacle centres."""
+    velocity_mps: F64
+    """(K, 2) obstacle velocities."""
+
+
+@dataclass
+class _Track:
+    times_s: deque[float]
+    centres: deque[F64]
+    velocity: F64 = field(default_factory=lambda: np.zeros(2))
+    missed: int = 0
+
+    def predicted(self, time_s: float) -> F64:
+        return np.asarray(self.centres[-1] + self.velocity * (time_s - self.times_s[-1]))
+
+
+class ObstacleTracker:
+    """One room's obstacle tracks, updated with each scan and the pose it was taken from."""
+
+    def __init__(self, settings: TrackerSettings, walls: F64, beam_angles_rad: F64) -> None:
+        self.settings = settings
+        self.walls = walls
+        self.beam_angles_rad = beam_angles_rad
+        self._tracks: list[_Track] = []
+        self._time_s = 0.0
+
+    def detect(self, scan_m: NDArray[np.floating], pose: F64) -> F64:
+        """(D, 2) obstacle centres found in one scan."""
+        s = self.settings
+        points = scan_points(scan_m, pose, self.beam_angles_rad)
+        runs = clusters(points, off_the_walls(points, self.walls, s.wall_band_m), s.cluster_gap_m)
+        centres = [
+            fit_circle(points[run], pose[:2], s.obstacle_radius_m)
+            for run in runs
+            if len(run) >= s.min_returns
+        ]
+        return np.array(centres, dtype=np.float64).reshape(-1, 2)
+
+    def update(self, time_s: float, scan_m: NDArray[np.floating], pose: F64) -> Tracks:
+        """Take in a scan taken at `time_s` from `pose`; the tracks as they are now."""
+        s = self.settings
+        detections = self.detect(scan_m, pose)
+        predicted = np.array([t.predicted(time_s) for t in self._tracks]).reshape(-1, 2)
+        taken_tracks: set[int] = set()
+        taken_detections: set[int] = set()
+        if len(predicted) and len(detections):
+            distance = np.linalg.norm(predicted[:, None] - detections[None], axis=2)
+            gate = np.array([self._gate_m(track, time_s) for track in self._tracks])
+            distance[distance > gate[:, None]] = np.inf
+            for flat in np.argsort(distance, axis=None):
+                row, detection = divmod(int(flat), len(detections))
+                if not np.isfinite(distance[row, detection]):
+                    break
+                if row in taken_tracks or detection in taken_detections:
+                    continue
+                taken_tracks.add(row)
+                taken_detections.add(detection)
+                self._extend(self._tracks[row], time_s, detections[detection])
+        kept = []
+        for index, track in enumerate(self._tracks):
+            if index not in taken_tracks:
+                track.missed += 1
+            if track.missed <= s.coast_frames:
+                kept.append(track)
+        for index, centre in enumerate(detections):
+            if index not in taken_detections:
+                kept.append(
+                    _Track(
+                        deque([time_s], maxlen=s.velocity_frames),
+                        deque([centre], maxlen=s.velocity_frames),
+                    )
+                )
+        self._tracks = kept
+        self._time_s = time_s
+        return self.tracks()
+
+    def _gate_m(self, track: _Track, time_s: float) -> float:
+        """How far from its prediction a track's next detection may be: a track seen once has
+        no velocity yet, so it may have gone as far as the fastest obstacle goes."""
+        if len(track.centres) > 1:
+            return self.settings.gate_m
+        elapsed = time_s - track.times_s[-1]
+        return self.settings.gate_m + self.settings.max_obstacle_speed_mps * elapsed
+
+    def _extend(self, track: _Track, time_s: float, centre: F64) -> None:
+        track.times_s.append(time_s)
+        track.centres.append(centre)
+        track.missed = 0
+        track.velocity = fit_velocity(
+            np.array(track.times_s), np.array(track.centres), self.settings.straight_tolerance_m
+        )
+
+    def tracks(self) -> Tracks:
+        """Every kept track's centre (coasting ones moved on by their velocity) and velocity."""
+        xy = np.array([t.predicted(self._time_s) for t in self._tracks]).reshape(-1, 2)
+        velocity = np.array([t.velocity for t in self._tracks]).reshape(-1, 2)
+        return Tracks(xy, velocity)

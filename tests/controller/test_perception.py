@@ -1,0 +1,131 @@
+"""The onboard obstacle tracker: each pure step, then the whole tracker on the simulator's scans."""
+
+import math
+
+import numpy as np
+import pytest
+
+from contracts.errors import ConfigError
+from contracts.observation import LidarSpec
+from controller.perception import (
+    ObstacleTracker,
+    TrackerSettings,
+    box_walls,
+    clusters,
+    ego_velocity,
+    fit_circle,
+    fit_velocity,
+    off_the_walls,
+    scan_points,
+)
+
+BEAMS = LidarSpec().beam_angles_rad()
+
+
+def _arc(centre: tuple[float, float], radius_m: float, sensor: tuple[float, float]) -> np.ndarray:
+    """Points of the near side of a circle as a lidar at `sensor` sees it."""
+    offset = np.subtract(centre, sensor)
+    bearing = math.atan2(offset[1], offset[0])
+    half = math.asin(radius_m / float(np.linalg.norm(offset)))
+    angles = np.linspace(bearing - 0.9 * half, bearing + 0.9 * half, 12)
+    d = float(np.linalg.norm(offset))
+    # Ray-circle intersection along each angle.
+    u = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    along = u @ offset
+    t = along - np.sqrt(np.maximum(along**2 - (d**2 - radius_m**2), 0.0))
+    return np.asarray(np.array(sensor) + t[:, None] * u)
+
+
+def test_the_circle_fit_finds_the_centre_of_a_seen_arc() -> None:
+    points = _arc((3.0, 1.0), 0.2, (0.5, -0.5))
+    assert np.allclose(fit_circle(points, np.array([0.5, -0.5]), 0.2), [3.0, 1.0], atol=1e-6)
+
+
+def test_the_circle_fit_stays_within_centimetres_under_centimetre_range_noise() -> None:
+    chance = np.random.default_rng(0)
+    sensor = np.array([0.0, 0.0])
+    errors = []
+    for _ in range(200):
+        points = _arc((2.5, 0.7), 0.2, (0.0, 0.0))
+        direction = points / np.linalg.norm(points, axis=1, keepdims=True)
+        noisy = points + direction * chance.normal(0.0, 0.01, size=(len(points), 1))
+        errors.append(np.linalg.norm(fit_circle(noisy, sensor, 0.2) - [2.5, 0.7]))
+    assert np.median(errors) < 0.02
+
+
+def test_returns_on_the_walls_are_dropped_and_the_rest_kept() -> None:
+    walls = box_walls(10.0)
+    points = np.array([[0.05, 5.0], [5.0, 9.95], [5.0, 5.0], [np.nan, np.nan], [0.3, 5.0]])
+    assert off_the_walls(points, walls, 0.1).tolist() == [False, False, True, False, True]
+
+
+def test_clusters_split_at_gaps_and_join_across_the_scan_seam() -> None:
+    points = np.array([[1.0, 0.0], [1.0, 0.05], [3.0, 0.0], [3.0, 0.05], [5.0, 5.0], [1.0, -0.05]])
+    keep = np.array([True, True, True, True, False, True])
+    runs = clusters(points, keep, 0.3)
+    assert sorted(r.tolist() for r in runs) == [[2, 3], [5, 0, 1]]
+
+
+def test_velocity_is_the_slope_of_the_latest_straight_stretch() -> None:
+    times = np.arange(5, dtype=np.float64) * 0.2
+    straight = np.stack([1.0 + 0.5 * times, 2.0 - 0.25 * times], axis=1)
+    assert np.allclose(fit_velocity(times, straight, 0.01), [0.5, -0.25])
+    # A bounce off a wall at the fourth centre: only the stretch after it counts.
+    bounced = straight.copy()
+    bounced[3:, 0] = bounced[2, 0] - 0.5 * (times[3:] - times[2])
+    assert np.allclose(fit_velocity(times, bounced, 0.01), [-0.5, -0.25])
+    assert np.allclose(fit_velocity(times[:1], straight[:1], 0.01), [0.0, 0.0])
+
+
+def test_ego_velocity_reads_speed_and_turn_from_two_poses() -> None:
+    before = np.array([1.0, 1.0, 0.5])
+    after = np.array([1.0 + 0.1 * math.cos(0.55), 1.0 + 0.1 * math.sin(0.55), 0.6])
+    speed, turn = ego_velocity(before, after, 0.2)
+    assert speed == pytest.approx(0.5, abs=1e-9)
+    assert turn == pytest.approx(0.5, abs=1e-9)
+
+
+def test_a_tracker_follows_a_crossing_cylinder_to_its_velocity() -> None:
+    tracker = ObstacleTracker(TrackerSettings(), box_walls(10.0), BEAMS)
+    pose = np.array([5.0, 2.0, 0.3])
+    velocity = np.array([-0.6, 0.4])
+    for frame in range(6):
+        centre = np.array([6.0, 5.0]) + velocity * 0.2 * frame
+        tracks = tracker.update(0.2 * frame, _scan_of(centre, pose), pose)
+    assert len(tracks.xy_m) == 1
+    assert np.allclose(tracks.xy_m[0], centre, atol=1e-3)
+    assert np.allclose(tracks.velocity_mps[0], velocity, atol=1e-3)
+
+
+def test_a_lost_track_coasts_then_goes() -> None:
+    settings = TrackerSettings(coast_frames=2)
+    tracker = ObstacleTracker(settings, box_walls(10.0), BEAMS)
+    pose = np.array([5.0, 2.0, 0.0])
+    tracker.update(0.0, _scan_of(np.array([6.0, 5.0]), pose), pose)
+    empty = _scan_of(None, pose)
+    assert len(tracker.update(0.2, empty, pose).xy_m) == 1
+    assert len(tracker.update(0.4, empty, pose).xy_m) == 1
+    assert len(tracker.update(0.6, empty, pose).xy_m) == 0
+
+
+def test_a_wrong_tracker_setting_names_itself() -> None:
+    with pytest.raises(ConfigError, match="velocity_frames"):
+        TrackerSettings(velocity_frames=1)
+
+
+def _scan_of(centre: np.ndarray | None, pose: np.ndarray) -> np.ndarray:
+    """A 720-beam scan of the 10 m box with one cylinder of radius 0.2 m, by ray casting."""
+    angle = pose[2] + BEAMS
+    u = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(u[:, 0] > 0, (10.0 - pose[0]) / u[:, 0], -pose[0] / u[:, 0])
+        ty = np.where(u[:, 1] > 0, (10.0 - pose[1]) / u[:, 1], -pose[1] / u[:, 1])
+    ranges = np.minimum(np.where(tx > 0, tx, np.inf), np.where(ty > 0, ty, np.inf))
+    if centre is not None:
+        offset = centre - pose[:2]
+        along = u @ offset
+        disc = along**2 - (offset @ offset - 0.2**2)
+        hit = (disc >= 0) & (along > 0)
+        ranges = np.where(hit, np.minimum(ranges, along - np.sqrt(np.maximum(disc, 0))), ranges)
+    assert np.all(np.isfinite(scan_points(ranges, pose, BEAMS)))
+    return ranges.astype(np.float32)
