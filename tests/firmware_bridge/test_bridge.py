@@ -304,18 +304,16 @@ def test_guided_silence_and_exit_send_one_and_the_same_zero_velocity_target(
             if r.time_s > since_s and r.fields["vx"] == 0.0
         ]
 
-    silence = wait_until(
-        lambda: len(stops_since(last_command_s)) >= 4 and stops_since(last_command_s),
-        what="the silence stops",
-    )
+    def at_least(count: int, since_s: float) -> list[Any]:
+        stops = stops_since(since_s)
+        return stops if len(stops) >= count else []
+
+    silence = wait_until(lambda: at_least(4, last_command_s), what="the silence stops")
     assert rig.bridge is not None
     closed_s = time.monotonic()
     rig.bridge.close()
     repeats = rig.bridge.settings.failsafe.stop_repeats_on_exit
-    on_exit = wait_until(
-        lambda: len(stops_since(closed_s)) >= repeats and stops_since(closed_s),
-        what="the stops on exit",
-    )
+    on_exit = wait_until(lambda: at_least(repeats, closed_s), what="the stops on exit")
 
     def signature(stop: Any) -> tuple[Any, ...]:
         values = (stop.fields[name] for name in STOP_TARGET_FIELDS)
