@@ -446,5 +446,9 @@ def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
             f"median {statistics.median(true_times):.2f} s, worst {true_times[-1]:.2f} s"
         )
         assert all(m.rested for m in runs)
-        assert times[-1] <= FAILSAFE_GOAL_S, f"{case}, {fault}: {times}"
+        # The goal is the car's rest, held by SITL's true velocity (on the car: motion capture).
+        # The EKF's own figure is printed, not held: after the first hard stop after boot its
+        # yaw is 1.5-2 degrees off and its velocity 0.05-0.08 m/s wrong, right at the rest
+        # threshold, so it reads "moving" for up to 0.8 s after the car stopped (tests/sitl/
+        # trace_stops.py; docs/bridge.md, "Measured stops").
         assert all(t <= FAILSAFE_GOAL_S for t in true_times), f"{case}, {fault}: {true_times}"
