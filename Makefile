@@ -64,8 +64,10 @@ test-stack: $(STAMP)
 # are reachable from nowhere else); without ARDUPILOT_SITL every test is skipped and says why.
 SITL_NETNS := $(shell unshare --net true 2>/dev/null && echo "unshare --net" || \
 	(unshare --net --map-root-user true 2>/dev/null && echo "unshare --net --map-root-user"))
+# SITL_TESTS: what pytest collects (e.g. tests/sitl/trace_stops.py, a trace not in the suite).
+SITL_TESTS ?= tests/sitl
 test-sitl: $(STAMP)
-	$(SITL_NETNS) sh -c '$(if $(SITL_NETNS),ip link set lo up && )$(BIN)/pytest -m sitl tests/sitl -p no:cacheprovider -rs $(SITL_ARGS)'
+	$(SITL_NETNS) sh -c '$(if $(SITL_NETNS),ip link set lo up && )$(BIN)/pytest -m sitl $(SITL_TESTS) -p no:cacheprovider -rs $(SITL_ARGS)'
 
 # The full stack on the firmware: policy -> controller -> bridge -> ArduPilot Rover SITL, the
 # pose from the autopilot, walls and lidar simulated around it; beside the same episodes in

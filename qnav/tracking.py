@@ -56,7 +56,7 @@ class WorldTrackers:
         self.range_noise_m = range_noise_m
         self._noise = np.random.default_rng([seed, 31])
         self._trackers: dict[tuple[int, int], ObstacleTracker] = {}
-        self._poses: dict[tuple[int, int], F64] = {}
+        self._poses: dict[tuple[int, int], list[F64]] = {}
 
     def perceive(
         self,
@@ -67,7 +67,8 @@ class WorldTrackers:
     ) -> WorldState:
         """The state as the tracker and the poses see it: the obstacles are the tracks, nearest
         first (padded far away to the world's count), the robot's velocity comes from its last
-        two poses (zero under increment dynamics, which have none)."""
+        three poses: the mean over the last period, extrapolated by half the change since the
+        period before (zero under increment dynamics, which have none)."""
         if observation.scan_m is None:
             raise ConfigError(f"scenario {self.world.name!r} has no lidar to track obstacles with")
         period = self.world.control_period_s
@@ -90,10 +91,12 @@ class WorldTrackers:
             nearest = _nearest_first(tracks, pose[:2], count)
             xy[row, : len(nearest.xy_m)] = nearest.xy_m
             velocity[row, : len(nearest.xy_m)] = nearest.velocity_mps
-            previous = self._poses.get(key)
-            if previous is not None and isinstance(self.world.dynamics, InertiaDynamics):
-                own[row] = ego_velocity(previous, pose, period)
-            self._poses[key] = pose.copy()
+            history = self._poses.get(key, [])
+            if history and isinstance(self.world.dynamics, InertiaDynamics):
+                own[row] = ego_velocity(history[-1], pose, period)
+                if len(history) > 1:  # the mean over the period lags: extrapolate to its end
+                    own[row] += (own[row] - ego_velocity(history[-2], history[-1], period)) / 2
+            self._poses[key] = [*history[-1:], pose.copy()]
         for key in set(self._trackers) - live:
             del self._trackers[key]
             self._poses.pop(key, None)

@@ -59,10 +59,12 @@ OBSERVED = {
     "GLOBAL_POSITION_INT": 33,
     "ATTITUDE": 30,
     "SIMSTATE": 164,
+    "SIM_STATE": 108,
     "EKF_STATUS_REPORT": 193,
 }
-"""SIMSTATE is SITL's true pose: the test's motion capture. EKF_STATUS_REPORT: whether the EKF
-has an absolute position (without one Rover's failsafe and GUIDED cannot brake)."""
+"""SIMSTATE is SITL's true pose: the test's motion capture. SIM_STATE adds SITL's true velocity
+(the car's own rest, beside the EKF's estimate of it). EKF_STATUS_REPORT: whether the EKF has an
+absolute position (without one Rover's failsafe and GUIDED cannot brake)."""
 EKF_POS_HORIZ_ABS = 16
 """EKF_STATUS_REPORT.flags: the EKF has a horizontal position relative to its origin."""
 EKF_CONST_POS_MODE = 128
@@ -235,16 +237,23 @@ class StopMeasure:
     gps_distance_m: float
     """The same from GLOBAL_POSITION_INT."""
     rested: bool = field(default=True)
+    true_stop_time_s: float = math.nan
+    """From the event to the first of SITL's true velocities (SIM_STATE) below REST_SPEED_MPS
+    that stays there: the car at rest, whatever the EKF estimates (NaN without SIM_STATE)."""
+    ekf_error_mps: float = math.nan
+    """How far the EKF's velocity (LOCAL_POSITION_NED) was from SITL's true one when the car came
+    to rest: an EKF with this error reports rest only once it has shrunk below REST_SPEED_MPS."""
 
 
 def measure_stop(observer: Observer, event_s: float, timeout_s: float) -> StopMeasure:
-    """Wait until the vehicle has stayed below REST_SPEED_MPS for 0.5 s (or `timeout_s`)."""
+    """Wait until the vehicle has stayed below REST_SPEED_MPS for 0.5 s (or `timeout_s`), by
+    its own estimate (LOCAL_POSITION_NED) and, where SITL reports it, by its true velocity."""
     deadline = event_s + timeout_s
     while time.monotonic() < deadline:
-        samples = observer.since("LOCAL_POSITION_NED", event_s)
-        rest = _rest_index(samples)
-        if rest is not None and samples[-1].time_s - samples[rest].time_s >= 0.5:
-            break
+        if _rested_for(observer.since("LOCAL_POSITION_NED", event_s), ("vx", "vy"), 0.5):
+            truth = observer.since("SIM_STATE", event_s)
+            if not truth or _rested_for(truth, ("vn", "ve"), 0.5):
+                break
         time.sleep(0.05)
     samples = observer.since("LOCAL_POSITION_NED", event_s - 0.3)
     before = [s for s in samples if s.time_s <= event_s]
@@ -260,25 +269,48 @@ def measure_stop(observer: Observer, event_s: float, timeout_s: float) -> StopMe
     gps_after = [s for s in gps if s.time_s > event_s and s.time_s <= end.time_s + 0.06]
     if gps_before and gps_after:
         gps_distance = _ground_distance_m(gps_before[-1].fields, gps_after[-1].fields)
+    truth = [s for s in observer.since("SIM_STATE", event_s) if s.time_s <= after[-1].time_s]
+    true_rest = _rest_index(truth, ("vn", "ve"))
+    true_stop_s = ekf_error = math.nan
+    if true_rest is not None:
+        true_stop_s = truth[true_rest].time_s - event_s
+        ekf_error = _ekf_error_mps(after, truth[true_rest])
     return StopMeasure(
         speed_before_mps=math.hypot(start.fields["vx"], start.fields["vy"]),
         stop_time_s=end.time_s - event_s,
         stop_distance_m=distance,
         gps_distance_m=gps_distance,
         rested=rest is not None,
+        true_stop_time_s=true_stop_s,
+        ekf_error_mps=ekf_error,
     )
 
 
-def _rest_index(samples: list[Sample]) -> int | None:
-    """Index of the first sample from which every later one is at rest."""
+def _rest_index(samples: list[Sample], velocity: tuple[str, str] = ("vx", "vy")) -> int | None:
+    """Index of the first sample from which every later one is at rest (`velocity`: the north
+    and east fields)."""
     index = None
     for i, sample in enumerate(samples):
-        if math.hypot(sample.fields["vx"], sample.fields["vy"]) < REST_SPEED_MPS:
+        if math.hypot(sample.fields[velocity[0]], sample.fields[velocity[1]]) < REST_SPEED_MPS:
             if index is None:
                 index = i
         else:
             index = None
     return index
+
+
+def _rested_for(samples: list[Sample], velocity: tuple[str, str], duration_s: float) -> bool:
+    """True when the samples end with at least `duration_s` at rest."""
+    rest = _rest_index(samples, velocity)
+    return rest is not None and samples[-1].time_s - samples[rest].time_s >= duration_s
+
+
+def _ekf_error_mps(estimates: list[Sample], truth: Sample) -> float:
+    """|EKF velocity - true velocity| at `truth`'s moment (the estimate nearest in time)."""
+    nearest = min(estimates, key=lambda s: abs(s.time_s - truth.time_s))
+    return math.hypot(
+        nearest.fields["vx"] - truth.fields["vn"], nearest.fields["vy"] - truth.fields["ve"]
+    )
 
 
 def _ground_distance_m(a: dict[str, Any], b: dict[str, Any]) -> float:

@@ -77,7 +77,9 @@ def _report(what: str, measure: StopMeasure) -> None:
     print(
         f"\n[sitl] {what}: from {measure.speed_before_mps:.2f} m/s, at rest after "
         f"{measure.stop_time_s:.2f} s, {measure.stop_distance_m:.2f} m "
-        f"(GLOBAL_POSITION_INT: {measure.gps_distance_m:.2f} m)"
+        f"(GLOBAL_POSITION_INT: {measure.gps_distance_m:.2f} m); truly at rest after "
+        f"{measure.true_stop_time_s:.2f} s (SIM_STATE; the EKF's velocity then "
+        f"{measure.ekf_error_mps:.3f} m/s off)"
     )
 
 
@@ -128,8 +130,11 @@ def test_drive_and_every_stop(
     # Cold start: the bridge came up while the autopilot booted; it must keep asking.
     _armed(zenoh, observer)
     assert "giving up" not in bridge.log()
-    # Neutral sticks in MANUAL coast: measured, no goal. GUIDED's zero velocity brakes, a
-    # little gentler than its stop on entering: the silence goal is the brake mode's.
+    # Neutral sticks in MANUAL coast: measured, no goal. Every braking stop is held to the goal
+    # by the car's true velocity (SITL's SIM_STATE), and by the EKF's estimate of it too except
+    # guided's silence stop, the first stop after boot: there the EKF's velocity is still off by
+    # 0.05-0.08 m/s after braking (its yaw is 1.5-2 degrees off), about the rest speed, and it
+    # reports rest some 0.7 s after the car is at rest (docs/bridge.md, "Measured stops").
     goal = case.endswith("brake")
     exit_goal = case != "manual-neutral"
     if exit_goal:  # braking in GUIDED needs the EKF's position: GPS, some 20 s after boot
@@ -148,6 +153,8 @@ def test_drive_and_every_stop(
     assert silence.rested
     if goal:
         assert silence.stop_time_s <= STOP_GOAL_S + 0.5  # + the 0.5 s command timeout
+    if exit_goal:
+        assert silence.true_stop_time_s <= STOP_GOAL_S + 0.5
 
     # 2. SIGTERM while driving: stop, brake, disarm only once at rest.
     _drive_and_check_motion(zenoh, observer)
@@ -158,6 +165,7 @@ def test_drive_and_every_stop(
     assert term.rested
     if exit_goal:
         assert term.stop_time_s <= STOP_GOAL_S
+        assert term.true_stop_time_s <= STOP_GOAL_S
     wait_until(lambda: observer.armed is False, 5.0, "the disarm on exit")
     disarmed_s = next(t for t, armed, _ in reversed(observer.changes) if not armed)
     assert disarmed_s >= sent + term.stop_time_s - 1.0, "disarmed while still moving"
@@ -178,6 +186,7 @@ def test_drive_and_every_stop(
     print(f"[sitl] {case}: modes after SIGKILL: {observer.changes[-3:]}")
     assert kill.rested
     assert kill.stop_time_s <= FAILSAFE_GOAL_S
+    assert kill.true_stop_time_s <= FAILSAFE_GOAL_S
 
 
 def test_signing_on_a_telemetry_port_refuses_unsigned_and_wrongly_signed_senders(
@@ -429,10 +438,17 @@ def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
             mocap.close()
     for fault, runs in measures.items():
         times = sorted(m.stop_time_s for m in runs)
+        true_times = sorted(m.true_stop_time_s for m in runs)
         print(
             f"[sitl] {case}, {fault}: at rest after median {statistics.median(times):.2f} s, "
             f"worst {times[-1]:.2f} s, over {len(times)} (distances "
-            f"{', '.join(f'{m.stop_distance_m:.2f}' for m in runs)} m)"
+            f"{', '.join(f'{m.stop_distance_m:.2f}' for m in runs)} m); truly at rest after "
+            f"median {statistics.median(true_times):.2f} s, worst {true_times[-1]:.2f} s"
         )
         assert all(m.rested for m in runs)
-        assert times[-1] <= FAILSAFE_GOAL_S, f"{case}, {fault}: {times}"
+        # The goal is the car's rest, held by SITL's true velocity (on the car: motion capture).
+        # The EKF's own figure is printed, not held: after the first hard stop after boot its
+        # yaw is 1.5-2 degrees off and its velocity 0.05-0.08 m/s wrong, right at the rest
+        # threshold, so it reads "moving" for up to 0.8 s after the car stopped (tests/sitl/
+        # trace_stops.py; docs/bridge.md, "Measured stops").
+        assert all(t <= FAILSAFE_GOAL_S for t in true_times), f"{case}, {fault}: {true_times}"

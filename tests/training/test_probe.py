@@ -12,10 +12,10 @@ from contracts.errors import ConfigError
 from contracts.observation import distance_scale_m
 from sim.config import scenario
 from sim.decisive import GaugeSettings, collect
+from sim.oracle import PERCEIVED
 from sim.world import reset
 from tests.test_cli import _qnav
 from training.probe import (
-    PERCEIVED,
     PerceptionSettings,
     ProbeSettings,
     decisive_only,
