@@ -175,3 +175,24 @@ def test_the_sim_car_tells_which_scan_a_real_controllers_decision_was_on_and_on_
     assert episode_health(tmp_path / "episodes.jsonl") == {
         "steps": 7, "undecided": 1, "stale_pose": 1, "stops": 1, "late": 2
     }  # fmt: skip
+
+
+def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None:
+    # A command held for one period moves the lockstep car by the increment itself, whatever
+    # the action before (a lag of its own made each change of action fall 5-10 % short, and a
+    # walls-increment episode flip-flop left and right to 500 steps).
+    from sim.car import SimCarSettings, vehicle_dynamics
+    from sim.dynamics import action_velocities, step_increment, step_velocity_lag
+
+    world = scenario("walls-increment")
+    car = vehicle_dynamics(world, SimCarSettings(lockstep=True))
+    velocities = action_velocities(world.dynamics, world.control_period_s)
+    pose, velocity, expected = np.zeros((1, 3)), np.zeros((1, 2)), np.zeros((1, 3))
+    for action in (1, 1, 2, 0, 0, 2, 1, 0):
+        linear, angular = velocities[action]
+        pose, velocity = step_velocity_lag(
+            pose, velocity, np.array([linear]), np.array([angular]), params=car,
+            period_s=world.control_period_s,
+        )  # fmt: skip
+        expected, _ = step_increment(expected, np.zeros((1, 2)), np.array([action]), world.dynamics)
+        np.testing.assert_allclose(pose, expected, atol=1e-5)
