@@ -184,7 +184,10 @@ def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None
     from sim.car import SimCarSettings, vehicle_dynamics
     from sim.dynamics import action_velocities, step_increment, step_velocity_lag
 
+    from sim.config import IncrementDynamics
+
     world = scenario("walls-increment")
+    assert isinstance(world.dynamics, IncrementDynamics)
     car = vehicle_dynamics(world, SimCarSettings(lockstep=True))
     velocities = action_velocities(world.dynamics, world.control_period_s)
     pose, velocity, expected = np.zeros((1, 3)), np.zeros((1, 2)), np.zeros((1, 3))
