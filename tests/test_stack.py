@@ -182,9 +182,8 @@ def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None
     # the action before (a lag of its own made each change of action fall 5-10 % short, and a
     # walls-increment episode flip-flop left and right to 500 steps).
     from sim.car import SimCarSettings, vehicle_dynamics
-    from sim.dynamics import action_velocities, step_increment, step_velocity_lag
-
     from sim.config import IncrementDynamics
+    from sim.dynamics import action_velocities, step_increment, step_velocity_lag
 
     world = scenario("walls-increment")
     assert isinstance(world.dynamics, IncrementDynamics)
