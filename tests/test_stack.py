@@ -68,7 +68,8 @@ def stack_beside_in_process(
     print(
         f"{world.name}: stack {stack['success']:.3f}, in process {in_process.success:.3f}; "
         f"mean steps {stack['mean_steps']} and {in_process.mean_steps:.1f}; per period "
-        f"{stack['health']}"
+        f"{stack['health']}; episode by episode, beside one stream in process: "
+        f"{stack['agreement']}"
     )
     assert stack["episodes"] == EPISODES
     assert stack["exit_codes"]["controller"] == 0 and stack["exit_codes"]["bridge"] == 0
@@ -110,9 +111,8 @@ def test_among_moving_obstacles_the_full_stack_scores_within_five_hundredths_of_
     assert abs(stack["success"] - in_process.success) <= 0.05
     # In lockstep the car moves as the simulator's inertia robot does, one period per decision,
     # so nearly every episode is the one the policy drives in process on one stream, action for
-    # action (printed, not asserted: 50 of 50 unloaded, 49 of 50 under load, where one episode
-    # took the other side of a near-tie, Q 0.39993 against 0.40036; docs/deploy.md).
-    print(f"episode by episode, beside one stream in process: {stack['agreement']}")
+    # action (printed above, not asserted: 50 of 50 unloaded, 49 of 50 under load, where one
+    # episode took the other side of a near-tie, Q 0.39993 against 0.40036; docs/deploy.md).
 
 
 def test_the_stack_on_sitl_needs_a_binary_and_a_loopback_only_namespace(tmp_path: Path) -> None:
