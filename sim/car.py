@@ -374,7 +374,11 @@ class SimCar:
         self._wait_for_rest(index)
         self.vehicle.set_pose(*state.pose[0])
         entry = EpisodeLog(index, "unfinished", 0, target=state.target_xy[0].tolist())
-        self._publish(state, publish, target=True)
+        # The target and the pose only: a scan now would be decided on, and that frame, taken
+        # before the settling pause, would stay in the policy's window unless a stop for a
+        # stale scan happened to restart it (measured: in lockstep, whose controller waits
+        # longer, it changed a near-tie 23 steps later). The first scan is the first period's.
+        self._publish(state, publish, target=True, with_scan=False)
         stop.wait(settings.settle_s)
         self._wait_for_rest(index)
         self.vehicle.set_pose(*state.pose[0])  # in case a late command moved it while settling
@@ -500,6 +504,7 @@ class SimCar:
         publish: dict[str, Any],
         *,
         target: bool = False,
+        with_scan: bool = True,
         observation_scan: NDArray[np.float32] | None = None,
     ) -> float:
         """Publish the pose (and the target) and the scan, stamped alike; returns the stamp."""
@@ -514,7 +519,7 @@ class SimCar:
         publish[wire.POSE.name].put(
             wire.encode_pose_msg(wire.Pose2D(stamp, settings.map_frame_id, x, y, yaw))
         )
-        if self.world.lidar is not None:
+        if self.world.lidar is not None and with_scan:
             scan = observation_scan
             if scan is None:
                 scan = observe(self.world, state).scan_m
