@@ -110,9 +110,10 @@ def test_among_moving_obstacles_the_full_stack_scores_within_five_hundredths_of_
         assert entry["steps"] < 5 or moved.max() > 0.5
     assert abs(stack["success"] - in_process.success) <= 0.05
     # In lockstep the car moves as the simulator's inertia robot does, one period per decision,
-    # so nearly every episode is the one the policy drives in process on one stream, action for
-    # action (printed above, not asserted: 50 of 50 unloaded, 49 of 50 under load, where one
-    # episode took the other side of a near-tie, Q 0.39993 against 0.40036; docs/deploy.md).
+    # so every episode should be the one the policy drives in process on one stream, action for
+    # action (printed above, not asserted: 50 of 50 in the last runs; an ulp can decide a
+    # near-tie, and one did, Q 0.39993 against 0.40036, before a real cause was found and fixed:
+    # docs/deploy.md).
 
 
 def test_the_stack_on_sitl_needs_a_binary_and_a_loopback_only_namespace(tmp_path: Path) -> None:
