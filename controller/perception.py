@@ -153,20 +153,55 @@ def fit_circle(points: F64, sensor_xy: F64, radius_m: float, iterations: int = 5
     return np.asarray(centre)
 
 
-def fit_velocity(times_s: F64, centres: F64, tolerance_m: float) -> F64:
-    """(2,) velocity of the longest recent stretch of centres that lies on a straight line
-    within `tolerance_m` (at least the last two); zero with fewer than two centres."""
+def bounce_mirrors(walls: F64, radius_m: float) -> F64:
+    """(2W, 3) lines (unit normal x, y, offset c: n . p = c) where a centre of an obstacle of
+    `radius_m` touches each wall, on either side of it: the mirrors its bounces reflect in."""
+    start, end = walls[:, :2], walls[:, 2:]
+    along = (end - start) / np.linalg.norm(end - start, axis=1, keepdims=True)
+    normal = np.stack([-along[:, 1], along[:, 0]], axis=1)
+    offset = np.sum(normal * start, axis=1)
+    return np.concatenate(
+        [np.column_stack([normal, offset + radius_m]), np.column_stack([normal, offset - radius_m])]
+    )
+
+
+def _straight_slope(times_s: F64, centres: F64, tolerance_m: float) -> F64 | None:
+    """The velocity of a straight-line fit to the centres, or None if one strays beyond
+    `tolerance_m` from it."""
+    t = times_s - times_s[-1]
+    design = np.stack([np.ones_like(t), t], axis=1)
+    coefficients, *_ = np.linalg.lstsq(design, centres, rcond=None)
+    residual = centres - design @ coefficients
+    if len(t) > 2 and np.max(np.linalg.norm(residual, axis=1)) > tolerance_m:
+        return None
+    return np.asarray(coefficients[1])
+
+
+def fit_velocity(times_s: F64, centres: F64, tolerance_m: float, mirrors: F64 | None = None) -> F64:
+    """(2,) velocity of the latest centres: the slope of a straight-line fit to all of them;
+    else, if one bounce off a wall explains them (the centres after it reflected in one of
+    `mirrors` continue the line before it), that line's slope reflected back; else the slope
+    of the longest recent stretch that is straight (at least the last two). Zero with fewer
+    than two centres."""
     if len(times_s) < 2:
         return np.zeros(2)
-    for first in range(len(times_s) - 1):  # longest stretch first
-        t = times_s[first:] - times_s[-1]
-        xy = centres[first:]
-        design = np.stack([np.ones_like(t), t], axis=1)
-        coefficients, *_ = np.linalg.lstsq(design, xy, rcond=None)
-        residual = xy - design @ coefficients
-        if len(t) == 2 or np.max(np.linalg.norm(residual, axis=1)) <= tolerance_m:
-            return np.asarray(coefficients[1])
-    return np.zeros(2)  # unreachable: a two-point stretch always fits
+    slope = _straight_slope(times_s, centres, tolerance_m)
+    if slope is not None:
+        return slope
+    for split in range(len(times_s) - 1, 0, -1):  # the latest bounce first
+        for mirror in mirrors if mirrors is not None else np.zeros((0, 3)):
+            normal, offset = mirror[:2], mirror[2]
+            unfolded = centres.copy()
+            after = centres[split:]
+            unfolded[split:] = after - 2 * (after @ normal - offset)[:, None] * normal
+            slope = _straight_slope(times_s, unfolded, tolerance_m)
+            if slope is not None:
+                return np.asarray(slope - 2 * (slope @ normal) * normal)
+    for first in range(1, len(times_s) - 1):  # longest stretch first
+        slope = _straight_slope(times_s[first:], centres[first:], tolerance_m)
+        if slope is not None:
+            return slope
+    return np.asarray(_straight_slope(times_s[-2:], centres[-2:], tolerance_m))
 
 
 def ego_velocity(previous_pose: F64, pose: F64, period_s: float) -> F64:
@@ -204,6 +239,7 @@ class ObstacleTracker:
     def __init__(self, settings: TrackerSettings, walls: F64, beam_angles_rad: F64) -> None:
         self.settings = settings
         self.walls = walls
+        self.mirrors = bounce_mirrors(walls, settings.obstacle_radius_m)
         self.beam_angles_rad = beam_angles_rad
         self._tracks: list[_Track] = []
         self._time_s = 0.0
@@ -271,7 +307,10 @@ class ObstacleTracker:
         track.centres.append(centre)
         track.missed = 0
         track.velocity = fit_velocity(
-            np.array(track.times_s), np.array(track.centres), self.settings.straight_tolerance_m
+            np.array(track.times_s),
+            np.array(track.centres),
+            self.settings.straight_tolerance_m,
+            self.mirrors,
         )
 
     def tracks(self) -> Tracks:

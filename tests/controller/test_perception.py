@@ -10,6 +10,7 @@ from contracts.observation import LidarSpec
 from controller.perception import (
     ObstacleTracker,
     TrackerSettings,
+    bounce_mirrors,
     box_walls,
     clusters,
     ego_velocity,
@@ -129,3 +130,16 @@ def _scan_of(centre: np.ndarray | None, pose: np.ndarray) -> np.ndarray:
         ranges = np.where(hit, np.minimum(ranges, along - np.sqrt(np.maximum(disc, 0))), ranges)
     assert np.all(np.isfinite(scan_points(ranges, pose, BEAMS)))
     return ranges.astype(np.float32)
+
+
+def test_a_bounce_off_a_wall_is_unfolded_so_the_velocity_is_right_at_once() -> None:
+    # An obstacle of radius 0.2 m moving at (-1.5, 0.5) m/s bounces off the wall x = 0 between
+    # the fourth and fifth centres: reflected in x = 0.2, the last centre continues the line.
+    times = np.arange(5, dtype=np.float64) * 0.2
+    x = 1.25 - 1.5 * times
+    x[4] = 2 * 0.2 - x[4]
+    centres = np.stack([x, 3.0 + 0.5 * times], axis=1)
+    mirrors = bounce_mirrors(box_walls(10.0), 0.2)
+    assert np.allclose(fit_velocity(times, centres, 0.01, mirrors), [1.5, 0.5])
+    # Without the mirrors only the last two centres are straight, and they mix both legs.
+    assert not np.allclose(fit_velocity(times, centres, 0.01), [1.5, 0.5], atol=0.1)
