@@ -8,6 +8,7 @@ and the oracle planner driven by what it perceives instead of the true state.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, replace
 from typing import NamedTuple, Protocol
 
@@ -56,6 +57,8 @@ class WorldTrackers:
         self.range_noise_m = range_noise_m
         self._noise = np.random.default_rng([seed, 31])
         self._trackers: dict[tuple[int, int], ObstacleTracker] = {}
+        self.update_s: list[float] = []
+        """Wall time of each tracker update (one scan of one world), in seconds."""
         self._poses: dict[tuple[int, int], list[F64]] = {}
 
     def perceive(
@@ -87,7 +90,9 @@ class WorldTrackers:
             if key not in self._trackers:
                 self._trackers[key] = new_tracker(self.world, self.settings)
             pose = observation.pose[row]
+            started = time.perf_counter()
             tracks = self._trackers[key].update(float(steps[row]) * period, scans[row], pose)
+            self.update_s.append(time.perf_counter() - started)
             nearest = _nearest_first(tracks, pose[:2], count)
             xy[row, : len(nearest.xy_m)] = nearest.xy_m
             velocity[row, : len(nearest.xy_m)] = nearest.velocity_mps
@@ -184,6 +189,8 @@ class TrackerErrors(NamedTuple):
     obstacle (its error then counts against the nearest track, or the robot itself)."""
     samples: int
     """States judged."""
+    update_ms: tuple[float, float]
+    """Median and 99th percentile wall time of one tracker update (one scan), milliseconds."""
 
 
 def measure_tracker(
@@ -233,7 +240,10 @@ def measure_tracker(
     table = np.array(errors[: check.samples])
     median = dict(zip(PERCEIVED, np.median(table, axis=0).tolist(), strict=True))
     p90 = dict(zip(PERCEIVED, np.percentile(table, 90, axis=0).tolist(), strict=True))
-    return TrackerErrors(median, p90, missed / len(errors), len(table))
+    update_ms = np.percentile(np.array(trackers.update_s) * 1e3, [50, 99])
+    return TrackerErrors(
+        median, p90, missed / len(errors), len(table), (float(update_ms[0]), float(update_ms[1]))
+    )
 
 
 def _nearest_in_robot_frame(view: WorldState, truth: WorldState, row: int) -> F64:
