@@ -9,19 +9,18 @@ and the oracle planner driven by what it perceives instead of the true state.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from contracts.actions import NUM_ACTIONS
 from contracts.errors import ConfigError
 from controller.perception import ObstacleTracker, TrackerSettings, Tracks, box_walls, ego_velocity
 from sim.config import InertiaDynamics, WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
-from sim.oracle import PERCEIVED, OracleDriver, collision_shares
+from sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget
+from sim.oracle import PERCEIVED, collision_shares, run_oracle
 from sim.world import BatchedWorld, Observation, WorldState
 
 F64 = NDArray[np.float64]
@@ -132,28 +131,12 @@ def run_perceiving_oracle(
     tracker: TrackerSettings,
     *,
     range_noise_m: float = 0.0,
-    horizon: int = 20,
-    random_sequences: int = 128,
     progress: bool = False,
 ) -> EvalResult:
     """The test protocol's episodes driven by the planner on the tracker's estimate of the
     state (the walls and the target it knows, as a car indoors does)."""
-    config = replace(config, max_episode_steps=settings.max_episode_steps)
-    driver = OracleDriver(config, settings.seed, horizon=horizon, random_sequences=random_sequences)
     trackers = WorldTrackers(config, tracker, range_noise_m, settings.seed)
-
-    def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
-        return driver.act_on(state, trackers.perceive_state(state, observation))
-
-    batches = np.array_split(
-        np.arange(settings.episodes), -(-settings.episodes // settings.num_worlds)
-    )
-    results = [
-        drive(config, settings.seed, batch, act)
-        for batch in tqdm(batches, desc="oracle on tracks", unit="batch", disable=not progress)
-    ]
-    outcomes, steps = (np.concatenate(parts) for parts in zip(*results, strict=True))
-    return EvalResult.of_outcomes(outcomes, steps)
+    return run_oracle(config, settings, perceive=trackers.perceive_state, progress=progress)
 
 
 @dataclass(frozen=True)
@@ -210,8 +193,7 @@ def measure_tracker(
     batched = BatchedWorld(world, worlds, seed=check.seed)
     observation = batched.reset(check.seed)
     trackers = WorldTrackers(world, tracker, check.range_noise_m, check.seed)
-    chance = np.random.default_rng(check.seed)
-    held = chance.integers(0, NUM_ACTIONS, worlds)
+    driver = WanderingGoToTarget(worlds, check.explore_share, check.seed)
     errors: list[F64] = []
     missed = 0
     bar = tqdm(total=check.samples, desc="tracker", unit="state", disable=not progress)
@@ -232,10 +214,7 @@ def measure_tracker(
                 )
             )
             bar.update(int(len(errors) <= check.samples))
-        held = np.where(chance.random(worlds) < 0.2, chance.integers(0, NUM_ACTIONS, worlds), held)
-        explore = chance.random(worlds) < check.explore_share
-        action = np.where(explore, held, go_to_target(observation.target_features()))
-        observation = batched.step(action).observation
+        observation = batched.step(driver(observation.target_features())).observation
     bar.close()
     table = np.array(errors[: check.samples])
     median = dict(zip(PERCEIVED, np.median(table, axis=0).tolist(), strict=True))

@@ -119,6 +119,29 @@ class ExplorationHold:
         return np.where(random, self.held_action, greedy)
 
 
+class WanderingGoToTarget:
+    """Go-to-target with held random actions, the perception probes' drive (so that windows
+    show turns and stops too): each world holds a random action, redrawn with probability
+    `redraw_probability` each step, which replaces go-to-target's with probability
+    `explore_share`."""
+
+    def __init__(
+        self, num_worlds: int, explore_share: float, seed: int, redraw_probability: float = 0.2
+    ) -> None:
+        self.explore_share = explore_share
+        self.redraw_probability = redraw_probability
+        self._chance = np.random.default_rng(seed)
+        self._held = self._chance.integers(0, NUM_ACTIONS, num_worlds)
+
+    def __call__(self, target_features: NDArray[np.floating]) -> NDArray[np.int64]:
+        """(N,) each world's action from its (N, 3) target features."""
+        worlds = self._held.size
+        redraw = self._chance.random(worlds) < self.redraw_probability
+        self._held = np.where(redraw, self._chance.integers(0, NUM_ACTIONS, worlds), self._held)
+        explore = self._chance.random(worlds) < self.explore_share
+        return np.asarray(np.where(explore, self._held, go_to_target(target_features)))
+
+
 class StreamPolicy(Protocol):
     """A policy keeping one observation window per world (the onboard `PolicyRuntime`)."""
 

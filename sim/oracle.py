@@ -20,6 +20,7 @@ which other episodes run beside it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from typing import NamedTuple
 
@@ -34,7 +35,7 @@ from sim.dynamics import move_obstacles, step_increment, step_inertia
 from sim.evaluate import EvalResult, EvalSettings, drive
 from sim.geometry import clearance
 from sim.task import Outcome, outcome
-from sim.world import WorldState
+from sim.world import Observation, WorldState
 
 F64 = NDArray[np.float64]
 
@@ -296,6 +297,11 @@ class OracleDriver:
         return plan(self.config, perceived, sequences)
 
 
+Perceive = Callable[[WorldState, Observation], WorldState]
+"""A perceiver: the state a controller would believe in, from the true state's keys and what
+the robot observes (e.g. `qnav.tracking.WorldTrackers.perceive_state`)."""
+
+
 def run_oracle(
     config: WorldConfig,
     settings: EvalSettings,
@@ -303,12 +309,15 @@ def run_oracle(
     horizon: int = 20,
     random_sequences: int = 128,
     state_error: StateError | None = None,
+    perceive: Perceive | None = None,
     progress: bool = False,
 ) -> EvalResult:
     """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner,
     `settings.num_worlds` episodes at a time; with `state_error`, planning on noisy estimates
     of the state (its error drawn afresh each step, and from the whole batch, so results
-    depend on num_worlds)."""
+    depend on num_worlds); with `perceive`, planning on what that perceiver makes of each step."""
+    if state_error is not None and perceive is not None:
+        raise ValueError("state_error and perceive are two views of the state: give one")
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(
         config,
@@ -317,11 +326,17 @@ def run_oracle(
         random_sequences=random_sequences,
         state_error=state_error,
     )
+
+    def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
+        if perceive is None:
+            return driver.act(state)
+        return driver.act_on(state, perceive(state, observation))
+
     batches = np.array_split(
         np.arange(settings.episodes), -(-settings.episodes // settings.num_worlds)
     )
     results = [
-        drive(config, settings.seed, batch, lambda state, _: driver.act(state))
+        drive(config, settings.seed, batch, act)
         for batch in tqdm(batches, desc="oracle", unit="batch", disable=not progress)
     ]
     outcomes, steps = (np.concatenate(parts) for parts in zip(*results, strict=True))

@@ -29,7 +29,7 @@ from contracts.policy_file import CONV_CHANNELS
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
-from sim.evaluate import go_to_target
+from sim.evaluate import WanderingGoToTarget
 from sim.oracle import PERCEIVED
 from sim.world import BatchedWorld, WorldState, observe
 from training.agent import greedy_actions
@@ -307,8 +307,7 @@ def perception_windows(
     batched = BatchedWorld(world, worlds, seed=seed)
     observation = observe(world, batched.state)
     window = FrameWindow(worlds, world.lidar.num_beams + 3 if world.lidar else 3)
-    chance = np.random.default_rng(seed)
-    held = chance.integers(0, NUM_ACTIONS, worlds)
+    driver = WanderingGoToTarget(worlds, settings.explore_share, seed)
     windows, truths = [], []
     found = 0
     while found < count:
@@ -324,10 +323,7 @@ def perception_windows(
         windows.append(frames[keep].copy())
         truths.append(np.concatenate([closest[:, :4], context[:, :2]], axis=1)[keep])
         found += int(keep.sum())
-        held = np.where(chance.random(worlds) < 0.2, chance.integers(0, NUM_ACTIONS, worlds), held)
-        explore = chance.random(worlds) < settings.explore_share
-        action = np.where(explore, held, go_to_target(observation.target_features()))
-        result = batched.step(action)
+        result = batched.step(driver(observation.target_features()))
         observation = result.observation
         window.restart(np.flatnonzero(result.transition.terminated | result.transition.truncated))
     return np.concatenate(windows)[:count], np.concatenate(truths)[:count].astype(np.float32)
