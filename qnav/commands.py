@@ -7,7 +7,7 @@ import json
 from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from contracts.errors import ConfigError
 from contracts.settings import load_toml, parse_assignments, with_overrides
@@ -409,14 +409,9 @@ def probe(args: argparse.Namespace) -> int:
     if args.tracker:
         return _track(args)
     settings: ProbeSettings | PerceptionSettings
-    settings = PerceptionSettings() if args.perception else ProbeSettings()
-    section = settings.SECTION
-    if args.probe_assignments:
-        overrides = parse_assignments(args.probe_assignments)
-        unknown = set(overrides) - {section}
-        if unknown:
-            raise ConfigError(f"--probe-set takes {section}.FIELD=VALUE, not {sorted(unknown)}")
-        settings = with_overrides(settings, overrides[section], section)
+    [settings] = _probe_set(
+        args.probe_assignments, PerceptionSettings() if args.perception else ProbeSettings()
+    )
     if args.print_config:
         print(to_toml(settings))
         return 0
@@ -437,23 +432,32 @@ def probe(args: argparse.Namespace) -> int:
     return 0
 
 
+def _probe_set(assignments: list[str], *defaults: Any) -> list[Any]:
+    """Each settings object of `defaults` with the `--probe-set SECTION.FIELD=VALUE` changes
+    to its SECTION; a section none of them has is an error naming the ones there are."""
+    if not assignments:
+        return list(defaults)
+    overrides = parse_assignments(assignments)
+    sections = [settings.SECTION for settings in defaults]
+    unknown = set(overrides) - set(sections)
+    if unknown:
+        allowed = " or ".join(f"{section}.FIELD=VALUE" for section in sections)
+        raise ConfigError(f"--probe-set takes {allowed}, not {sorted(unknown)}")
+    return [
+        with_overrides(settings, overrides.get(section, {}), section)
+        for settings, section in zip(defaults, sections, strict=True)
+    ]
+
+
 def _track(args: argparse.Namespace) -> int:
     """The onboard tracker's errors on the perception probe's drive."""
     from contracts.settings import to_toml
     from controller.perception import TrackerSettings
     from qnav.tracking import TrackerCheckSettings, measure_tracker
 
-    tracker, check = TrackerSettings(), TrackerCheckSettings()
-    if args.probe_assignments:
-        overrides = parse_assignments(args.probe_assignments)
-        unknown = set(overrides) - {tracker.SECTION, check.SECTION}
-        if unknown:
-            raise ConfigError(
-                f"--probe-set takes {tracker.SECTION}.FIELD=VALUE or {check.SECTION}.FIELD=VALUE,"
-                f" not {sorted(unknown)}"
-            )
-        tracker = with_overrides(tracker, overrides.get(tracker.SECTION, {}), tracker.SECTION)
-        check = with_overrides(check, overrides.get(check.SECTION, {}), check.SECTION)
+    tracker: TrackerSettings
+    check: TrackerCheckSettings
+    tracker, check = _probe_set(args.probe_assignments, TrackerSettings(), TrackerCheckSettings())
     if args.print_config:
         print(
             f"[{tracker.SECTION}]\n{to_toml(tracker)}\n[{check.SECTION}]\n{to_toml(check)}", end=""

@@ -334,16 +334,7 @@ class MavlinkVehicle:
         """Move the car `duration_s` under its current command (with `external_physics`)."""
         if not self.settings.external_physics:
             raise RuntimeError("advance() needs external_physics = true: this car moves itself")
-        speed, rate = self.targets()
-        with self._lock:
-            self._pose, self._velocity = step_velocity_lag(
-                self._pose,
-                self._velocity,
-                np.array([speed]),
-                np.array([rate]),
-                params=self.settings.dynamics,
-                period_s=duration_s,
-            )
+        self._move(*self.targets(), duration_s)
 
     # -- the loop -----------------------------------------------------------------------------
 
@@ -383,14 +374,17 @@ class MavlinkVehicle:
             self._initialising = False
             self._mode = mode_number(self.settings.initial_mode)
         speed, rate = self._targets(now)
-        if self.settings.external_physics:
-            return  # the sim-car moves it (`advance`)
+        if not self.settings.external_physics:  # else the sim-car moves it (`advance`)
+            self._move(speed, rate, period_s)
+
+    def _move(self, speed_mps: float, rate_radps: float, period_s: float) -> None:
+        """The simulator's own lagged motion towards the commanded speed and turn rate."""
         with self._lock:
             self._pose, self._velocity = step_velocity_lag(
                 self._pose,
                 self._velocity,
-                np.array([speed]),
-                np.array([rate]),
+                np.array([speed_mps]),
+                np.array([rate_radps]),
                 params=self.settings.dynamics,
                 period_s=period_s,
             )
