@@ -17,7 +17,7 @@ from pathlib import Path
 from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from contracts.health import DEFAULT_MAX_AGE_S
 from contracts.observation import WINDOW_LENGTH
-from contracts.policy_file import CONV_CHANNELS, CONV_STRIDE, WEIGHT_TYPES
+from contracts.policy_file import WEIGHT_TYPES
 from qnav import __version__
 
 Handler = Callable[[argparse.Namespace], int]
@@ -317,26 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--model", default="recurrent", choices=["recurrent", "feedforward"], help="network"
     )
     imitate.add_argument(
-        "--conv-channels",
-        type=int,
-        default=CONV_CHANNELS,
-        help=f"channels per lidar convolution (paper: {CONV_CHANNELS})",
-    )
-    imitate.add_argument(
-        "--conv-stride",
-        type=int,
-        default=CONV_STRIDE,
-        help=f"stride of each lidar convolution (paper: {CONV_STRIDE})",
-    )
-    imitate.add_argument(
         "--privileged",
         action="store_true",
         help="copy with a network given the obstacles' exact positions and velocities instead",
-    )
-    imitate.add_argument(
-        "--scan-difference",
-        action="store_true",
-        help="give the lidar encoder each scan's change since the previous one as a 2nd channel",
     )
     imitate.add_argument(
         "--window",

@@ -57,8 +57,8 @@ def evaluate(args: argparse.Namespace) -> int:
             else (RandomAgent(worlds, seed=args.seed), "oracle planner (knows the future)")
         )
     else:
+        from training.agent import policy_agent
         from training.policy import load_network
-        from training.run import policy_agent
 
         network, run = load_network(args.policy)
         world = (
@@ -371,7 +371,7 @@ def gauge(args: argparse.Namespace) -> int:
     for run in args.runs:
         from training.diagnose import decisive_report
         from training.policy import load_network
-        from training.run import decisive_states
+        from training.validation import decisive_states
 
         network, settings = load_network(run)
         train = replace(settings.train, gauge_episodes=args.episodes)
@@ -503,9 +503,6 @@ def imitate(args: argparse.Namespace) -> int:
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
     settings = ImitationSettings(
         model=args.model,
-        conv_channels=args.conv_channels,
-        conv_stride=args.conv_stride,
-        scan_difference=args.scan_difference,
         episodes=args.episodes,
         held_out_episodes=args.held_out_episodes,
         dagger_rounds=args.dagger_rounds,
@@ -532,12 +529,7 @@ def imitate(args: argparse.Namespace) -> int:
 def _imitation_report(
     world: str, settings: ImitationSettings, result: ImitationResult, *, privileged: bool
 ) -> str:
-    copy = (
-        "a network given the world's state"
-        if privileged
-        else f"{settings.model}, {settings.conv_channels} lidar channels of stride "
-        f"{settings.conv_stride}" + (", scan differences" if settings.scan_difference else "")
-    )
+    copy = "a network given the world's state" if privileged else settings.model
     test = result.test
     lines = [
         f"{world}, {copy}: planner success {result.planner_success:.3f} on the "
