@@ -61,7 +61,7 @@ class EpisodeReplay:
         self.action = np.zeros(capacity_frames, dtype=np.int64)
         self.own_target = np.zeros((capacity_frames, 2))
         # What each stored step would have seen without the episode's obstacles, so that
-        # fresh ones can be put in when a transition is sampled (`redraw_obstacles`).
+        # fresh ones can be put in when a transition is sampled (`training.sampling`).
         self.has_obstacles = config.obstacles.count > 0
         self.walls_scan = np.zeros(
             (capacity_frames if self.has_obstacles else 0, self.num_beams), dtype=np.float32
