@@ -476,8 +476,8 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     publication to the command after it (the controller and zenoh), as the sim-car logged it."""
     import math
 
+    from contracts.motion import action_velocities
     from sim.config import scenario as load_scenario
-    from sim.dynamics import action_velocities
 
     world = load_scenario(scenario_name)
     period = world.control_period_s
@@ -554,10 +554,10 @@ def episode_agreement(policy: Path, scenario_name: str, episodes_log: Path) -> d
     activations over the whole batch."""
     import numpy as np
 
+    from contracts.motion import Outcome
     from controller.policy import PolicyRuntime
     from sim.config import scenario as load_scenario
     from sim.evaluate import EvalSettings, StreamPolicyAgent
-    from sim.task import Outcome
     from sim.world import observe, reset, step
 
     test = EvalSettings()

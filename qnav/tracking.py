@@ -17,8 +17,9 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.errors import ConfigError
+from contracts.motion import InertiaDynamics
 from controller.perception import ObstacleTracker, TrackerSettings, Tracks, box_walls, ego_velocity
-from sim.config import InertiaDynamics, WorldConfig
+from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget
 from sim.oracle import PERCEIVED, collision_shares, run_oracle
 from sim.world import BatchedWorld, Observation, WorldState

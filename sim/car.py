@@ -43,15 +43,22 @@ from numpy.typing import NDArray
 
 from contracts import wire
 from contracts.errors import ConfigError
+from contracts.motion import (
+    IncrementDynamics,
+    InertiaDynamics,
+    Outcome,
+    action_velocities,
+    move_obstacles,
+    outcome,
+)
 from contracts.settings import check_range
 from contracts.transport import ZenohSettings, open_session
-from sim.config import IncrementDynamics, InertiaDynamics, WorldConfig
-from sim.dynamics import action_velocities, move_obstacles
+from sim.config import WorldConfig
 from sim.evaluate import EvalSettings
 from sim.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
 from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from sim.render import EpisodeRecord
-from sim.task import Outcome, outcome, reward
+from sim.task import reward
 from sim.world import WorldState, observe, reset
 
 log = logging.getLogger("sim.car")

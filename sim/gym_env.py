@@ -17,8 +17,8 @@ from gymnasium.vector.utils import batch_space
 from numpy.typing import NDArray
 
 from contracts.actions import NUM_ACTIONS
+from contracts.motion import Outcome
 from sim.config import WorldConfig, scenario
-from sim.task import Outcome
 from sim.world import BatchedWorld, Observation, Transition, observe, reset, step
 
 ObsDict = dict[str, NDArray[Any]]

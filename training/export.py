@@ -32,6 +32,7 @@ import torch
 from numpy.typing import NDArray
 
 from contracts.errors import PolicyFileError
+from contracts.motion import action_velocities
 from contracts.observation import distance_scale_m
 from contracts.policy_file import (
     FRAME_INPUT,
@@ -45,7 +46,6 @@ from contracts.policy_file import (
     PolicyContract,
 )
 from sim.config import WorldConfig
-from sim.dynamics import action_velocities
 from sim.evaluate import EvalResult, StreamPolicy
 from training.networks import QNetwork, StreamingQNetwork
 from training.quantize import quantize_int8
