@@ -99,6 +99,19 @@ def held(blocks: NDArray[np.int64], horizon: int) -> NDArray[np.int64]:
     return blocks.repeat(RANDOM_HOLD_STEPS, axis=-1)[..., :horizon]
 
 
+def candidate_sequences(random_blocks: NDArray[np.int64], horizon: int) -> NDArray[np.int64]:
+    """(..., S, horizon): the structured sequences, then the random actions `random_blocks`
+    (..., R, B) held `RANDOM_HOLD_STEPS` steps each."""
+    shared = structured_sequences(horizon)
+    structured = np.broadcast_to(shared, (*random_blocks.shape[:-2], *shared.shape))
+    return np.concatenate([structured, held(random_blocks, horizon)], axis=-2)
+
+
+def random_blocks_needed(horizon: int) -> int:
+    """Random actions that fill a sequence of `horizon` steps, each held `RANDOM_HOLD_STEPS`."""
+    return -(-horizon // RANDOM_HOLD_STEPS)
+
+
 def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int64]) -> Rollouts:
     """Play every candidate sequence, (S, H) shared by all worlds or (N, S, H) per world, from
     each world of `state`, the obstacles moving straight on and bouncing off the room's walls."""

@@ -213,6 +213,19 @@ def ego_velocity(previous_pose: F64, pose: F64, period_s: float) -> F64:
     return np.array([forward / period_s, turn / period_s])
 
 
+def own_velocity(poses: F64, intervals_s: F64) -> F64:
+    """(2,) forward speed and turn rate now, from the last two or three poses (P, 3) and the
+    P - 1 intervals between them: the mean over the last interval, extrapolated to its end by
+    half the change since the interval before (the mean lags by half an interval). Zero from
+    a single pose."""
+    if len(poses) < 2:
+        return np.zeros(2)
+    velocity = ego_velocity(poses[-2], poses[-1], float(intervals_s[-1]))
+    if len(poses) > 2:
+        velocity += (velocity - ego_velocity(poses[-3], poses[-2], float(intervals_s[-2]))) / 2
+    return velocity
+
+
 class Tracks(NamedTuple):
     """What the tracker believes now, in the room's frame."""
 

@@ -31,11 +31,10 @@ from tqdm import tqdm
 from contracts import lookahead
 from contracts.actions import NUM_ACTIONS
 from contracts.lookahead import (
-    RANDOM_HOLD_STEPS,
     LookaheadModel,
     Rollouts,
-    held,
-    structured_sequences,
+    candidate_sequences,
+    random_blocks_needed,
 )
 from sim import rng
 from sim.config import WorldConfig
@@ -69,9 +68,8 @@ def lookahead_model(config: WorldConfig) -> LookaheadModel:
 def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) -> NDArray[np.int64]:
     """(S, horizon) candidate sequences: the structured ones plus `random_count` random
     sequences of actions held three steps each."""
-    blocks = -(-horizon // RANDOM_HOLD_STEPS)
-    random = rng.integers(0, NUM_ACTIONS, size=(random_count, blocks))
-    return np.concatenate([structured_sequences(horizon), held(random, horizon)])
+    random = rng.integers(0, NUM_ACTIONS, size=(random_count, random_blocks_needed(horizon)))
+    return candidate_sequences(random, horizon)
 
 
 def keyed_sequences(
@@ -82,12 +80,9 @@ def keyed_sequences(
     keys = rng.episode_keys(
         rng.episode_keys(state.seed, state.episode) ^ np.uint64(salt), state.steps
     )
-    blocks = -(-horizon // RANDOM_HOLD_STEPS)
-    draw = rng.uniform(keys, _SEQUENCE_STREAM, (random_count, blocks))
+    draw = rng.uniform(keys, _SEQUENCE_STREAM, (random_count, random_blocks_needed(horizon)))
     random = np.minimum((draw * NUM_ACTIONS).astype(np.int64), NUM_ACTIONS - 1)
-    shared = structured_sequences(horizon)
-    structured = np.broadcast_to(shared, (state.pose.shape[0], *shared.shape))
-    return np.concatenate([structured, held(random, horizon)], axis=1)
+    return candidate_sequences(random, horizon)
 
 
 def simulate(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> Rollouts:
