@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import distance_to_segments
 from contracts.settings import check_range
 
 F64 = NDArray[np.float64]
@@ -86,14 +87,8 @@ def scan_points(scan_m: NDArray[np.floating], pose: F64, beam_angles_rad: F64) -
 
 
 def distance_to_walls(points: F64, walls: F64) -> F64:
-    """(P,) each point's distance to the nearest wall segment."""
-    start, end = walls[:, :2], walls[:, 2:]
-    along = end - start
-    length2 = np.maximum(np.sum(along * along, axis=1), 1e-12)
-    offset = points[:, None, :] - start[None]
-    t = np.clip(np.sum(offset * along[None], axis=2) / length2[None], 0.0, 1.0)
-    nearest = start[None] + t[..., None] * along[None]
-    return np.asarray(np.min(np.linalg.norm(points[:, None, :] - nearest, axis=2), axis=1))
+    """(P,) each point's distance to the nearest wall segment (x0, y0, x1, y1)."""
+    return distance_to_segments(points, walls[:, :2], walls[:, 2:])
 
 
 def off_the_walls(points: F64, walls: F64, band_m: float) -> NDArray[np.bool_]:
