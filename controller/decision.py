@@ -127,7 +127,7 @@ class Counters:
     policy_swaps: int = 0
     """Policies swapped in while running (`Controller.swap_policy`)."""
     overruled: int = 0
-    """Policy decisions the look ahead changed (`lookahead.shield`)."""
+    """Policy decisions the look ahead changed (`lookahead.mode` shield or plan)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As plain JSON values."""
@@ -176,7 +176,7 @@ class Status:
     policy_version: str = ""
     """Version of the policy that decides (or would decide): `Controller.policy_version`."""
     risks: tuple[float, ...] | None = None
-    """With the look ahead (`lookahead.shield`): each action's share of forecast continuations
+    """With `lookahead.mode = "shield"`: each action's share of forecast continuations
     that collide, indexed by action (None otherwise, or when stopped by a rule)."""
 
     def to_dict(self) -> dict[str, Any]:
@@ -269,7 +269,7 @@ class Controller:
         self.lookahead_settings = lookahead or LookaheadSettings()
         self.tracker_settings = tracker or TrackerSettings()
         self.lookahead = self._new_lookahead(runtime, self.tracker_settings)
-        """The look ahead that may overrule the policy (None unless `lookahead.shield`)."""
+        """The look ahead that may overrule the policy (None with `lookahead.mode = "off"`)."""
 
     # ---- inputs -------------------------------------------------------------------------
 
@@ -461,13 +461,16 @@ class Controller:
             assert self._scan is not None and self._scan_stamp_s is not None  # rules 2-3 held
             xy_yaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
             self.lookahead.observe(pose.stamp_s, xy_yaw, self._scan_stamp_s, self._scan)
-            shares = self.lookahead.risks(np.array([target.x_m, target.y_m]))
-            tolerance = self.lookahead_settings.tolerance
-            action = Action(
-                int(shielded_actions(decision.q_values[None], shares[None], tolerance)[0])
-            )
+            target_xy = np.array([target.x_m, target.y_m])
+            if self.lookahead_settings.mode == "plan":
+                action = Action(self.lookahead.plan(target_xy))
+            else:
+                shares = self.lookahead.risks(target_xy)
+                tolerance = self.lookahead_settings.tolerance
+                safest = shielded_actions(decision.q_values[None], shares[None], tolerance)
+                action = Action(int(safest[0]))
+                risks = tuple(shares.tolist())
             self.counters.overruled += int(action != decision.action)
-            risks = tuple(shares.tolist())
         q_values = tuple(decision.q_values.tolist())
         return self._output(
             now, Reason.POLICY, self.commands[action], action, q_values, send=send, risks=risks
@@ -568,13 +571,14 @@ class Controller:
             self._window_fresh = True
 
     def _new_lookahead(self, runtime: PolicyRuntime, tracker: TrackerSettings) -> Lookahead | None:
-        """The look ahead for `runtime`'s policy, or None without `lookahead.shield`."""
-        if not self.lookahead_settings.shield:
+        """The look ahead for `runtime`'s policy, or None with `lookahead.mode = "off"`."""
+        if self.lookahead_settings.mode == "off":
             return None
         contract = runtime.contract
         if not self.uses_scan:
             raise PolicyFileError(
-                f"lookahead.shield tracks obstacles in the lidar: {runtime.path} reads no scan"
+                f"lookahead.mode = {self.lookahead_settings.mode!r} tracks obstacles in the "
+                f"lidar: {runtime.path} reads no scan"
             )
         dynamics, robot_radius_m = contract.motion_model(str(runtime.path))
         return Lookahead(

@@ -11,24 +11,28 @@ simulator's oracle plans with) do. Each decision:
 3. every first action is followed by the same continuations (the structured ones and random ones
    drawn from a seeded generator restarted with each episode) over `horizon_s`, and the share
    of them that collide is that action's risk;
-4. the policy's best-valued action among the least risky is taken (`shielded_actions`).
+4. the policy's best-valued action among the least risky is taken (`shielded_actions`);
+   or, in "plan" mode, the first action of the best-scoring candidate sequence (the simulator's
+   oracle planner, on the perceived state), whatever the policy's values.
 
 `Lookahead` holds one car's state; the controller (`controller.decision`) calls it, and the
-simulator's in-process evaluation runs the same class (`qnav.tracking.ShieldedAgent`).
+simulator's in-process evaluation runs the same class (`qnav.tracking.LookaheadAgent`).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from contracts.actions import NUM_ACTIONS
+from contracts.errors import ConfigError
 from contracts.lookahead import (
     LookaheadModel,
+    best_first_actions,
     candidate_sequences,
     collision_shares,
     random_blocks_needed,
@@ -46,8 +50,11 @@ class LookaheadSettings:
 
     SECTION = "lookahead"
 
-    shield: bool = False
-    """Overrule the policy's action where the forecast finds another less likely to collide."""
+    mode: Literal["off", "shield", "plan"] = "off"
+    """"off": the policy decides alone. "shield": the policy's best-valued action among the
+    least likely to collide (the forecast overrules it only there). "plan": the first action of
+    the best-scoring candidate sequence (reach the target early, collide late or never, else end
+    near the target and clear of surfaces), the policy's values reported but not used."""
     room_size_m: float = 10.0
     """Side of the square room [0, size]^2 in the motion-capture frame: its walls are known (a
     lidar return on them is not an obstacle, and obstacles bounce off them)."""
@@ -62,6 +69,8 @@ class LookaheadSettings:
     """Seed of the random continuations (the generator restarts with every episode)."""
 
     def __post_init__(self) -> None:
+        if self.mode not in ("off", "shield", "plan"):
+            raise ConfigError(f"lookahead.mode = {self.mode!r}: choose off, shield or plan")
         check_range(self, "room_size_m", self.room_size_m, 0.0, 1000.0, exclusive_low=True)
         check_range(self, "horizon_s", self.horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "random_sequences", self.random_sequences, 0, 100_000)
@@ -153,13 +162,20 @@ class Lookahead:
             obstacle_velocity=tracks.velocity_mps[None],
         )
 
+    def candidates(self) -> NDArray[np.int64]:
+        """(1, S, H) this decision's candidate sequences: the structured ones and
+        `random_sequences` fresh random ones."""
+        size = (1, self.settings.random_sequences, random_blocks_needed(self.horizon))
+        random = self._random.integers(0, NUM_ACTIONS, size=size)
+        return candidate_sequences(random, self.horizon)
+
     def continuations(self) -> NDArray[np.int64]:
         """(1, T, H - 1) the continuations that follow every first action this decision."""
-        blocks = random_blocks_needed(self.horizon)
-        random = self._random.integers(
-            0, NUM_ACTIONS, size=(1, self.settings.random_sequences, blocks)
-        )
-        return candidate_sequences(random, self.horizon)[:, :, : self.horizon - 1]
+        return self.candidates()[:, :, : self.horizon - 1]
+
+    def plan(self, target_xy: F64) -> int:
+        """The first action of the best-scoring candidate sequence over the horizon."""
+        return int(plans_of([self], [target_xy])[0])
 
     def risks(self, target_xy: F64) -> F64:
         """(A,) each first action's share of colliding continuations within the horizon."""
@@ -174,6 +190,15 @@ def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
     beliefs = [car.belief(target) for car, target in zip(lookaheads, targets_xy, strict=True)]
     tails = np.concatenate([car.continuations() for car in lookaheads])
     return collision_shares(lookaheads[0].model, stacked(beliefs), tails)
+
+
+def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:
+    """(N,) `Lookahead.plan` of several cars at once (their models must be alike)."""
+    if not lookaheads:
+        return np.zeros(0, dtype=np.int64)
+    beliefs = [car.belief(target) for car, target in zip(lookaheads, targets_xy, strict=True)]
+    sequences = np.concatenate([car.candidates() for car in lookaheads])
+    return best_first_actions(lookaheads[0].model, stacked(beliefs), sequences)
 
 
 def stacked(beliefs: list[Belief]) -> Belief:

@@ -138,13 +138,14 @@ def write_configs(
     bridge_values: dict[str, Any] | None = None,
     public_key: Path | None = None,
     input_timeout_s: float = 0.0,
-    room_size_m: float | None = None,
+    lookahead: str = "off",
+    room_size_m: float = 10.0,
 ) -> None:
     """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
     bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
     controller takes policies from a server signed with its private key, `policy` first;
     `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default;
-    `room_size_m`: the controller's look ahead overrules the policy, in a room of that size)."""
+    `lookahead`: the controller's `lookahead.mode`, in a room of `room_size_m`)."""
     from controller.config import DaemonConfig
     from firmware_bridge.settings import BridgeSettings
 
@@ -163,8 +164,8 @@ def write_configs(
         }
         | (
             {}
-            if room_size_m is None
-            else {"lookahead": {"shield": True, "room_size_m": room_size_m}}
+            if lookahead == "off"
+            else {"lookahead": {"mode": lookahead, "room_size_m": room_size_m}}
         )
         | (
             {}
@@ -255,7 +256,7 @@ def run_stack(
     sitl_binary: Path | None = None,
     serve: StackServe | None = None,
     lockstep: bool = True,
-    shield: bool = False,
+    lookahead: str = "off",
 ) -> dict[str, Any]:
     """Run the full stack for `episodes` episodes; returns its outcome fractions and paths.
 
@@ -269,7 +270,7 @@ def run_stack(
     With `lockstep` (the test vehicle only), the sim-car steps the world once the command
     decided on each scan has reached the car (`sim-car --lockstep`); else in real time.
 
-    With `shield`, the controller's look ahead (`controller.lookahead`) may overrule the policy.
+    `lookahead` is the controller's `lookahead.mode` (`controller.lookahead`).
     """
     from tqdm import tqdm
 
@@ -311,7 +312,8 @@ def run_stack(
         input_timeout_s=(
             SimCarSettings().lockstep_timeout_s + world.control_period_s if lockstep else 0.0
         ),
-        room_size_m=world.arena.size_m if shield else None,
+        lookahead=lookahead,
+        room_size_m=world.arena.size_m,
     )
     rest_args = [] if serve is None else ["--rest-s", str(serve.rest_s)]
     daemons = Daemons(files)
@@ -431,14 +433,14 @@ def stack_verb(args: argparse.Namespace) -> int:
         sitl_binary=sitl_binary,
         serve=serve,
         lockstep=not args.real_time,
-        shield=args.shield,
+        lookahead=args.lookahead,
     )
     result["in_process"] = in_process_outcomes(
-        args.policy, result["scenario"], args.episodes, shield=args.shield
+        args.policy, result["scenario"], args.episodes, lookahead=args.lookahead
     )
     result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
     result["agreement"] = episode_agreement(
-        args.policy, result["scenario"], args.out / "episodes.jsonl", shield=args.shield
+        args.policy, result["scenario"], args.out / "episodes.jsonl", lookahead=args.lookahead
     )
     result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
     if args.json:
@@ -545,17 +547,17 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
 
 
 def in_process_outcomes(
-    policy: Path, scenario_name: str, episodes: int, *, shield: bool = False
+    policy: Path, scenario_name: str, episodes: int, *, lookahead: str = "off"
 ) -> dict[str, Any]:
-    """`qnav eval` of the policy file on the stack's episodes (the test protocol's first ones);
-    with `shield`, `qnav eval --shield`."""
+    """`qnav eval --lookahead MODE` of the policy file on the stack's episodes (the test
+    protocol's first ones)."""
     from sim.config import scenario as load_scenario
     from sim.evaluate import EvalSettings, evaluate
 
     world = load_scenario(scenario_name)
     result = evaluate(
         world,
-        file_agent(policy, world, episodes, shield=shield),
+        file_agent(policy, world, episodes, lookahead=lookahead),
         EvalSettings(episodes=episodes, num_worlds=episodes),
     )
     return {
@@ -566,22 +568,24 @@ def in_process_outcomes(
     }
 
 
-def file_agent(policy: Path, world: WorldConfig, worlds: int, *, shield: bool) -> Agent:
-    """The policy file on one stream per world, as the controller runs it; with `shield`, its
-    look ahead too."""
+def file_agent(policy: Path, world: WorldConfig, worlds: int, *, lookahead: str) -> Agent:
+    """The policy file on one stream per world, as the controller runs it, with its look ahead
+    in `lookahead` mode."""
+    from controller.lookahead import LookaheadSettings
     from controller.perception import TrackerSettings
     from controller.policy import PolicyRuntime
-    from qnav.tracking import ShieldedAgent
+    from qnav.tracking import LookaheadAgent
     from sim.evaluate import StreamPolicyAgent
 
     agent = StreamPolicyAgent(PolicyRuntime(policy, num_streams=worlds), worlds)
-    if not shield:
+    if lookahead == "off":
         return agent
-    return ShieldedAgent(agent, world, worlds, tracker=TrackerSettings())
+    settings = LookaheadSettings(mode=lookahead)  # type: ignore[arg-type]  # argparse choices
+    return LookaheadAgent(agent, world, worlds, tracker=TrackerSettings(), lookahead=settings)
 
 
 def episode_agreement(
-    policy: Path, scenario_name: str, episodes_log: Path, *, shield: bool = False
+    policy: Path, scenario_name: str, episodes_log: Path, *, lookahead: str = "off"
 ) -> dict[str, int]:
     """Each episode of the sim-car's log run again in process one at a time, the policy on one
     stream as the controller runs it: how many took the same action at every step
@@ -598,7 +602,7 @@ def episode_agreement(
     test = EvalSettings()
     world = replace(load_scenario(scenario_name), max_episode_steps=test.max_episode_steps)
     names = {Outcome.SUCCESS: "success", Outcome.COLLISION: "collision"}
-    agent = file_agent(policy, world, 1, shield=shield)
+    agent = file_agent(policy, world, 1, lookahead=lookahead)
     counts = {"episodes": 0, "same_actions": 0, "same_outcome": 0}
     for line in episodes_log.read_text().splitlines():
         entry = json.loads(line)

@@ -19,7 +19,7 @@ from tqdm import tqdm
 from contracts.errors import ConfigError
 from contracts.lookahead import shielded_actions
 from contracts.motion import InertiaDynamics
-from controller.lookahead import Lookahead, LookaheadSettings, risks_of
+from controller.lookahead import Lookahead, LookaheadSettings, plans_of, risks_of
 from controller.perception import ObstacleTracker, TrackerSettings, Tracks, box_walls, own_velocity
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget
@@ -265,11 +265,11 @@ class QAgent(Protocol):
     def act(self, observation: Observation) -> NDArray[np.int64]: ...
 
 
-class ShieldedAgent:
-    """A learned policy whose choice the onboard look ahead (`controller.lookahead`, one per
-    world, as each car runs it) may overrule: each action's share of colliding continuations is
-    forecast from the tracker's obstacles and the room's walls, and the policy's best-valued
-    action among the safest wins.
+class LookaheadAgent:
+    """A learned policy with the controller's look ahead (`controller.lookahead`, one per world,
+    as each car runs it), in `lookahead.mode`: "shield", each action's share of colliding
+    continuations is forecast from the tracker's obstacles and the room's walls and the policy's
+    best-valued action among the safest wins; "plan", the planner on that state decides.
     """
 
     def __init__(
@@ -279,7 +279,7 @@ class ShieldedAgent:
         num_worlds: int,
         *,
         tracker: TrackerSettings,
-        lookahead: LookaheadSettings | None = None,
+        lookahead: LookaheadSettings,
         range_noise_m: float = 0.0,
         seed: int = 0,
     ) -> None:
@@ -287,9 +287,9 @@ class ShieldedAgent:
             raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
         self.inner = inner
         self.world = world
-        self.settings = replace(
-            lookahead or LookaheadSettings(), shield=True, room_size_m=world.arena.size_m
-        )
+        self.settings = replace(lookahead, room_size_m=world.arena.size_m)
+        if self.settings.mode == "off":
+            raise ConfigError("lookahead.mode = 'off': nothing to run beside the policy")
         self.cars = [
             Lookahead(
                 self.settings,
@@ -327,8 +327,12 @@ class ShieldedAgent:
         times_s = self.steps * self.world.control_period_s
         for row, car in enumerate(self.cars):
             car.observe(float(times_s[row]), observation.pose[row], float(times_s[row]), scans[row])
-        shares = risks_of(self.cars, list(observation.target_xy))
-        action = shielded_actions(self.inner.last_q, shares, self.settings.tolerance)
+        targets = list(observation.target_xy)
+        if self.settings.mode == "plan":
+            action = plans_of(self.cars, targets)
+        else:
+            shares = risks_of(self.cars, targets)
+            action = shielded_actions(self.inner.last_q, shares, self.settings.tolerance)
         self.overruled += int(np.sum(action != chosen))
         self.decisions += action.size
         self.steps += 1

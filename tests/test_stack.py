@@ -122,10 +122,12 @@ def test_with_the_look_ahead_the_full_stack_dodges_as_the_shield_does_in_process
     tmp_path: Path,
 ) -> None:
     # The controller daemon runs the tracker and the forecast on the wire's scans and poses
-    # (lookahead.shield); in process, `qnav eval --shield` runs the same look ahead per world.
+    # (lookahead.mode = "shield"); in process, `qnav eval --lookahead shield` runs the same look
+    # ahead per world.
     done = subprocess.run(
         [sys.executable, "-m", "qnav", "stack", "--policy", str(OBSTACLES_POLICY), "--episodes",
-         str(EPISODES), "--out", str(tmp_path / "stack"), "--json", "--no-record", "--shield"],
+         str(EPISODES), "--out", str(tmp_path / "stack"), "--json", "--no-record",
+         "--lookahead", "shield"],
         capture_output=True, text=True, timeout=1440, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]

@@ -31,7 +31,7 @@ def _car(world_name: str) -> Lookahead:
     world = scenario(world_name)
     assert world.lidar is not None
     return Lookahead(
-        replace(LookaheadSettings(), shield=True, room_size_m=world.arena.size_m),
+        replace(LookaheadSettings(), mode="shield", room_size_m=world.arena.size_m),
         TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
         dynamics=world.dynamics,
         robot_radius_m=world.robot_radius_m,
@@ -79,29 +79,31 @@ def test_the_shield_refuses_a_policy_file_without_a_motion_model_naming_the_fix(
     runtime = PolicyRuntime(WALLS_POLICY)
     assert not runtime.contract.motion
     with pytest.raises(PolicyFileError, match="qnav export"):
-        Controller(runtime, lookahead=LookaheadSettings(shield=True))
+        Controller(runtime, lookahead=LookaheadSettings(mode="shield"))
     Controller(runtime)  # without the shield the file runs as before
 
 
 def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes() -> None:
     # The daemon's decision step, fed the simulator's own messages stamped with its clock, and
-    # `qnav eval --shield` on one stream: the same look ahead, the same actions, step by step.
-    from qnav.tracking import ShieldedAgent
+    # `qnav eval --lookahead shield` on one stream: the same look ahead, the same actions, step
+    # by step.
+    from qnav.tracking import LookaheadAgent
 
     world = scenario("obstacles-inertia")
     assert world.lidar is not None
-    settings = LookaheadSettings(shield=True, room_size_m=world.arena.size_m)
+    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
     period, test = world.control_period_s, EvalSettings()
     overruled = 0
     for episode in (0, 1, 2):
         controller = Controller(
             PolicyRuntime(OBSTACLES_POLICY), lookahead=settings, tracker=TrackerSettings()
         )
-        agent = ShieldedAgent(
+        agent = LookaheadAgent(
             StreamPolicyAgent(PolicyRuntime(OBSTACLES_POLICY), 1),
             world,
             1,
             tracker=TrackerSettings(),
+            lookahead=settings,
         )
         agent.start(np.arange(1), np.array([episode]))
         state = reset(world, np.array([test.seed]), np.array([episode]))
