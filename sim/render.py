@@ -223,6 +223,33 @@ def render_episode(
     return png, gif
 
 
+class EpisodeCanvas:
+    """Pictures of an episode still under way, one per call (gymnasium's `render`).
+
+    The figure is laid out once per episode (`restart`), and each call draws the last step of the
+    record it is given by blitting, so a picture every step costs milliseconds, not a new figure.
+    """
+
+    def __init__(self, rays: bool = True, dpi: int = GIF_DPI) -> None:
+        _require_viz()
+        self.rays = rays
+        self.dpi = dpi
+        self._scene: _Scene | None = None
+
+    def restart(self) -> None:
+        """The next record drawn is of a new episode."""
+        self._scene = None
+
+    def draw(self, record: EpisodeRecord) -> NDArray[np.uint8]:
+        """The picture (H, W, 3) of the record's last step; the record extends the one before
+        it since `restart` (same start, target and obstacles)."""
+        if self._scene is None:
+            self._scene = _Scene(record, rays=self.rays, dpi=self.dpi)
+        else:
+            self._scene.record = record
+        return np.asarray(self._scene.frame(record.steps), dtype=np.uint8)
+
+
 def _require_viz() -> None:
     """Fail early with the install hint, before any work is done, when plotting is missing."""
     try:
@@ -422,7 +449,10 @@ class _Scene:
         if self.rays:
             self._show_rays(t)
 
-        label = record.outcome_label if t == record.steps else "running"
+        # A record of an episode still under way (gymnasium's render) ends neither at the target,
+        # in a collision nor at the step limit: its last step is "running", not "unfinished".
+        ended = record.outcome != Outcome.RUNNING or record.steps >= config.max_episode_steps
+        label = record.outcome_label if t == record.steps and ended else "running"
         self.title.set_text(f"{config.name}: {label}, step {t} of {record.steps}")
 
     def _show_trails(self, t: int) -> None:
