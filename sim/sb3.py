@@ -46,10 +46,11 @@ def split_info(info: dict[str, Any], num_envs: int) -> list[dict[str, Any]]:
 
 
 def _row(values: Any, i: int) -> Any:
-    """Row i of an array, or of every array in a dict of them."""
+    """Row i of an array (a plain Python value for a scalar), or of every array in a dict."""
     if isinstance(values, dict):
         return {key: value[i] for key, value in values.items()}
-    return values[i]
+    row = values[i]
+    return row.item() if isinstance(row, np.generic) else row
 
 
 class SB3VecEnv(VecEnv):
