@@ -36,12 +36,12 @@ from contracts.observation import (
     encode_frame,
 )
 from sim.config import SCENARIOS, IncrementDynamics, WorldConfig, scenario
+from sim.render import EpisodeCanvas, EpisodeRecorder
 from sim.task import Outcome
 from sim.world import (
     BatchedWorld,
     Observation,
     Transition,
-    WorldState,
     observe,
     reset,
     step,
@@ -50,8 +50,6 @@ from sim.world import (
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
     from matplotlib.image import AxesImage
-
-    from sim.render import EpisodeCanvas, EpisodeRecord
 
 ObsDict = dict[str, NDArray[Any]]
 
@@ -168,13 +166,11 @@ class NavEnv(gym.Env[ObsDict, np.int64]):
         self._seed: int | None = None
         self._episode = 0
         self._state = reset(self.config, np.zeros(1, np.int64), np.zeros(1, np.int64))
-        self._history = _History()
+        self._recorder: EpisodeRecorder | None = None  # kept only to draw the episode
         self._canvas: EpisodeCanvas | None = None
         self._window: tuple[Figure, AxesImage] | None = None  # the 'human' mode's figure
         if render_mode is not None:
-            from sim.render import EpisodeCanvas
-
-            self._canvas = EpisodeCanvas()
+            self._canvas = EpisodeCanvas()  # fails here, with the install hint, without `viz`
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -188,7 +184,8 @@ class NavEnv(gym.Env[ObsDict, np.int64]):
             self._episode += 1
         self._state = reset(self.config, np.array([self._seed]), np.array([self._episode]))
         observation = observe(self.config, self._state)
-        self._history.start(self._state, observation)
+        if self.render_mode is not None:
+            self._recorder = EpisodeRecorder(self._state, observation)
         if self._canvas is not None:
             self._canvas.restart()
         if self.render_mode == "human":
@@ -199,7 +196,8 @@ class NavEnv(gym.Env[ObsDict, np.int64]):
         self._state, observation, transition = step(
             self.config, self._state, np.array([int(action)], dtype=np.int64)
         )
-        self._history.add(self._state, observation, transition, int(action))
+        if self._recorder is not None:
+            self._recorder.add(self._state, observation, transition, int(action))
         info = _single(_info(observation, transition))
         result = Outcome(int(info["outcome"]))
         info["outcome"] = result.name.lower()
@@ -227,8 +225,9 @@ class NavEnv(gym.Env[ObsDict, np.int64]):
         return self._picture()
 
     def _picture(self) -> NDArray[np.uint8]:
-        assert self._canvas is not None  # made with any render_mode
-        return self._canvas.draw(self._history.record(self.config))
+        if self._canvas is None or self._recorder is None:
+            raise RuntimeError("render() before reset(): there is no episode to draw yet")
+        return self._canvas.draw(self._recorder.record(self.config))
 
     def _show(self) -> None:
         import matplotlib.pyplot as plt
@@ -250,56 +249,6 @@ class NavEnv(gym.Env[ObsDict, np.int64]):
 
             plt.close(self._window[0])
             self._window = None
-
-
-class _History:
-    """What one episode has been so far, kept only for drawing it."""
-
-    def __init__(self) -> None:
-        self.target_xy = np.zeros(2)
-        self.poses: list[NDArray[np.float64]] = []
-        self.obstacles: list[NDArray[np.float64]] = []
-        self.scans: list[NDArray[np.float32]] = []
-        self.actions: list[int] = []
-        self.rewards: list[float] = []
-        self.outcome = Outcome.RUNNING
-
-    def start(self, state: WorldState, observation: Observation) -> None:
-        """Forget the last episode and keep the first state of the next."""
-        self.__init__()  # type: ignore[misc]
-        self.target_xy = np.array(state.target_xy[0], dtype=np.float64)
-        self._keep(state, observation)
-
-    def add(
-        self, state: WorldState, observation: Observation, transition: Transition, action: int
-    ) -> None:
-        """Keep one step."""
-        self._keep(state, observation)
-        self.actions.append(action)
-        self.rewards.append(float(transition.reward[0]))
-        self.outcome = Outcome(int(transition.outcome[0]))
-
-    def _keep(self, state: WorldState, observation: Observation) -> None:
-        self.poses.append(state.pose[0].copy())
-        self.obstacles.append(state.obstacle_xy[0].copy())
-        if observation.scan_m is not None:
-            self.scans.append(observation.scan_m[0].copy())  # +inf kept: drawn as a miss
-
-    def record(self, config: WorldConfig) -> EpisodeRecord:
-        """The episode so far as `sim.render` draws it."""
-        from sim.render import EpisodeRecord
-
-        steps = len(self.poses)
-        return EpisodeRecord(
-            config=config,
-            poses=np.array(self.poses, dtype=np.float64),
-            obstacle_xy=np.array(self.obstacles, dtype=np.float64).reshape(steps, -1, 2),
-            target_xy=self.target_xy,
-            scans=np.array(self.scans, dtype=np.float32) if self.scans else None,
-            actions=np.array(self.actions, dtype=np.int64),
-            outcome=self.outcome,
-            rewards=np.array(self.rewards, dtype=np.float64),
-        )
 
 
 def _single(values: dict[str, Any]) -> dict[str, Any]:

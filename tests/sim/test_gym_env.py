@@ -235,3 +235,8 @@ def test_human_mode_without_a_display_says_so(monkeypatch: pytest.MonkeyPatch) -
 def test_unknown_render_mode_names_the_setting() -> None:
     with pytest.raises(ConfigError, match="render_mode 'ansi'"):
         NavEnv(render_mode="ansi")
+
+
+def test_render_before_reset_says_so() -> None:
+    with pytest.raises(RuntimeError, match="before reset"):
+        NavEnv(render_mode="rgb_array").render()
