@@ -138,6 +138,24 @@ def _check_render_mode(render_mode: str | None) -> None:
             "render_mode 'human' needs a display (neither DISPLAY nor WAYLAND_DISPLAY is set): "
             "use render_mode='rgb_array' and save or show the frames yourself"
         )
+    if render_mode == "human":
+        _check_interactive_backend()
+
+
+def _check_interactive_backend() -> None:
+    """A display is not enough: matplotlib falls back to drawing off screen without a GUI
+    toolkit (tkinter, Qt, GTK), and the window would silently never open."""
+    import matplotlib
+    import matplotlib.pyplot  # settles the backend: a GUI one where a toolkit and display exist
+    from matplotlib.backends.registry import BackendFilter, backend_registry
+
+    backend = str(matplotlib.get_backend()).lower()
+    interactive = backend_registry.list_builtin(BackendFilter.INTERACTIVE)  # type: ignore[no-untyped-call]
+    if backend not in interactive:
+        raise ConfigError(
+            f"render_mode 'human' needs an interactive matplotlib backend, not {backend!r}: "
+            "install a GUI toolkit (python3-tk) or set MPLBACKEND, or use render_mode='rgb_array'"
+        )
 
 
 class NavEnv(gym.Env[ObsDict, np.int64]):

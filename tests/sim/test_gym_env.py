@@ -1,3 +1,5 @@
+import os
+import shutil
 import subprocess
 import sys
 import warnings
@@ -230,6 +232,52 @@ def test_human_mode_without_a_display_says_so(monkeypatch: pytest.MonkeyPatch) -
     with pytest.raises(ConfigError, match="render_mode 'human' needs a display"):
         gym.make(env_id("walls-inertia"), render_mode="human")
     assert NavEnv().metadata["render_modes"] == ["rgb_array"]
+
+
+_HUMAN_WINDOW = """
+import gymnasium as gym, numpy as np, sim.gym_env
+shown = gym.make("qnav/ObstaclesInertia-v0", render_mode="human")
+drawn = gym.make("qnav/ObstaclesInertia-v0", render_mode="rgb_array")
+for env in (shown, drawn):
+    env.reset(seed=4)
+    for _ in range(3):
+        env.step(0)
+figure, image = shown.unwrapped._window
+np.testing.assert_array_equal(image.get_array(), drawn.render())
+print(type(figure.canvas).__name__)
+shown.close()
+"""
+
+
+@pytest.mark.skipif(
+    shutil.which("Xvfb") is None, reason="no Xvfb (apt-get install xvfb) to open a window on"
+)
+def test_human_mode_shows_each_step_in_a_window() -> None:
+    server = subprocess.Popen(
+        ["Xvfb", "-displayfd", "1", "-screen", "0", "800x600x24", "-nolisten", "tcp"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert server.stdout is not None
+        display = server.stdout.readline().strip()  # written once the server accepts clients
+        assert display, "Xvfb did not start"
+        environment = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}
+        result = subprocess.run(
+            [sys.executable, "-c", _HUMAN_WINDOW],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env={**environment, "DISPLAY": f":{display}"},
+            timeout=120,
+            check=False,
+        )
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "FigureCanvasTkAgg"
 
 
 def test_unknown_render_mode_names_the_setting() -> None:
