@@ -359,12 +359,14 @@ def _check_window(length: int) -> None:
 
 
 # gymnasium types a wrapper's inner env with the wrapper's own observation type, hence Any.
-class EncodedWindow(gym.Wrapper[Any, np.int64, ObsDict, np.int64]):
+class EncodedWindow(gym.Wrapper[Any, np.int64, ObsDict, np.int64], gym.utils.RecordConstructorArgs):
     """A `NavEnv` seen as the paper's network sees it: the last k encoded frames (k, F), oldest
     first, the first frame repeated at an episode's start (`contracts.observation.FrameWindow`)."""
 
     def __init__(self, env: gym.Env[ObsDict, np.int64], length: int = WINDOW_LENGTH) -> None:
-        super().__init__(env)
+        # Recorded in the env's spec, so `env.spec.make()` rebuilds the same window.
+        gym.utils.RecordConstructorArgs.__init__(self, length=length)
+        gym.Wrapper.__init__(self, env)
         _check_window(length)
         config: WorldConfig = env.unwrapped.config  # type: ignore[attr-defined]
         self.config = config

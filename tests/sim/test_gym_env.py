@@ -205,6 +205,19 @@ def test_single_window_matches_the_vector_world_seeded_s_plus_i() -> None:
     assert single.observation_space == envs.single_observation_space
 
 
+def test_encoded_window_passes_gymnasium_checker_and_is_rebuilt_from_its_spec() -> None:
+    env = EncodedWindow(gym.make(env_id("obstacles-increment")), length=3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env, skip_render_check=True)
+    # The one remark: the checker prefers an unwrapped env, and this one is a wrapper on purpose.
+    assert [
+        str(w.message) for w in caught if "different from the unwrapped" not in str(w.message)
+    ] == []
+    assert env.spec is not None
+    assert env.spec.make().observation_space == env.observation_space
+
+
 def test_window_length_is_checked() -> None:
     with pytest.raises(ConfigError, match="window length"):
         EncodedWindow(NavEnv(), length=0)
