@@ -629,6 +629,12 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument("--policy", type=Path, required=True, help="policy file (.onnx)")
     stack.add_argument("--scenario", help="world (default: the policy's training scenario)")
     stack.add_argument("--episodes", type=int, default=20, help="episodes (20)")
+    stack.add_argument(
+        "--shield",
+        action="store_true",
+        help="the controller's look ahead (lookahead.shield: obstacle tracker and 4 s forecast) "
+        "may overrule the policy; the in-process comparison shields it alike",
+    )
     stack.add_argument("--out", type=Path, default=Path("out/stack"), help="output folder")
     stack.add_argument("--no-record", action="store_true", help="do not record to MCAP")
     stack.add_argument("--json", action="store_true", help="print one JSON object")

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from contracts.actions import NUM_ACTIONS
 from contracts.errors import ConfigError
+from contracts.motion import IncrementDynamics, Outcome
 from contracts.observation import (
     TARGET_FEATURES,
     WINDOW_LENGTH,
@@ -35,9 +36,8 @@ from contracts.observation import (
     distance_scale_m,
     encode_frame,
 )
-from sim.config import SCENARIOS, IncrementDynamics, WorldConfig, scenario
+from sim.config import SCENARIOS, WorldConfig, scenario
 from sim.render import EpisodeCanvas, EpisodeRecorder
-from sim.task import Outcome
 from sim.world import (
     BatchedWorld,
     Observation,

@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import Outcome
 from sim.config import WorldConfig
 from sim.geometry import wall_segments
-from sim.task import Outcome
 from sim.world import Observation, Transition, WorldState, observe, reset, step
 
 if TYPE_CHECKING:

@@ -7,13 +7,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from contracts.actions import NUM_ACTIONS
+from contracts.lookahead import shielded_actions
 from controller.perception import TrackerSettings
 from qnav.tracking import (
     ShieldedAgent,
     TrackerCheckSettings,
     measure_tracker,
     run_perceiving_oracle,
-    shielded_actions,
 )
 from sim.config import SCENARIOS
 from sim.evaluate import EvalSettings, GoToTargetAgent, evaluate, go_to_target
