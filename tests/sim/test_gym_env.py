@@ -38,7 +38,8 @@ def test_registered_env_passes_gymnasium_checker_without_a_warning(name: str) ->
         check_env(env.unwrapped, skip_render_check=True)
 
 
-def test_gymnasium_checker_renders_every_declared_mode() -> None:
+def test_gymnasium_checker_renders_every_declared_mode(monkeypatch: pytest.MonkeyPatch) -> None:
+    _without_display(monkeypatch)  # "rgb_array" alone: no window opens during the suite
     env = gym.make(env_id("obstacles-inertia"), render_mode="rgb_array")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -238,10 +239,14 @@ def test_rgb_array_draws_the_episode_so_far() -> None:
     np.testing.assert_array_equal(env.render(), first)  # a new episode starts a new picture
 
 
-def test_human_mode_without_a_display_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+def _without_display(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(sys, "platform", "linux")
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+
+
+def test_human_mode_without_a_display_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    _without_display(monkeypatch)
     with pytest.raises(ConfigError, match="render_mode 'human' needs a display"):
         gym.make(env_id("walls-inertia"), render_mode="human")
     assert NavEnv().metadata["render_modes"] == ["rgb_array"]
