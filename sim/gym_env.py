@@ -76,8 +76,9 @@ def max_step_m(config: WorldConfig) -> float:
 
 def max_target_distance_m(config: WorldConfig) -> float:
     """An upper bound on the target distance: the target lies in the arena, and the robot starts
-    every step inside it (a step that leaves it collides and ends the episode), so both are
-    within the arena grown by one step."""
+    every step inside it (a step that leaves it collides and ends the episode, as long as the
+    openings are narrower than the robot, as in every scenario), so both are within the arena
+    grown by one step."""
     return math.sqrt(2.0) * (config.arena.size_m + max_step_m(config))
 
 
