@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import distance_to_segments
 from contracts.settings import check_range
 
 F64 = NDArray[np.float64]
@@ -86,14 +87,8 @@ def scan_points(scan_m: NDArray[np.floating], pose: F64, beam_angles_rad: F64) -
 
 
 def distance_to_walls(points: F64, walls: F64) -> F64:
-    """(P,) each point's distance to the nearest wall segment."""
-    start, end = walls[:, :2], walls[:, 2:]
-    along = end - start
-    length2 = np.maximum(np.sum(along * along, axis=1), 1e-12)
-    offset = points[:, None, :] - start[None]
-    t = np.clip(np.sum(offset * along[None], axis=2) / length2[None], 0.0, 1.0)
-    nearest = start[None] + t[..., None] * along[None]
-    return np.asarray(np.min(np.linalg.norm(points[:, None, :] - nearest, axis=2), axis=1))
+    """(P,) each point's distance to the nearest wall segment (x0, y0, x1, y1)."""
+    return distance_to_segments(points, walls[:, :2], walls[:, 2:])
 
 
 def off_the_walls(points: F64, walls: F64, band_m: float) -> NDArray[np.bool_]:
@@ -211,6 +206,19 @@ def ego_velocity(previous_pose: F64, pose: F64, period_s: float) -> F64:
     moved = pose[:2] - previous_pose[:2]
     forward = moved[0] * math.cos(middle) + moved[1] * math.sin(middle)
     return np.array([forward / period_s, turn / period_s])
+
+
+def own_velocity(poses: F64, intervals_s: F64) -> F64:
+    """(2,) forward speed and turn rate now, from the last two or three poses (P, 3) and the
+    P - 1 intervals between them: the mean over the last interval, extrapolated to its end by
+    half the change since the interval before (the mean lags by half an interval). Zero from
+    a single pose."""
+    if len(poses) < 2:
+        return np.zeros(2)
+    velocity = ego_velocity(poses[-2], poses[-1], float(intervals_s[-1]))
+    if len(poses) > 2:
+        velocity += (velocity - ego_velocity(poses[-3], poses[-2], float(intervals_s[-2]))) / 2
+    return velocity
 
 
 class Tracks(NamedTuple):

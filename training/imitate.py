@@ -31,12 +31,12 @@ from torch import nn
 from torch.nn import functional
 from tqdm import tqdm
 
+from contracts.motion import Outcome
 from contracts.observation import TARGET_FEATURES
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
 from sim.oracle import OracleDriver
-from sim.task import Outcome
 from training.agent import policy_agent
 from training.algorithm import cpu_has_bf16
 from training.collect import collect_round

@@ -18,10 +18,11 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import Outcome, outcome
 from contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
 from sim.config import WorldConfig
 from sim.geometry import cast_lidar, clearance
-from sim.task import Outcome, outcome, reward
+from sim.task import reward
 from training.episode_log import Episode
 
 

@@ -26,9 +26,9 @@ import torch
 from tqdm import tqdm
 
 from contracts.errors import ConfigError
+from contracts.motion import Outcome
 from sim.config import WorldConfig
 from sim.evaluate import EvalSettings
-from sim.task import Outcome
 from training.agent import policy_agent
 from training.algorithm import DoubleDQN
 from training.collect import collect_round

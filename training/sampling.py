@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import move_obstacles
 from sim.config import WorldConfig
-from sim.dynamics import move_obstacles
 from sim.geometry import add_circles_to_scan
 from sim.world import obstacle_speeds, targets_around
 from training.config import Relabel
