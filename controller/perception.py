@@ -120,6 +120,39 @@ def clusters(points: F64, keep: NDArray[np.bool_], gap_m: float) -> list[NDArray
     return runs
 
 
+WIDEST_ARC = 2.4
+"""A run of returns wider (first to last point) than this many obstacle radii is not one
+cylinder, whose near side spans at most two radii (the rest allows for range noise): it is
+obstacles side by side, merged in the scan."""
+
+
+def split_wide(
+    run: NDArray[np.int64], points: F64, sensor_xy: F64, radius_m: float
+) -> list[NDArray[np.int64]]:
+    """`run` (beam indices, in scan order) as the runs of single obstacles: one too wide to be
+    one is cut where the circle fits of the two sides leave the least residual, and each side
+    again if need be."""
+    ends = points[run[-1]] - points[run[0]]
+    if len(run) < 6 or float(np.hypot(*ends)) <= WIDEST_ARC * radius_m:
+        return [run]
+    best, cut = np.inf, 0
+    for k in range(3, len(run) - 2):
+        residual = sum(
+            _fit_residual(points[side], sensor_xy, radius_m) for side in (run[:k], run[k:])
+        )
+        if residual < best:
+            best, cut = residual, k
+    return [
+        *split_wide(run[:cut], points, sensor_xy, radius_m),
+        *split_wide(run[cut:], points, sensor_xy, radius_m),
+    ]
+
+
+def _fit_residual(points: F64, sensor_xy: F64, radius_m: float) -> float:
+    centre = fit_circle(points, sensor_xy, radius_m)
+    return float(np.sum((np.linalg.norm(points - centre, axis=1) - radius_m) ** 2))
+
+
 def fit_circle(points: F64, sensor_xy: F64, radius_m: float, iterations: int = 5) -> F64:
     """(2,) centre of the circle of `radius_m` whose near side best fits `points` (P, 2) seen
     from `sensor_xy`: Gauss-Newton on the radial residuals, from the points' centroid pushed
@@ -257,11 +290,13 @@ class ObstacleTracker:
         s = self.settings
         points = scan_points(scan_m, pose, self.beam_angles_rad)
         runs = clusters(points, off_the_walls(points, self.walls, s.wall_band_m), s.cluster_gap_m)
-        centres = [
-            fit_circle(points[run], pose[:2], s.obstacle_radius_m)
+        pieces = [
+            piece
             for run in runs
-            if len(run) >= s.min_returns
+            for piece in split_wide(run, points, pose[:2], s.obstacle_radius_m)
+            if len(piece) >= s.min_returns
         ]
+        centres = [fit_circle(points[piece], pose[:2], s.obstacle_radius_m) for piece in pieces]
         return np.array(centres, dtype=np.float64).reshape(-1, 2)
 
     def update(self, time_s: float, scan_m: NDArray[np.floating], pose: F64) -> Tracks:
