@@ -23,13 +23,37 @@ from qnav import __version__
 Handler = Callable[[argparse.Namespace], int]
 
 
+EXTRAS = {
+    "torch": "train",
+    "onnx": "train",
+    "onnxscript": "train",
+    "matplotlib": "viz",
+    "PIL": "viz",
+    "ray": "cluster",
+    "stable_baselines3": "dev",
+}
+"""The optional packages a verb may need, and the extra of `pyproject.toml` that installs each;
+the base install is the car's (no torch, no plotting)."""
+
+
 def _lazy(target: str) -> Handler:
-    """A handler `module:function` imported when called."""
+    """A handler `module:function` imported when called; an optional package missing from this
+    install is a ConfigError naming the extra that brings it."""
 
     def run(args: argparse.Namespace) -> int:
         module, function = target.split(":")
-        handler: Handler = getattr(importlib.import_module(module), function)
-        return handler(args)
+        try:
+            handler: Handler = getattr(importlib.import_module(module), function)
+            return handler(args)
+        except ModuleNotFoundError as error:
+            package = (error.name or "").split(".")[0]
+            if package not in EXTRAS:
+                raise
+            extra = EXTRAS[package]
+            raise ConfigError(
+                f"this needs {package}, which this install leaves out (the base install is the "
+                f"car's): pip install 'qnav[{extra}]'"
+            ) from None
 
     return run
 
