@@ -742,6 +742,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench_policy.add_argument("--json", action="store_true", help="print one JSON object")
     bench_policy.set_defaults(handler=_lazy("qnav.commands:bench_policy"))
+    bench_lookahead = benches.add_parser(
+        "lookahead",
+        help="the controller's look ahead per decision: tracker update, shield forecast, plan",
+    )
+    _world_options(bench_lookahead, "obstacles-inertia")
+    bench_lookahead.add_argument(
+        "--decisions", type=int, default=2000, help="timed decisions (2000)"
+    )
+    bench_lookahead.add_argument("--json", action="store_true", help="print one JSON object")
+    bench_lookahead.set_defaults(handler=_lazy("qnav.commands:bench_lookahead"))
     bench_controller = benches.add_parser(
         "controller",
         help="end to end: scan published by one process to command received by another",

@@ -607,6 +607,23 @@ def export(args: argparse.Namespace) -> int:
     return 0
 
 
+def bench_lookahead(args: argparse.Namespace) -> int:
+    """Per-decision wall time of the controller's look ahead."""
+    from qnav.tracking import time_lookahead
+
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    report = time_lookahead(world, args.decisions)
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    print(f"{world.name}, {report['decisions']:.0f} decisions, one car at a time (ms):")
+    for name in ("track", "shield", "plan"):
+        print(
+            f"  {name:<7} p50 {report[name + '_ms_p50']:6.1f}  p99 {report[name + '_ms_p99']:6.1f}"
+        )
+    return 0
+
+
 def bench_policy(args: argparse.Namespace) -> int:
     """Per-decision latency of each runtime backend."""
     import tempfile

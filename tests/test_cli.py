@@ -69,6 +69,15 @@ def test_bench_sim_json_has_the_documented_shape() -> None:
     assert all(r["steps_per_second"] > 0 for r in report["results"])
 
 
+def test_bench_lookahead_json_times_each_part_of_the_decision() -> None:
+    result = _qnav("bench", "lookahead", "--decisions", "40", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["decisions"] >= 40
+    for part in ("track", "shield", "plan"):
+        assert 0 < report[f"{part}_ms_p50"] <= report[f"{part}_ms_p99"]
+
+
 def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
     printed = _qnav("settings", "--scenario", "obstacles-increment", "--set", "obstacles.count=2")
     assert printed.returncode == 0
