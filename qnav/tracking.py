@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
-from typing import NamedTuple, Protocol
+from typing import Literal, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -347,18 +347,19 @@ def time_lookahead(
     drive (go-to-target with held random actions); median and 99th percentile, milliseconds."""
     if world.lidar is None:
         raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
-    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
-    cars = [
-        Lookahead(
-            settings,
+    lidar = world.lidar
+
+    def car(mode: Literal["shield", "plan"]) -> Lookahead:
+        return Lookahead(
+            LookaheadSettings(mode=mode, room_size_m=world.arena.size_m),
             TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
             dynamics=world.dynamics,
             robot_radius_m=world.robot_radius_m,
             control_period_s=world.control_period_s,
-            beam_angles_rad=world.lidar.beam_angles_rad(),
+            beam_angles_rad=lidar.beam_angles_rad(),
         )
-        for _ in range(worlds)
-    ]
+
+    pairs = [(car("shield"), car("plan")) for _ in range(worlds)]
     batched = BatchedWorld(world, worlds, seed=seed)
     observation = batched.reset(seed)
     driver = WanderingGoToTarget(worlds, 0.3, seed)
@@ -366,21 +367,25 @@ def time_lookahead(
     while len(times["plan"]) < decisions:
         assert observation.scan_m is not None
         steps = batched.state.steps
-        for row, car in enumerate(cars):
+        for row, (shield, planner) in enumerate(pairs):
             if steps[row] == 0:
-                car.restart()
+                shield.restart()
+                planner.restart()
             now = float(steps[row]) * world.control_period_s
             target = observation.target_xy[row]
+            pose, scan = observation.pose[row], observation.scan_m[row]
             started = time.perf_counter()
-            car.observe(now, observation.pose[row], now, observation.scan_m[row])
+            shield.observe(now, pose, now, scan)
             tracked = time.perf_counter()
-            car.risks(target)
+            shield.risks(target)
             shielded = time.perf_counter()
-            car.plan(target)
+            planner.observe(now, pose, now, scan)
+            observed = time.perf_counter()
+            planner.plan(target)
             planned = time.perf_counter()
             times["track"].append(tracked - started)
             times["shield"].append(shielded - tracked)
-            times["plan"].append(planned - shielded)
+            times["plan"].append(planned - observed)
         observation = batched.step(driver(observation.target_features())).observation
     report: dict[str, float] = {"decisions": float(len(times["plan"]))}
     for name, values in times.items():
