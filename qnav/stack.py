@@ -29,15 +29,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, Any
 
+from contracts.daemon import free_port
 from contracts.errors import ConfigError
 from contracts.settings import from_dict, to_toml
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A loopback port nothing listens on now."""
-    with socket.socket(socket.AF_INET, kind) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 @dataclass(frozen=True)
@@ -588,8 +582,8 @@ def episode_agreement(policy: Path, scenario_name: str, episodes_log: Path) -> d
 def sim_car_verb(args: argparse.Namespace) -> int:
     """`qnav sim-car`: the simulator as the car, until its episodes are done or SIGTERM."""
     import logging
-    import threading
 
+    from contracts.daemon import stop_on_signals
     from contracts.transport import ZenohSettings
     from sim.car import SimCar, SimCarSettings, summary, write_log
     from sim.config import load_world
@@ -612,15 +606,13 @@ def sim_car_verb(args: argparse.Namespace) -> int:
         connect=tuple(args.connect or ()),
         namespace=args.namespace or "",
     )
-    stop = threading.Event()
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, lambda *_: stop.set())
     car = SimCar(world, settings, zenoh)
 
     def report(entry: Any) -> None:
         print(f"episode {entry.episode}: {entry.outcome}, {entry.steps} steps", flush=True)
 
-    episodes = car.run(stop, progress=report)
+    with stop_on_signals() as stop:
+        episodes = car.run(stop, progress=report)
     if args.log:
         write_log(episodes, args.log)
     print(json.dumps(summary(episodes)), flush=True)

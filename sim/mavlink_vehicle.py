@@ -32,18 +32,18 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType, TracebackType
+from types import TracebackType
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from contracts.daemon import stop_on_signals
 from contracts.errors import ConfigError
 from contracts.mavlink import (
     GCS_SYSTEM_ID,
@@ -613,14 +613,7 @@ def run(args: argparse.Namespace) -> int:
         level=getattr(logging, args.log_level.upper()),
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
-    stop = threading.Event()
-
-    def on_signal(number: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
-    with MavlinkVehicle(settings) as vehicle:
+    with stop_on_signals() as stop, MavlinkVehicle(settings) as vehicle:
         log.info("vehicle %d serving %s", settings.system_id, settings.connection)
         period = args.pose_period_s if args.pose_period_s > 0 else 3600.0
         while not stop.wait(period):

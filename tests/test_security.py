@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 
 from contracts import wire
+from contracts.daemon import free_port
 from contracts.errors import ConfigError
 from contracts.transport import (
     ZenohSettings,
@@ -30,7 +31,6 @@ from contracts.transport import (
     secure_hub_config,
     zenoh_config,
 )
-from firmware_bridge.bench import free_port
 from qnav.certs import IDENTITIES, make_certificates
 from qnav.cli import main
 from sim.mavlink_vehicle import MavlinkVehicle

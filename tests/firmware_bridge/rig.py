@@ -15,6 +15,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+from contracts.daemon import free_port
 from contracts.settings import with_overrides
 from contracts.transport import ZenohSettings, open_session
 from contracts.wire import (
@@ -30,7 +31,6 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from firmware_bridge.settings import BridgeSettings
 from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings

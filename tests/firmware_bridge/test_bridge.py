@@ -12,6 +12,7 @@ from typing import Any
 
 import pytest
 
+from contracts.daemon import free_port
 from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
 from contracts.settings import with_overrides
 from contracts.wire import (
@@ -24,7 +25,6 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from firmware_bridge.mapping import vision_pose
 from firmware_bridge.settings import BridgeSettings
