@@ -352,15 +352,17 @@ class BridgeCore:
 
     # -- the clock ----------------------------------------------------------------------------
 
-    def next_deadline(self, now_s: float) -> float:
-        """When `tick` must next run, whatever arrives before."""
+    def next_deadline(self, now_s: float, link_open: bool) -> float:
+        """When `tick` must next run, whatever arrives before (`link_open`: is the port open)."""
         deadlines = [self.gate.next_check_s(now_s), self._next_heartbeat_s, self._next_state_s]
         if self._want_mode is not None or self._want_armed is not None:
             deadlines.append(self._next_request_s)
         if self.link_up:
             deadlines.append(self._last_heartbeat_s + self.settings.mavlink.link_timeout_s)
-        else:
+        elif self._reconnects(link_open):
             deadlines.append(self._next_reconnect_s)
+        # else: an open port waiting for the first heartbeat has nothing to reopen (before
+        # this the loop spun without sleeping until the autopilot's first heartbeat).
         return min(deadlines)
 
     def tick(self, now_s: float, wall_s: float, link_open: bool) -> list[Action]:
@@ -415,12 +417,16 @@ class BridgeCore:
                 mavlink.link_timeout_s,
                 mavlink.reconnect_period_s,
             )
-        reconnect = self._ever_up or not link_open
-        if not self.link_up and reconnect and now_s >= self._next_reconnect_s:
+        if not self.link_up and self._reconnects(link_open) and now_s >= self._next_reconnect_s:
             self._next_reconnect_s = now_s + mavlink.reconnect_period_s
             self.counters["reconnects"] += 1
             return [Reopen()]
         return []
+
+    def _reconnects(self, link_open: bool) -> bool:
+        """Reopen the port while the link is down? After a link loss, or when it is closed (a
+        port open since the start waits for the first heartbeat as it is)."""
+        return self._ever_up or not link_open
 
     def _requests(self, now_s: float, wall_s: float) -> list[Action]:
         """Origin, mode and arming requests due now (again every `vehicle.request_retry_s`
@@ -503,6 +509,11 @@ class BridgeCore:
 
     # -- the exit sequence --------------------------------------------------------------------
 
+    def refuse_commands(self) -> list[Action]:
+        """The first step of closing: no command goes out from now on (`shutdown` follows)."""
+        self.gate.close()
+        return []
+
     def shutdown(self, now_s: float) -> list[Action]:
         """SIGTERM, SIGINT or `close()`: refuse every later command, send stop
         `failsafe.stop_repeats_on_exit` times, switch to the brake mode (if set and the link is
@@ -554,6 +565,10 @@ class BridgeCore:
         self._disarm_tries += 1
         self._disarm_deadline_s = self.exit_wait_until_s = now_s + EXIT_ACK_WAIT_S
         return [self._command_long(MAV_CMD_COMPONENT_ARM_DISARM, 0.0)]
+
+    def stopped(self, now_s: float) -> list[Action]:
+        """The last vehicle state, once the exit sequence is over (`bridge` is "stopped")."""
+        return [self.publish(now_s, bridge="stopped")]
 
     def _rest_step(self, now_s: float) -> tuple[list[Action], float | None]:
         failsafe = self.settings.failsafe

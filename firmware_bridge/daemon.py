@@ -56,6 +56,9 @@ from firmware_bridge.settings import BridgeSettings, load_settings
 
 log = logging.getLogger("firmware_bridge")
 
+Journal = Callable[[str, tuple[Any, ...], list[Action], list[bool]], None]
+"""Told each call into the core: its name, inputs, the actions, whether each send went out."""
+
 LOOP_MAX_WAIT_S = 0.1
 """The bridge thread looks at its clocks at least this often (requests from zenoh wait for it)."""
 
@@ -63,15 +66,15 @@ LOOP_MAX_WAIT_S = 0.1
 class Bridge:
     """zenoh to MAVLink with a failsafe; `start()` it, `close()` it (or use `with`).
 
-    `core` is the decision core to drive (a fresh one for `settings` by default; playback's
-    `RecordingCore` records what it is handed)."""
+    `journal`, if given, is told every call into the core with its inputs, the actions and
+    whether each send went out (`firmware_bridge.playback.Journal` records them to replay)."""
 
     def __init__(
         self,
         settings: BridgeSettings,
         *,
         clock: Callable[[], float] = time.monotonic,
-        core: BridgeCore | None = None,
+        journal: Journal | None = None,
     ) -> None:
         self.settings = settings
         self._clock = clock
@@ -93,7 +96,8 @@ class Bridge:
                     serial0,
                 )
         self.link = MavlinkLink(settings.mavlink, key_bytes)
-        self.core = core if core is not None else BridgeCore(settings)
+        self.core = BridgeCore(settings)
+        self._journal = journal
         self._lock = threading.Lock()
         """Held around every call into the core and the sends it decides."""
         self._rate_log = RateLimitedLog(log)
@@ -187,8 +191,7 @@ class Bridge:
         """Refuse further commands, send stop, then disarm (if configured), and close."""
         if self._thread is None:
             return
-        with self._lock:
-            self.core.gate.close()
+        self._feed(self.core.refuse_commands)
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._subscribers.clear()
@@ -203,7 +206,7 @@ class Bridge:
                 break
             for message in self.link.poll(max(until_s - self._clock(), 0.0)):
                 self._feed(self.core.exit_message, message, self._clock(), time.time())
-        self._feed(lambda: [self.core.publish(self._clock(), bridge="stopped")])
+        self._feed(self.core.stopped, self._clock())
         if self._session is not None:
             self._session.close()
         self.link.close()
@@ -230,9 +233,14 @@ class Bridge:
         TCP connect may take seconds) and publishing the state after it."""
         with self._lock:
             actions = decide(*inputs)
+            went_out = []
             for action in actions:
                 if isinstance(action, Send):
-                    self.core.sent(action, self.link.send(action.message, as_gcs=action.as_gcs))
+                    ok = self.link.send(action.message, as_gcs=action.as_gcs)
+                    self.core.sent(action, ok)
+                    went_out.append(ok)
+            if self._journal is not None:
+                self._journal(decide.__name__, inputs, actions, went_out)
         for action in actions:
             if isinstance(action, Reopen):
                 try:
@@ -280,7 +288,10 @@ class Bridge:
         while not self._stopping.is_set():
             now = self._clock()
             with self._lock:
-                wait = min(self.core.next_deadline(now), now + LOOP_MAX_WAIT_S) - now
+                wait = (
+                    min(self.core.next_deadline(now, self.link.is_open), now + LOOP_MAX_WAIT_S)
+                    - now
+                )
             for message in self.link.poll(max(wait, 0.0)):
                 try:
                     self._feed(self.core.mavlink, message, self._clock(), time.time())
