@@ -222,11 +222,10 @@ class BridgeCore:
         ned = mapping.vision_pose(pose)
         usec = int((pose.stamp_s if pose.stamp_s > 0 else wall_s) * 1e6)
         self._pose_since_link_up = True
-        self.counters["poses"] += 1
         message = self.encoder.vision_position_estimate_encode(
             usec, ned.north_m, ned.east_m, ned.down_m, 0.0, 0.0, ned.yaw_rad
         )
-        return [Send(message)]
+        return [Send(message, counter="poses")]
 
     def request(self, payload: bytes, now_s: float) -> list[Action]:
         """A vehicle request ({"arm": true, "mode": "GUIDED"}) arrived: remembered, and asked

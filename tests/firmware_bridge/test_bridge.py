@@ -568,6 +568,12 @@ def test_absurd_poses_are_not_forwarded_as_vision_estimates(make_rig: MakeRig) -
     wait_until(lambda: rig.counters().get("malformed") == 3, what="absurd poses counted")
     rig.publish_pose()
     wait_until(lambda: rig.counters().get("poses") == 2, what="the next good pose")
+    # Counted once sent; the datagram may still be on its way to the vehicle's thread.
+    wait_until(
+        lambda: len(rig.vehicle.received("VISION_POSITION_ESTIMATE")) >= 2,
+        what="the next good pose at the vehicle",
+    )
+    time.sleep(0.1)  # anything else sent would have arrived by now
     estimates = rig.vehicle.received("VISION_POSITION_ESTIMATE")
     assert len(estimates) == 2
     assert all(abs(e.fields["x"]) < 100 and abs(e.fields["y"]) < 100 for e in estimates)
