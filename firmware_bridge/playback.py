@@ -27,6 +27,7 @@ call's index in the recording, "event", "t": its time, "out": rows}.
 from __future__ import annotations
 
 import dataclasses
+import gzip
 import json
 import threading
 from collections.abc import Iterable, Iterator
@@ -86,8 +87,9 @@ class Recorder:
 
 
 def read_recording(path: Path) -> tuple[BridgeSettings, list[Row]]:
-    """The settings and the calls of a recording."""
-    lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    """The settings and the calls of a recording (gzip-compressed if its name ends in .gz)."""
+    text = gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
+    lines = [json.loads(line) for line in text.splitlines() if line.strip()]
     if not lines or "settings" not in lines[0]:
         raise ValueError(f"{path}: not a bridge recording (no settings line first)")
     return from_dict(BridgeSettings, lines[0]["settings"]), lines[1:]
@@ -102,8 +104,7 @@ def replay(settings: BridgeSettings, calls: Iterable[Row]) -> list[Row]:
         event = call["event"]
         if event not in EVENTS:
             raise ValueError(f"call {index}: {event!r} is not one of the core's inputs")
-        args = [_decode_input(value, parser) for value in call["args"]]
-        actions: list[Action] = getattr(core, event)(*args)
+        actions: list[Action] = getattr(core, event)(*call_inputs(call, parser))
         unsent = set(call.get("unsent", ()))
         sends = [action for action in actions if isinstance(action, Send)]
         for position, send in enumerate(sends):
@@ -113,17 +114,23 @@ def replay(settings: BridgeSettings, calls: Iterable[Row]) -> list[Row]:
                 {
                     "i": index,
                     "event": event,
-                    "t": _time_of(call),
+                    "t": call_time(call),
                     "out": [action_row(action) for action in actions],
                 }
             )
     return references
 
 
+def call_inputs(call: Row, parser: Any = None) -> list[Any]:
+    """The inputs of a recorded call as the core takes them (bytes, MAVLink messages, times)."""
+    parser = _parser() if parser is None else parser
+    return [_decode_input(value, parser) for value in call["args"]]
+
+
 def live_references(calls: Iterable[Row]) -> list[Row]:
     """What the live core decided in the recorded run, in the references' shape."""
     return [
-        {"i": index, "event": call["event"], "t": _time_of(call), "out": call["out"]}
+        {"i": index, "event": call["event"], "t": call_time(call), "out": call["out"]}
         for index, call in enumerate(calls)
         if call.get("out")
     ]
@@ -184,7 +191,8 @@ def read_rows(path: Path) -> list[Row]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def _time_of(call: Row) -> float | None:
+def call_time(call: Row) -> float | None:
+    """The monotonic time a recorded call was handed (None for one without a time)."""
     args = call["args"]
     times = [value for value in args if isinstance(value, float)]
     return times[0] if times else None
