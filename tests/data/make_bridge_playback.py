@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import gzip
+import logging
 import socket
 import sys
 import time
@@ -52,23 +53,11 @@ sys.path.insert(0, str(ROOT))
 from contracts.daemon import free_port  # noqa: E402
 from contracts.wire import COMMAND, POSE, Pose2D, Twist2D, encode_pose_msg, encode_twist_msg  # noqa: E402
 from contracts.wire import key as wire_key  # noqa: E402
+from firmware_bridge import playback  # noqa: E402
 from firmware_bridge.daemon import Bridge  # noqa: E402
-from firmware_bridge.playback import (  # noqa: E402
-    Recorder,
-    differences,
-    read_recording,
-    read_rows,
-    replay,
-    write_rows,
-)
 from sim.mavlink_vehicle import MavlinkVehicle  # noqa: E402
-from tests.firmware_bridge.rig import (  # noqa: E402
-    Rig,
-    bridge_settings,
-    start_rig,
-    vehicle_settings,
-    wait_until,
-)
+from tests.firmware_bridge import rig as wiring  # noqa: E402
+from tests.firmware_bridge.rig import wait_until  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "bridge_playback"
 
@@ -88,18 +77,20 @@ def _recording(name: str) -> Path:
 
 def _record(
     name: str,
-    scenario: Callable[[Rig], None],
+    scenario: Callable[[wiring.Rig], None],
     bridge: dict[str, Any] | None = None,
     vehicle: dict[str, Any] | None = None,
 ) -> None:
     """Run `scenario` on a rig whose bridge records into the scenario's recording."""
     with ExitStack() as stack:
-        rig = start_rig(stack, start_bridge=False, vehicle={**QUIET_VEHICLE, **(vehicle or {})})
-        settings = bridge_settings(
+        rig = wiring.start_rig(
+            stack, start_bridge=False, vehicle={**QUIET_VEHICLE, **(vehicle or {})}
+        )
+        settings = wiring.bridge_settings(
             rig.zenoh_port, rig.mavlink_port, **{**QUIET_BRIDGE, **(bridge or {})}
         )
         out = stack.enter_context(gzip.open(_recording(name), "wt", compresslevel=9))
-        rig.bridge = Bridge(settings, journal=Recorder(out, settings))
+        rig.bridge = Bridge(settings, journal=playback.Recorder(out, settings))
         rig.bridge.start()
         try:
             scenario(rig)
@@ -108,7 +99,7 @@ def _record(
     print(f"{name}: recorded {_recording(name).stat().st_size} bytes")
 
 
-def drive_silence_exit(rig: Rig) -> None:
+def drive_silence_exit(rig: wiring.Rig) -> None:
     rig.ready()
     rig.drive(0.8, 0.0, 0.5)
     wait_until(lambda: rig.vehicle.mode == "GUIDED", what="the brake mode after silence")
@@ -117,7 +108,7 @@ def drive_silence_exit(rig: Rig) -> None:
     wait_until(lambda: rig.vehicle.mode == "MANUAL", what="back to MANUAL")
 
 
-def malformed(rig: Rig) -> None:
+def malformed(rig: wiring.Rig) -> None:
     rig.ready()
     for payload in (b"", b"\x00\x01\x00\x00garbage", b"\xff" * 60):
         rig.publish(wire_key(COMMAND), payload)
@@ -132,24 +123,20 @@ def malformed(rig: Rig) -> None:
     rig.request({"arm": True})  # vehicle.remote_arming is off
     wait_until(lambda: rig.counters().get("malformed") == 9, what="bad pose and request")
     wait_until(lambda: rig.counters().get("refused") == 1, what="the refused arm request")
-    assert rig.bridge is not None
-    bridge_address = rig.bridge.link.connection.port.getsockname()
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
-        for junk in (b"\xfd\x09\x00\x00\x00\x01\x01" + b"\x00" * 14, b"hello", b"\xfe" * 40):
-            rogue.sendto(junk, bridge_address)
+    rig.send_garbage()
     wait_until(lambda: rig.counters().get("bad_data", 0) >= 2, what="garbage counted")
     rig.drive(0.8, 0.0, 0.3)
     time.sleep(0.3)
 
 
-def estop(rig: Rig) -> None:
+def estop(rig: wiring.Rig) -> None:
     rig.ready()
     rig.drive(0.8, 0.0, 0.5)
     rig.drive(0.0, 0.0, 0.5)  # the controller's stop commands while its e-stop is pressed
     time.sleep(0.5)
 
 
-def heartbeat_loss(rig: Rig) -> None:
+def heartbeat_loss(rig: wiring.Rig) -> None:
     rig.ready()
     rig.drive(0.8, 0.0, 0.3)
     rig.vehicle.set_link_enabled(False)
@@ -164,7 +151,7 @@ def heartbeat_loss(rig: Rig) -> None:
     rig.drive(0.8, 0.0, 0.3)
 
 
-def link_loss(rig: Rig) -> None:
+def link_loss(rig: wiring.Rig) -> None:
     """Drives the TCP rig `_record_link_loss` built."""
     rig.ready()
     rig.drive(0.8, 0.0, 0.3)
@@ -181,15 +168,15 @@ def _record_link_loss() -> None:
         "vehicle": {"remote_arming": True, "state_period_s": 0.25},
     }
     with ExitStack() as stack:
-        rig = start_rig(stack, start_bridge=False)
-        rig.vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
-        settings = bridge_settings(rig.zenoh_port, 0, **bridge)
+        rig = wiring.start_rig(stack, start_bridge=False)
+        rig.vehicle = stack.enter_context(MavlinkVehicle(wiring.vehicle_settings(0, **serve)))
+        settings = wiring.bridge_settings(rig.zenoh_port, 0, **bridge)
         out = stack.enter_context(gzip.open(_recording("link_loss"), "wt", compresslevel=9))
-        rig.bridge = Bridge(settings, journal=Recorder(out, settings))
+        rig.bridge = Bridge(settings, journal=playback.Recorder(out, settings))
         rig.bridge.start()
         try:
             link_loss(rig)
-            rig.vehicle = stack.enter_context(MavlinkVehicle(vehicle_settings(0, **serve)))
+            rig.vehicle = stack.enter_context(MavlinkVehicle(wiring.vehicle_settings(0, **serve)))
             wait_until(lambda: rig.state().get("link_up") is True, what="link back over TCP")
             time.sleep(0.3)
             rig.request({"arm": True})
@@ -200,7 +187,7 @@ def _record_link_loss() -> None:
     print(f"link_loss: recorded {_recording('link_loss').stat().st_size} bytes")
 
 
-def guided(rig: Rig) -> None:
+def guided(rig: wiring.Rig) -> None:
     wait_until(lambda: rig.state().get("link_up"), what="link up")
     for _ in range(10):
         rig.publish_pose()
@@ -231,16 +218,17 @@ def record_all() -> None:
 
 def write_references() -> None:
     for name in SCENARIOS:
-        settings, calls = read_recording(_recording(name))
-        rows = replay(settings, calls)
+        settings, calls = playback.read_recording(_recording(name))
+        rows = playback.replay(settings, calls)
         path = DATA / f"{name}.actions.jsonl"
-        old = read_rows(path) if path.exists() else []
-        changed = differences(old, rows, most=len(old) + len(rows) + 1)
-        write_rows(path, rows)
+        old = playback.read_rows(path) if path.exists() else []
+        changed = playback.differences(old, rows, most=len(old) + len(rows) + 1)
+        playback.write_rows(path, rows)
         print(f"{name}: {len(rows)} calls with actions, {len(changed)} changed")
 
 
 def main() -> None:
+    logging.getLogger("firmware_bridge").setLevel(logging.ERROR)  # the faults are on purpose
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--refs", action="store_true", help="only regenerate the references")
     args = parser.parse_args()

@@ -133,6 +133,16 @@ class Rig:
         assert self.bridge is not None
         return dict(self.bridge.counters)
 
+    def send_garbage(self) -> None:
+        """Three datagrams of junk to the bridge's MAVLink port, from another sender: a
+        MAVLink 2 header with a bad CRC, text, and 0xFE bytes (MAVLink 1 starts announcing
+        254-byte payloads)."""
+        assert self.bridge is not None
+        bridge_address = self.bridge.link.connection.port.getsockname()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
+            for junk in (b"\xfd\x09\x00\x00\x00\x01\x01" + b"\x00" * 14, b"hello", b"\xfe" * 40):
+                rogue.sendto(junk, bridge_address)
+
     def ready(self) -> None:
         """Wait until the bridge reports the link up and the vehicle armed."""
         wait_until(lambda: self.state().get("link_up") and self.state().get("armed"), what="armed")

@@ -389,11 +389,7 @@ def test_guided_mode_waits_for_a_pose_before_asking_for_guided(make_rig: MakeRig
 def test_garbage_on_the_mavlink_port_is_counted_and_changes_nothing(make_rig: MakeRig) -> None:
     rig = make_rig()
     rig.ready()
-    assert rig.bridge is not None
-    bridge_address = rig.bridge.link.connection.port.getsockname()
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
-        for junk in (b"\xfd\x09\x00\x00\x00\x01\x01" + b"\x00" * 14, b"hello", b"\xfe" * 40):
-            rogue.sendto(junk, bridge_address)
+    rig.send_garbage()
     wait_until(lambda: rig.counters().get("bad_data", 0) >= 2, what="garbage counted")
     time.sleep(0.1)
     assert rig.state()["link_up"] is True

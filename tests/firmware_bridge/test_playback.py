@@ -59,31 +59,20 @@ def _states(calls: list[Row]) -> list[tuple[int, dict[str, Any]]]:
     return [(i, o["state"]) for i, c in enumerate(calls) for o in c["out"] if "state" in o]
 
 
+def _is_command_long(row: Row, command: int, param: str, value: float) -> bool:
+    """Is `row` a COMMAND_LONG `command` with `param` = `value`?"""
+    fields = row["fields"]
+    return bool(
+        row["send"] == "COMMAND_LONG" and fields["command"] == command and fields[param] == value
+    )
+
+
 def _is_mode(row: Row, mode: str) -> bool:
-    fields = row["fields"]
-    return bool(
-        row["send"] == "COMMAND_LONG"
-        and fields["command"] == MAV_CMD_DO_SET_MODE
-        and fields["param2"] == mode_number(mode)
-    )
+    return _is_command_long(row, MAV_CMD_DO_SET_MODE, "param2", mode_number(mode))
 
 
-def _is_disarm(row: Row) -> bool:
-    fields = row["fields"]
-    return bool(
-        row["send"] == "COMMAND_LONG"
-        and fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM
-        and fields["param1"] == 0.0
-    )
-
-
-def _is_arm(row: Row) -> bool:
-    fields = row["fields"]
-    return bool(
-        row["send"] == "COMMAND_LONG"
-        and fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM
-        and fields["param1"] == 1.0
-    )
+def _is_arming(row: Row, arm: bool) -> bool:
+    return _is_command_long(row, MAV_CMD_COMPONENT_ARM_DISARM, "param1", float(arm))
 
 
 def _neutral(settings: BridgeSettings) -> tuple[int, int]:
@@ -164,7 +153,7 @@ def test_on_exit_no_command_goes_out_stops_follow_and_the_disarm_waits_for_rest(
     repeats = settings.failsafe.stop_repeats_on_exit
     assert [o["send"] for o in first] == ["RC_CHANNELS_OVERRIDE"] * repeats + ["COMMAND_LONG"]
     assert _is_mode(first[-1], settings.failsafe.brake_mode)
-    disarm = next(i for i, c in enumerate(calls) if any(_is_disarm(o) for o in _sends(c)))
+    disarm = next(i for i, c in enumerate(calls) if any(_is_arming(o, False) for o in _sends(c)))
     assert disarm > shutdown
     # The disarm went out only after the vehicle reported a speed under rest_speed_mps.
     speeds = []
@@ -204,7 +193,7 @@ def test_malformed_payloads_send_nothing_and_absurd_commands_send_a_stop(
         elif call["event"] == "mavlink" and "bad_data" in call["args"][0]:
             assert call["out"] == []
     assert malformed == 3 and absurd == 3
-    arms = [i for i, c in enumerate(calls) for o in _sends(c) if _is_arm(o)]
+    arms = [i for i, c in enumerate(calls) for o in _sends(c) if _is_arming(o, True)]
     request = next(i for i, c in enumerate(calls) if c["event"] == "request")
     assert arms and max(arms) < request, "an arm went out after the refused arm request"
     _, last = _states(calls)[-1]
@@ -284,7 +273,7 @@ def test_a_closed_port_is_reopened_every_period_and_arming_waits_for_a_request(
     back = next(i for i, state in states if i > down and state["link_up"] is True)
     request = next(i for i, c in enumerate(calls) if c["event"] == "request")
     assert request > back
-    arms = [i for i, c in enumerate(calls) for o in _sends(c) if _is_arm(o)]
+    arms = [i for i, c in enumerate(calls) for o in _sends(c) if _is_arming(o, True)]
     assert not [i for i in arms if back <= i < request], "armed again without a request"
     assert [i for i in arms if i > request], "the request was not sent"
 
