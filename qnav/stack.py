@@ -255,8 +255,8 @@ def run_stack(
 
     from contracts.policy_file import PolicyContract
     from controller.onnx_file import read_onnx
-    from sim.car import SimCarSettings
     from sim.config import scenario as load_scenario
+    from simcar.car import SimCarSettings
 
     contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
     world = load_scenario(scenario or contract.scenario)
@@ -362,7 +362,7 @@ def run_stack(
 
 
 def episode_health(episodes_log: Path) -> dict[str, int]:
-    """The sim-car's per-period health figures (`sim.car.EpisodeLog`) summed over its episode
+    """The sim-car's per-period health figures (`simcar.car.EpisodeLog`) summed over its episode
     log: steps, and the periods the controller had not decided on in time (undecided), decided
     on another pose than the scan's (stale_pose), stopped on (stops), or whose command reached
     the car too late for lockstep (late)."""
@@ -585,8 +585,8 @@ def sim_car_verb(args: argparse.Namespace) -> int:
 
     from contracts.daemon import stop_on_signals
     from contracts.transport import ZenohSettings
-    from sim.car import SimCar, SimCarSettings, summary, write_log
     from sim.config import load_world
+    from simcar.car import SimCar, SimCarSettings, summary, write_log
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     world = load_world(args.scenario, args.world_config, args.assignments)

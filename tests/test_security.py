@@ -33,7 +33,7 @@ from contracts.transport import (
 )
 from qnav.certs import IDENTITIES, make_certificates
 from qnav.cli import main
-from sim.mavlink_vehicle import MavlinkVehicle
+from simcar.mavlink_vehicle import MavlinkVehicle
 from tests.firmware_bridge.rig import vehicle_settings, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]

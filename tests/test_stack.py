@@ -24,11 +24,11 @@ from contracts import wire
 from controller.decision import Controller, Input
 from controller.policy import PolicyRuntime
 from qnav.stack import episode_health
-from sim.car import EpisodeLog, decision_of, note_decision, scan_message, write_log
 from sim.config import scenario
 from sim.dynamics import move_obstacles
 from sim.evaluate import EvalResult, EvalSettings, StreamPolicyAgent, evaluate
 from sim.world import observe, reset
+from simcar.car import EpisodeLog, decision_of, note_decision, scan_message, write_log
 
 # A small recurrent policy (LSTM 64) that reaches every target of walls-increment in about 20
 # steps: `qnav train --scenario walls-increment --episodes 128 --seed 1 --train-set
@@ -182,9 +182,9 @@ def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None
     # A command held for one period moves the lockstep car by the increment itself, whatever
     # the action before (a lag of its own made each change of action fall 5-10 % short, and a
     # walls-increment episode flip-flop left and right to 500 steps).
-    from sim.car import SimCarSettings, vehicle_dynamics
     from sim.config import IncrementDynamics
     from sim.dynamics import action_velocities, step_increment, step_velocity_lag
+    from simcar.car import SimCarSettings, vehicle_dynamics
 
     world = scenario("walls-increment")
     assert isinstance(world.dynamics, IncrementDynamics)

@@ -4,7 +4,7 @@
     .venv/bin/python tests/data/make_bridge_playback.py --refs   # references only
 
 Recording: each scenario below runs the real daemon (`firmware_bridge.daemon.Bridge`, in this
-process) between a real zenoh session and the MAVLink test vehicle (`sim.mavlink_vehicle`) on
+process) between a real zenoh session and the MAVLink test vehicle (`simcar.mavlink_vehicle`) on
 loopback, as tests/firmware_bridge/rig.py wires them, with a `firmware_bridge.playback.Recorder`
 as its journal: every call into the core, with its inputs and the live core's actions, goes to
 tests/data/bridge_playback/<scenario>.recording.jsonl.gz. A recording is what happened on this
@@ -55,7 +55,7 @@ from contracts.wire import COMMAND, POSE, Pose2D, Twist2D, encode_pose_msg, enco
 from contracts.wire import key as wire_key  # noqa: E402
 from firmware_bridge import playback  # noqa: E402
 from firmware_bridge.daemon import Bridge  # noqa: E402
-from sim.mavlink_vehicle import MavlinkVehicle  # noqa: E402
+from simcar.mavlink_vehicle import MavlinkVehicle  # noqa: E402
 from tests.firmware_bridge import rig as wiring  # noqa: E402
 from tests.firmware_bridge.rig import wait_until  # noqa: E402
 

@@ -33,7 +33,7 @@ from contracts.wire import (
 )
 from firmware_bridge.daemon import Bridge
 from firmware_bridge.settings import BridgeSettings
-from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 T = TypeVar("T")
 

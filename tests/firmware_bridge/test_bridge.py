@@ -28,7 +28,7 @@ from contracts.wire import (
 from firmware_bridge.daemon import Bridge
 from firmware_bridge.mapping import vision_pose
 from firmware_bridge.settings import BridgeSettings
-from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from tests.firmware_bridge.rig import (
     Rig,
     bridge_settings,

@@ -1,10 +1,10 @@
 """A real autopilot as the simulated robot: its own pose estimate moves the robot.
 
-`FirmwareVehicle` stands where `sim.mavlink_vehicle.MavlinkVehicle` stands in `sim.car.SimCar`,
-for a run of the full stack on firmware (ArduPilot Rover SITL, `qnav stack --vehicle sitl`):
-the bridge drives the autopilot, and the robot's pose in the simulated world is the autopilot's
-LOCAL_POSITION_NED and ATTITUDE, as motion capture would give it. Lidar and walls are simulated
-around that pose by the sim-car.
+`FirmwareVehicle` stands where `simcar.mavlink_vehicle.MavlinkVehicle` stands in
+`simcar.car.SimCar`, for a run of the full stack on firmware (ArduPilot Rover SITL, `qnav stack
+--vehicle sitl`): the bridge drives the autopilot, and the robot's pose in the simulated world is
+the autopilot's LOCAL_POSITION_NED and ATTITUDE, as motion capture would give it. Lidar and walls
+are simulated around that pose by the sim-car.
 
 The autopilot cannot be put somewhere, so each episode's start is a frame change instead:
 `set_pose(x, y, yaw)` makes the vehicle's pose at that moment read as (x, y, yaw), and later
@@ -33,7 +33,7 @@ from contracts.mavlink import (
     wrap_pi,
 )
 
-log = logging.getLogger("sim.firmware_vehicle")
+log = logging.getLogger("simcar.firmware_vehicle")
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MESSAGE_IDS = {"LOCAL_POSITION_NED": 32, "ATTITUDE": 30}

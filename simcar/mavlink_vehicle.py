@@ -74,7 +74,7 @@ from contracts.settings import check_range, from_dict, load_toml, parse_assignme
 from sim.config import InertiaDynamics
 from sim.dynamics import step_velocity_lag
 
-log = logging.getLogger("sim.mavlink_vehicle")
+log = logging.getLogger("simcar.mavlink_vehicle")
 
 POS_IGNORE = 0x7
 VEL_IGNORE = 0x38

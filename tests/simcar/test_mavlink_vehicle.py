@@ -29,7 +29,7 @@ from contracts.mavlink import (
 )
 from contracts.settings import with_overrides
 from sim.dynamics import step_velocity_lag
-from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 IGNORE = 65535
 
