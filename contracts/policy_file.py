@@ -21,7 +21,8 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from contracts.actions import NUM_ACTIONS, Action
-from contracts.errors import PolicyFileError
+from contracts.errors import ConfigError, PolicyFileError
+from contracts.motion import Dynamics, IncrementDynamics, InertiaDynamics
 from contracts.observation import TARGET_FEATURES
 
 POLICY_FORMAT = "qnav-policy/2"
@@ -63,9 +64,10 @@ TRANSPOSED_SUFFIX = "_Transposed"
 """An initializer named P_Transposed holds the transpose of the training parameter P (the
 products of an int8 file take their weights as (in, out))."""
 
-ENTRIES_ADDED_LATER = ("weight_type",)
+ENTRIES_ADDED_LATER = ("weight_type", "motion")
 """Contract fields added after files of this format were written: a file without the entry gets
-the field's default (weight_type: float32, all such files have float32 weights)."""
+the field's default (weight_type: float32, all such files have float32 weights; motion: empty,
+so the onboard look-ahead refuses the file until it is exported again)."""
 
 CONV_LAYERS, CONV_CHANNELS, CONV_KERNEL, CONV_STRIDE = 3, 8, 6, 3
 """The paper's lidar encoder (3 x Conv1d, 8 channels, kernel 6, stride 3): the training network
@@ -116,6 +118,10 @@ class PolicyContract:
     takes too)."""
     weight_type: str = "float32"
     """How the large weights are stored: float32, or int8 (`WEIGHT_TYPES`)."""
+    motion: Mapping[str, Any] = field(default_factory=dict)
+    """The training world's motion model, which the onboard look-ahead forecasts with:
+    `dynamics` (the fields of `contracts.motion.InertiaDynamics` or `IncrementDynamics`) and
+    `robot_radius_m` (the paper's l); empty in files exported before it existed."""
     beam_convention: str = BEAM_CONVENTION
     """How beam indices map to angles."""
     format: str = POLICY_FORMAT
@@ -143,6 +149,28 @@ class PolicyContract:
     def has_state(self) -> bool:
         """Whether the graph takes and returns a recurrent state."""
         return self.state_slots > 0
+
+    def motion_model(self, source: str) -> tuple[Dynamics, float]:
+        """The training world's dynamics and robot radius (`motion`); `source` names the file in
+        the error raised when the file predates the entry or it is malformed."""
+        if not self.motion:
+            raise PolicyFileError(
+                f"{source} carries no motion model (exported before the look-ahead existed): "
+                "export it again with `qnav export`"
+            )
+        try:
+            settings = dict(self.motion["dynamics"])
+            kind = settings.get("kind")
+            dynamics: Dynamics
+            if kind == "inertia":
+                dynamics = InertiaDynamics(**settings)
+            elif kind == "increment":
+                dynamics = IncrementDynamics(**settings)
+            else:
+                raise PolicyFileError(f"{source}: motion dynamics kind {kind!r} is unknown")
+            return dynamics, float(self.motion["robot_radius_m"])
+        except (KeyError, TypeError, ValueError, ConfigError) as error:
+            raise PolicyFileError(f"{source}: malformed motion metadata: {error}") from None
 
     @property
     def frame_size(self) -> int:

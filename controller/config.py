@@ -16,6 +16,8 @@ from contracts import wire
 from contracts.errors import ConfigError
 from contracts.settings import check_range, from_dict, load_toml, parse_assignments, with_overrides
 from contracts.transport import ZenohSettings
+from controller.lookahead import LookaheadSettings
+from controller.perception import TrackerSettings
 from controller.scan import BelowRangeMin
 
 Trigger = Literal["period", "scan"]
@@ -214,6 +216,11 @@ class DaemonConfig:
     """Topic names."""
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
     """How to join the zenoh network."""
+    lookahead: LookaheadSettings = field(default_factory=LookaheadSettings)
+    """The look ahead that may overrule the policy where another action is less likely to
+    collide (off by default)."""
+    tracker: TrackerSettings = field(default_factory=TrackerSettings)
+    """How the look ahead tracks obstacles in the scans."""
 
     def target_topic(self) -> wire.Topic:
         """The target topic, named by `topics.target` or by the target kind."""

@@ -352,7 +352,14 @@ def build(config: DaemonConfig) -> Daemon:
         f"{contract.num_beams} beams" if contract.num_beams else "no lidar",
         contract.control_period_s,
     )
-    controller = Controller(runtime, config.safety, config.lidar, policy_version=version)
+    controller = Controller(
+        runtime,
+        config.safety,
+        config.lidar,
+        policy_version=version,
+        lookahead=config.lookahead,
+        tracker=config.tracker,
+    )
     return Daemon(config, controller, sha, public_key)
 
 

@@ -55,9 +55,12 @@ from numpy.typing import NDArray
 from contracts import delivery, wire
 from contracts.actions import Action
 from contracts.errors import PolicyFileError, PolicyInputError
+from contracts.lookahead import shielded_actions
 from contracts.observation import target_features_of
 from contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
 from controller.config import LidarSettings, SafetySettings
+from controller.lookahead import Lookahead, LookaheadSettings, beam_angles
+from controller.perception import TrackerSettings
 from controller.policy import PolicyRuntime
 from controller.scan import ScanRules, resample_scan
 
@@ -123,6 +126,8 @@ class Counters:
     """Release requests refused because the emergency stop was still pressed."""
     policy_swaps: int = 0
     """Policies swapped in while running (`Controller.swap_policy`)."""
+    overruled: int = 0
+    """Policy decisions the look ahead changed (`lookahead.mode` shield or plan)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As plain JSON values."""
@@ -136,6 +141,7 @@ class Counters:
             "estop_presses": self.estop_presses,
             "releases_refused": self.releases_refused,
             "policy_swaps": self.policy_swaps,
+            "overruled": self.overruled,
         }
 
 
@@ -169,6 +175,9 @@ class Status:
     """A copy of the running totals."""
     policy_version: str = ""
     """Version of the policy that decides (or would decide): `Controller.policy_version`."""
+    risks: tuple[float, ...] | None = None
+    """With `lookahead.mode = "shield"`: each action's share of forecast continuations
+    that collide, indexed by action (None otherwise, or when stopped by a rule)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As one JSON object (the status message)."""
@@ -188,6 +197,7 @@ class Status:
             "estop": {"latched": self.estop_latched, "pressed": self.estop_pressed},
             "counters": self.counters,
             "policy_version": self.policy_version,
+            "risks": None if self.risks is None else list(self.risks),
         }
 
 
@@ -225,6 +235,9 @@ class Controller:
         safety: SafetySettings | None = None,
         lidar: LidarSettings | None = None,
         policy_version: str = "",
+        *,
+        lookahead: LookaheadSettings | None = None,
+        tracker: TrackerSettings | None = None,
     ) -> None:
         self.runtime = runtime
         self.policy_version = policy_version or delivery.version_of_file(runtime.path)
@@ -253,6 +266,10 @@ class Controller:
         self._sequence = 0
         self._window_fresh = True
         self._last_reason: Reason | None = None
+        self.lookahead_settings = lookahead or LookaheadSettings()
+        self.tracker_settings = tracker or TrackerSettings()
+        self.lookahead = self._new_lookahead(runtime, self.tracker_settings)
+        """The look ahead that may overrule the policy (None with `lookahead.mode = "off"`)."""
 
     # ---- inputs -------------------------------------------------------------------------
 
@@ -439,9 +456,25 @@ class Controller:
             return self._stop(now, Reason.POLICY_INPUT_ERROR, send)
         self._window_fresh = False
         self.counters.policy_steps += 1
-        command = self.commands[decision.action]
+        action, risks = decision.action, None
+        if self.lookahead is not None:
+            assert self._scan is not None and self._scan_stamp_s is not None  # rules 2-3 held
+            xy_yaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
+            self.lookahead.observe(pose.stamp_s, xy_yaw, self._scan_stamp_s, self._scan)
+            target_xy = np.array([target.x_m, target.y_m])
+            if self.lookahead_settings.mode == "plan":
+                action = Action(self.lookahead.plan(target_xy))
+            else:
+                shares = self.lookahead.risks(target_xy)
+                tolerance = self.lookahead_settings.tolerance
+                safest = shielded_actions(decision.q_values[None], shares[None], tolerance)
+                action = Action(int(safest[0]))
+                risks = tuple(shares.tolist())
+            self.counters.overruled += int(action != decision.action)
         q_values = tuple(decision.q_values.tolist())
-        return self._output(now, Reason.POLICY, command, decision.action, q_values, send=send)
+        return self._output(
+            now, Reason.POLICY, self.commands[action], action, q_values, send=send, risks=risks
+        )
 
     def warm_up(self) -> None:
         """Run the policy once on a neutral observation (first runs are slow) and restart its
@@ -485,7 +518,9 @@ class Controller:
                 f"policy {version} does not keep the running policy's beams, control period and "
                 "actions"
             )
+        lookahead = self._new_lookahead(runtime, self.tracker_settings)
         self.runtime = runtime
+        self.lookahead = lookahead
         self.policy_version = version
         self.runtime.reset()
         self._window_fresh = True
@@ -531,7 +566,29 @@ class Controller:
     def _restart_window(self) -> None:
         if not self._window_fresh:
             self.runtime.reset()
+            if self.lookahead is not None:
+                self.lookahead.restart()
             self._window_fresh = True
+
+    def _new_lookahead(self, runtime: PolicyRuntime, tracker: TrackerSettings) -> Lookahead | None:
+        """The look ahead for `runtime`'s policy, or None with `lookahead.mode = "off"`."""
+        if self.lookahead_settings.mode == "off":
+            return None
+        contract = runtime.contract
+        if not self.uses_scan:
+            raise PolicyFileError(
+                f"lookahead.mode = {self.lookahead_settings.mode!r} tracks obstacles in the "
+                f"lidar: {runtime.path} reads no scan"
+            )
+        dynamics, robot_radius_m = contract.motion_model(str(runtime.path))
+        return Lookahead(
+            self.lookahead_settings,
+            tracker,
+            dynamics=dynamics,
+            robot_radius_m=robot_radius_m,
+            control_period_s=contract.control_period_s,
+            beam_angles_rad=beam_angles(contract.num_beams),
+        )
 
     def _stop(self, now: float, reason: Reason, send: CommandSink | None) -> Output:
         self._restart_window()
@@ -547,6 +604,7 @@ class Controller:
         q_values: tuple[float, ...] | None,
         *,
         send: CommandSink | None,
+        risks: tuple[float, ...] | None = None,
     ) -> Output:
         self._sequence += 1
         self._last_reason = reason
@@ -567,5 +625,6 @@ class Controller:
             estop_pressed=self.estop_pressed,
             counters=self.counters.to_dict(),
             policy_version=self.policy_version,
+            risks=risks,
         )
         return Output(command, status)

@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import distance_to_segments
 from contracts.settings import check_range
 
 F64 = NDArray[np.float64]
@@ -86,14 +87,8 @@ def scan_points(scan_m: NDArray[np.floating], pose: F64, beam_angles_rad: F64) -
 
 
 def distance_to_walls(points: F64, walls: F64) -> F64:
-    """(P,) each point's distance to the nearest wall segment."""
-    start, end = walls[:, :2], walls[:, 2:]
-    along = end - start
-    length2 = np.maximum(np.sum(along * along, axis=1), 1e-12)
-    offset = points[:, None, :] - start[None]
-    t = np.clip(np.sum(offset * along[None], axis=2) / length2[None], 0.0, 1.0)
-    nearest = start[None] + t[..., None] * along[None]
-    return np.asarray(np.min(np.linalg.norm(points[:, None, :] - nearest, axis=2), axis=1))
+    """(P,) each point's distance to the nearest wall segment (x0, y0, x1, y1)."""
+    return distance_to_segments(points, walls[:, :2], walls[:, 2:])
 
 
 def off_the_walls(points: F64, walls: F64, band_m: float) -> NDArray[np.bool_]:
@@ -123,6 +118,39 @@ def clusters(points: F64, keep: NDArray[np.bool_], gap_m: float) -> list[NDArray
     if wraps:
         runs = [np.concatenate([runs[-1], runs[0]]), *runs[1:-1]]
     return runs
+
+
+WIDEST_ARC = 2.4
+"""A run of returns wider (first to last point) than this many obstacle radii is not one
+cylinder, whose near side spans at most two radii (the rest allows for range noise): it is
+obstacles side by side, merged in the scan."""
+
+
+def split_wide(
+    run: NDArray[np.int64], points: F64, sensor_xy: F64, radius_m: float
+) -> list[NDArray[np.int64]]:
+    """`run` (beam indices, in scan order) as the runs of single obstacles: one too wide to be
+    one is cut where the circle fits of the two sides leave the least residual, and each side
+    again if need be."""
+    ends = points[run[-1]] - points[run[0]]
+    if len(run) < 6 or float(np.hypot(*ends)) <= WIDEST_ARC * radius_m:
+        return [run]
+    best, cut = np.inf, 0
+    for k in range(3, len(run) - 2):
+        residual = sum(
+            _fit_residual(points[side], sensor_xy, radius_m) for side in (run[:k], run[k:])
+        )
+        if residual < best:
+            best, cut = residual, k
+    return [
+        *split_wide(run[:cut], points, sensor_xy, radius_m),
+        *split_wide(run[cut:], points, sensor_xy, radius_m),
+    ]
+
+
+def _fit_residual(points: F64, sensor_xy: F64, radius_m: float) -> float:
+    centre = fit_circle(points, sensor_xy, radius_m)
+    return float(np.sum((np.linalg.norm(points - centre, axis=1) - radius_m) ** 2))
 
 
 def fit_circle(points: F64, sensor_xy: F64, radius_m: float, iterations: int = 5) -> F64:
@@ -213,6 +241,19 @@ def ego_velocity(previous_pose: F64, pose: F64, period_s: float) -> F64:
     return np.array([forward / period_s, turn / period_s])
 
 
+def own_velocity(poses: F64, intervals_s: F64) -> F64:
+    """(2,) forward speed and turn rate now, from the last two or three poses (P, 3) and the
+    P - 1 intervals between them: the mean over the last interval, extrapolated to its end by
+    half the change since the interval before (the mean lags by half an interval). Zero from
+    a single pose."""
+    if len(poses) < 2:
+        return np.zeros(2)
+    velocity = ego_velocity(poses[-2], poses[-1], float(intervals_s[-1]))
+    if len(poses) > 2:
+        velocity += (velocity - ego_velocity(poses[-3], poses[-2], float(intervals_s[-2]))) / 2
+    return velocity
+
+
 class Tracks(NamedTuple):
     """What the tracker believes now, in the room's frame."""
 
@@ -249,11 +290,13 @@ class ObstacleTracker:
         s = self.settings
         points = scan_points(scan_m, pose, self.beam_angles_rad)
         runs = clusters(points, off_the_walls(points, self.walls, s.wall_band_m), s.cluster_gap_m)
-        centres = [
-            fit_circle(points[run], pose[:2], s.obstacle_radius_m)
+        pieces = [
+            piece
             for run in runs
-            if len(run) >= s.min_returns
+            for piece in split_wide(run, points, pose[:2], s.obstacle_radius_m)
+            if len(piece) >= s.min_returns
         ]
+        centres = [fit_circle(points[piece], pose[:2], s.obstacle_radius_m) for piece in pieces]
         return np.array(centres, dtype=np.float64).reshape(-1, 2)
 
     def update(self, time_s: float, scan_m: NDArray[np.floating], pose: F64) -> Tracks:

@@ -114,17 +114,20 @@ def build_parser() -> argparse.ArgumentParser:
         "(controller.perception: lidar plus pose, the room's walls known) instead of the truth",
     )
     evaluate.add_argument(
-        "--shield",
-        action="store_true",
-        help="with --policy: the tracker feeds a 4 s look ahead that overrules the policy's "
-        "action with its best-valued one among the least likely to collide",
+        "--lookahead",
+        choices=["off", "shield", "plan"],
+        default="off",
+        help="with --policy: the controller's look ahead beside it, as the daemon's "
+        "lookahead.mode: shield (the tracker feeds a 4 s forecast that overrules the policy's "
+        "action with its best-valued one among the least likely to collide) or plan (the "
+        "planner on the tracker's state decides)",
     )
     evaluate.add_argument(
         "--range-noise-m",
         type=float,
         default=0.0,
         metavar="SIGMA",
-        help="with --tracker or --shield: Gaussian noise added to the ranges the tracker reads",
+        help="with --tracker or --lookahead: Gaussian noise added to the ranges the tracker reads",
     )
     evaluate.add_argument(
         "--policy",
@@ -629,6 +632,14 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument("--policy", type=Path, required=True, help="policy file (.onnx)")
     stack.add_argument("--scenario", help="world (default: the policy's training scenario)")
     stack.add_argument("--episodes", type=int, default=20, help="episodes (20)")
+    stack.add_argument(
+        "--lookahead",
+        choices=["off", "shield", "plan"],
+        default="off",
+        help="the controller's lookahead.mode (obstacle tracker and 4 s forecast): shield "
+        "overrules the policy where another action is less likely to collide, plan decides; "
+        "the in-process comparison runs the same look ahead",
+    )
     stack.add_argument("--out", type=Path, default=Path("out/stack"), help="output folder")
     stack.add_argument("--no-record", action="store_true", help="do not record to MCAP")
     stack.add_argument("--json", action="store_true", help="print one JSON object")

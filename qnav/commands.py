@@ -80,33 +80,38 @@ def evaluate(args: argparse.Namespace) -> int:
     if args.state_error and not planner:
         raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
     if args.tracker and not planner:
-        raise ConfigError("--tracker is for --agent oracle (with --policy, use --shield)")
+        raise ConfigError("--tracker is for --agent oracle (with --policy, use --lookahead)")
     if args.state_error and args.tracker:
         raise ConfigError("--state-error and --tracker are two views of the state: choose one")
-    if args.shield and (args.policy is None or args.random_action_prob):
-        raise ConfigError("--shield overrules a greedy policy: give --policy, no random actions")
-    if args.range_noise_m and not (args.tracker or args.shield):
+    looking = args.lookahead != "off"
+    if looking and (args.policy is None or args.random_action_prob):
         raise ConfigError(
-            "--range-noise-m is the noise the tracker reads: give --tracker or --shield"
+            "--lookahead runs beside a greedy policy: give --policy, no random actions"
+        )
+    if args.range_noise_m and not (args.tracker or looking):
+        raise ConfigError(
+            "--range-noise-m is the noise the tracker reads: give --tracker or --lookahead"
         )
     if args.range_noise_m < 0:
         raise ConfigError(
             f"--range-noise-m = {args.range_noise_m} is out of range: allowed [0, inf)"
         )
     shield = None
-    if args.shield:
+    if looking:
+        from controller.lookahead import LookaheadSettings
         from controller.perception import TrackerSettings
-        from qnav.tracking import QAgent, ShieldedAgent
+        from qnav.tracking import LookaheadAgent, QAgent
 
-        shield = agent = ShieldedAgent(
+        shield = agent = LookaheadAgent(
             cast(QAgent, agent),  # --policy gave a StreamPolicyAgent or a TorchAgent
             world,
             worlds,
             tracker=TrackerSettings(),
+            lookahead=LookaheadSettings(mode=args.lookahead),
             range_noise_m=args.range_noise_m,
             seed=args.seed,
         )
-        label += ", shielded by the tracker's look ahead"
+        label += f", the controller's look ahead in {args.lookahead} mode"
     if args.random_action_prob:
         label += f" with {args.random_action_prob:.0%} random actions"
     if planner and args.tracker:

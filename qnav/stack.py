@@ -27,11 +27,15 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 from contracts.daemon import free_port
 from contracts.errors import ConfigError
 from contracts.settings import from_dict, to_toml
+
+if TYPE_CHECKING:
+    from sim.config import WorldConfig
+    from sim.evaluate import Agent
 
 
 @dataclass(frozen=True)
@@ -128,11 +132,14 @@ def write_configs(
     bridge_values: dict[str, Any] | None = None,
     public_key: Path | None = None,
     input_timeout_s: float = 0.0,
+    lookahead: str = "off",
+    room_size_m: float = 10.0,
 ) -> None:
     """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
     bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
     controller takes policies from a server signed with its private key, `policy` first;
-    `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default)."""
+    `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default;
+    `lookahead`: the controller's `lookahead.mode`, in a room of `room_size_m`)."""
     from controller.config import DaemonConfig
     from firmware_bridge.settings import BridgeSettings
 
@@ -149,6 +156,11 @@ def write_configs(
             ),
             "zenoh": zenoh,
         }
+        | (
+            {}
+            if lookahead == "off"
+            else {"lookahead": {"mode": lookahead, "room_size_m": room_size_m}}
+        )
         | (
             {}
             if public_key is None
@@ -238,6 +250,7 @@ def run_stack(
     sitl_binary: Path | None = None,
     serve: StackServe | None = None,
     lockstep: bool = True,
+    lookahead: str = "off",
 ) -> dict[str, Any]:
     """Run the full stack for `episodes` episodes; returns its outcome fractions and paths.
 
@@ -250,6 +263,8 @@ def run_stack(
 
     With `lockstep` (the test vehicle only), the sim-car steps the world once the command
     decided on each scan has reached the car (`sim-car --lockstep`); else in real time.
+
+    `lookahead` is the controller's `lookahead.mode` (`controller.lookahead`).
     """
     from tqdm import tqdm
 
@@ -291,6 +306,8 @@ def run_stack(
         input_timeout_s=(
             SimCarSettings().lockstep_timeout_s + world.control_period_s if lockstep else 0.0
         ),
+        lookahead=lookahead,
+        room_size_m=world.arena.size_m,
     )
     rest_args = [] if serve is None else ["--rest-s", str(serve.rest_s)]
     daemons = Daemons(files)
@@ -410,11 +427,14 @@ def stack_verb(args: argparse.Namespace) -> int:
         sitl_binary=sitl_binary,
         serve=serve,
         lockstep=not args.real_time,
+        lookahead=args.lookahead,
     )
-    result["in_process"] = in_process_outcomes(args.policy, result["scenario"], args.episodes)
+    result["in_process"] = in_process_outcomes(
+        args.policy, result["scenario"], args.episodes, lookahead=args.lookahead
+    )
     result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
     result["agreement"] = episode_agreement(
-        args.policy, result["scenario"], args.out / "episodes.jsonl"
+        args.policy, result["scenario"], args.out / "episodes.jsonl", lookahead=args.lookahead
     )
     result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
     if args.json:
@@ -470,8 +490,8 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     publication to the command after it (the controller and zenoh), as the sim-car logged it."""
     import math
 
+    from contracts.motion import action_velocities
     from sim.config import scenario as load_scenario
-    from sim.dynamics import action_velocities
 
     world = load_scenario(scenario_name)
     period = world.control_period_s
@@ -520,16 +540,18 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     }
 
 
-def in_process_outcomes(policy: Path, scenario_name: str, episodes: int) -> dict[str, Any]:
-    """`qnav eval` of the policy file on the stack's episodes (the test protocol's first ones)."""
-    from controller.policy import PolicyRuntime
+def in_process_outcomes(
+    policy: Path, scenario_name: str, episodes: int, *, lookahead: str = "off"
+) -> dict[str, Any]:
+    """`qnav eval --lookahead MODE` of the policy file on the stack's episodes (the test
+    protocol's first ones)."""
     from sim.config import scenario as load_scenario
-    from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+    from sim.evaluate import EvalSettings, evaluate
 
-    runtime = PolicyRuntime(policy, num_streams=episodes)
+    world = load_scenario(scenario_name)
     result = evaluate(
-        load_scenario(scenario_name),
-        StreamPolicyAgent(runtime, episodes),
+        world,
+        file_agent(policy, world, episodes, lookahead=lookahead),
         EvalSettings(episodes=episodes, num_worlds=episodes),
     )
     return {
@@ -540,7 +562,25 @@ def in_process_outcomes(policy: Path, scenario_name: str, episodes: int) -> dict
     }
 
 
-def episode_agreement(policy: Path, scenario_name: str, episodes_log: Path) -> dict[str, int]:
+def file_agent(policy: Path, world: WorldConfig, worlds: int, *, lookahead: str) -> Agent:
+    """The policy file on one stream per world, as the controller runs it, with its look ahead
+    in `lookahead` mode."""
+    from controller.lookahead import LookaheadSettings
+    from controller.perception import TrackerSettings
+    from controller.policy import PolicyRuntime
+    from qnav.tracking import LookaheadAgent
+    from sim.evaluate import StreamPolicyAgent
+
+    agent = StreamPolicyAgent(PolicyRuntime(policy, num_streams=worlds), worlds)
+    if lookahead == "off":
+        return agent
+    settings = LookaheadSettings(mode=lookahead)  # type: ignore[arg-type]  # argparse choices
+    return LookaheadAgent(agent, world, worlds, tracker=TrackerSettings(), lookahead=settings)
+
+
+def episode_agreement(
+    policy: Path, scenario_name: str, episodes_log: Path, *, lookahead: str = "off"
+) -> dict[str, int]:
     """Each episode of the sim-car's log run again in process one at a time, the policy on one
     stream as the controller runs it: how many took the same action at every step
     (`same_actions`) and ended alike (`same_outcome`). In lockstep the stack should match every
@@ -548,17 +588,15 @@ def episode_agreement(policy: Path, scenario_name: str, episodes_log: Path) -> d
     activations over the whole batch."""
     import numpy as np
 
-    from controller.policy import PolicyRuntime
+    from contracts.motion import Outcome
     from sim.config import scenario as load_scenario
-    from sim.evaluate import EvalSettings, StreamPolicyAgent
-    from sim.task import Outcome
+    from sim.evaluate import EvalSettings
     from sim.world import observe, reset, step
 
     test = EvalSettings()
     world = replace(load_scenario(scenario_name), max_episode_steps=test.max_episode_steps)
     names = {Outcome.SUCCESS: "success", Outcome.COLLISION: "collision"}
-    runtime = PolicyRuntime(policy)
-    agent = StreamPolicyAgent(runtime, 1)
+    agent = file_agent(policy, world, 1, lookahead=lookahead)
     counts = {"episodes": 0, "same_actions": 0, "same_outcome": 0}
     for line in episodes_log.read_text().splitlines():
         entry = json.loads(line)

@@ -9,7 +9,7 @@ and the oracle planner driven by what it perceives instead of the true state.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -17,10 +17,13 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.errors import ConfigError
-from controller.perception import ObstacleTracker, TrackerSettings, Tracks, box_walls, ego_velocity
-from sim.config import InertiaDynamics, WorldConfig
+from contracts.lookahead import shielded_actions
+from contracts.motion import InertiaDynamics
+from controller.lookahead import Lookahead, LookaheadSettings, plans_of, risks_of
+from controller.perception import ObstacleTracker, TrackerSettings, Tracks, box_walls, own_velocity
+from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget
-from sim.oracle import PERCEIVED, collision_shares, run_oracle
+from sim.oracle import PERCEIVED, run_oracle
 from sim.world import BatchedWorld, Observation, WorldState
 
 F64 = NDArray[np.float64]
@@ -75,10 +78,7 @@ class WorldTrackers:
             raise ConfigError(f"scenario {self.world.name!r} has no lidar to track obstacles with")
         period = self.world.control_period_s
         worlds, count = observation.pose.shape[0], self.world.obstacles.count
-        scans = observation.scan_m
-        if self.range_noise_m:
-            noise = self._noise.normal(0.0, self.range_noise_m, scans.shape)
-            scans = (scans + noise).astype(np.float32)
+        scans = noisy(observation.scan_m, self.range_noise_m, self._noise)
         xy = np.full((worlds, count, 2), FAR_AWAY_M)
         velocity = np.zeros((worlds, count, 2))
         own = np.zeros((worlds, 2))
@@ -95,12 +95,10 @@ class WorldTrackers:
             nearest = _nearest_first(tracks, pose[:2], count)
             xy[row, : len(nearest.xy_m)] = nearest.xy_m
             velocity[row, : len(nearest.xy_m)] = nearest.velocity_mps
-            history = self._poses.get(key, [])
-            if history and isinstance(self.world.dynamics, InertiaDynamics):
-                own[row] = ego_velocity(history[-1], pose, period)
-                if len(history) > 1:  # the mean over the period lags: extrapolate to its end
-                    own[row] += (own[row] - ego_velocity(history[-2], history[-1], period)) / 2
-            self._poses[key] = [*history[-1:], pose.copy()]
+            poses = [*self._poses.get(key, [])[-2:], pose.copy()]
+            if isinstance(self.world.dynamics, InertiaDynamics):
+                own[row] = own_velocity(np.array(poses), np.full(len(poses) - 1, period))
+            self._poses[key] = poses
         for key in set(self._trackers) - live:
             del self._trackers[key]
             self._poses.pop(key, None)
@@ -118,6 +116,15 @@ class WorldTrackers:
     def perceive_state(self, state: WorldState, observation: Observation) -> WorldState:
         """`perceive` with the keys of a simulated state (nothing else of it is read)."""
         return self.perceive(observation, state.seed, state.episode, state.steps)
+
+
+def noisy(
+    scans_m: NDArray[np.float32], sigma_m: float, random: np.random.Generator
+) -> NDArray[np.float32]:
+    """The scans with Gaussian range noise of `sigma_m` (unchanged without)."""
+    if not sigma_m:
+        return scans_m
+    return (scans_m + random.normal(0.0, sigma_m, scans_m.shape)).astype(np.float32)
 
 
 def _nearest_first(tracks: Tracks, robot_xy: F64, count: int) -> Tracks:
@@ -258,19 +265,11 @@ class QAgent(Protocol):
     def act(self, observation: Observation) -> NDArray[np.int64]: ...
 
 
-def shielded_actions(
-    q: NDArray[np.floating], collision_share: NDArray[np.floating], tolerance: float
-) -> NDArray[np.int64]:
-    """(N,) the highest-valued action among those whose share of colliding continuations is
-    within `tolerance` of the safest action's."""
-    allowed = collision_share <= collision_share.min(axis=1, keepdims=True) + tolerance
-    return np.asarray(np.where(allowed, q, -np.inf).argmax(axis=1), dtype=np.int64)
-
-
-class ShieldedAgent:
-    """A learned policy whose choice a short look ahead may overrule: every action's share of
-    colliding continuations is simulated from the perceived state (the tracker's obstacles and
-    the room's walls), and the policy's best-valued action among the safest wins.
+class LookaheadAgent:
+    """A learned policy with the controller's look ahead (`controller.lookahead`, one per world,
+    as each car runs it), in `lookahead.mode`: "shield", each action's share of colliding
+    continuations is forecast from the tracker's obstacles and the room's walls and the policy's
+    best-valued action among the safest wins; "plan", the planner on that state decides.
     """
 
     def __init__(
@@ -280,16 +279,30 @@ class ShieldedAgent:
         num_worlds: int,
         *,
         tracker: TrackerSettings,
-        tolerance: float = 0.0,
+        lookahead: LookaheadSettings,
         range_noise_m: float = 0.0,
         seed: int = 0,
     ) -> None:
+        if world.lidar is None:
+            raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
         self.inner = inner
         self.world = world
-        self.tolerance = tolerance
-        self.trackers = WorldTrackers(world, tracker, range_noise_m, seed)
-        self.seed = np.full(num_worlds, seed, dtype=np.int64)
-        self.episode = np.zeros(num_worlds, dtype=np.int64)
+        self.settings = replace(lookahead, room_size_m=world.arena.size_m)
+        if self.settings.mode == "off":
+            raise ConfigError("lookahead.mode = 'off': nothing to run beside the policy")
+        self.cars = [
+            Lookahead(
+                self.settings,
+                tracker,
+                dynamics=world.dynamics,
+                robot_radius_m=world.robot_radius_m,
+                control_period_s=world.control_period_s,
+                beam_angles_rad=world.lidar.beam_angles_rad(),
+            )
+            for _ in range(num_worlds)
+        ]
+        self.range_noise_m = range_noise_m
+        self._noise = np.random.default_rng([seed, 31])
         self.steps = np.zeros(num_worlds, dtype=np.int64)
         self.overruled = 0
         """Decisions where the look ahead changed the policy's action."""
@@ -303,14 +316,23 @@ class ShieldedAgent:
 
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
         self.inner.start(worlds, episodes)
-        self.episode[worlds] = episodes
+        for row in worlds.tolist():
+            self.cars[row].restart()
         self.steps[worlds] = 0
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
         chosen = self.inner.act(observation)
-        state = self.trackers.perceive(observation, self.seed, self.episode, self.steps)
-        shares = collision_shares(self.world, state)
-        action = shielded_actions(self.inner.last_q, shares, self.tolerance)
+        assert observation.scan_m is not None  # the constructor checked the world has a lidar
+        scans = noisy(observation.scan_m, self.range_noise_m, self._noise)
+        times_s = self.steps * self.world.control_period_s
+        for row, car in enumerate(self.cars):
+            car.observe(float(times_s[row]), observation.pose[row], float(times_s[row]), scans[row])
+        targets = list(observation.target_xy)
+        if self.settings.mode == "plan":
+            action = plans_of(self.cars, targets)
+        else:
+            shares = risks_of(self.cars, targets)
+            action = shielded_actions(self.inner.last_q, shares, self.settings.tolerance)
         self.overruled += int(np.sum(action != chosen))
         self.decisions += action.size
         self.steps += 1

@@ -8,10 +8,11 @@ import sys
 from dataclasses import asdict
 
 from contracts.errors import ConfigError
+from contracts.motion import IncrementDynamics
 from contracts.settings import to_markdown, to_toml
 from sim import paper
 from sim.calibrate import Calibration
-from sim.config import SCENARIOS, IncrementDynamics, WorldConfig, load_world, scenario
+from sim.config import SCENARIOS, WorldConfig, load_world, scenario
 from sim.evaluate import EvalResult, RandomAgent
 
 

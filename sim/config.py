@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Literal
 
 from contracts.errors import ConfigError
+from contracts.motion import Dynamics, IncrementDynamics, InertiaDynamics
 from contracts.observation import LidarSpec
 from contracts.settings import check_range, load_toml, parse_assignments, with_overrides
 
@@ -66,75 +67,6 @@ class ArenaConfig:
                 self.size_m - half,
                 why="the opening must lie within its wall",
             )
-
-
-@dataclass(frozen=True)
-class InertiaDynamics:
-    """A body with inertia and damping driven by force and torque (the paper's Tables I and II).
-
-    Forward applies the force whose steady speed is `max_speed_mps`; a turn applies the torque
-    whose steady rate is `max_turn_rate_radps` and no force, so the robot turns in place once its
-    speed has decayed. Velocities relax exponentially towards those steady values.
-    """
-
-    SECTION = "dynamics"
-
-    kind: Literal["inertia"] = "inertia"
-    """Dynamics model name."""
-    max_speed_mps: float = 0.5
-    """Steady forward speed under the forward action (paper: 0.5 m/s)."""
-    max_turn_rate_radps: float = 0.5
-    """Steady turn rate under a turn action (paper: 0.5 rad/s)."""
-    linear_time_constant_s: float = 0.5
-    """Mass over linear damping: the time to reach 63% of a speed change (paper: not given)."""
-    angular_time_constant_s: float = 0.5
-    """Inertia over angular damping: the time to reach 63% of a turn-rate change (not given)."""
-    physics_dt_s: float = 0.05
-    """Integration step inside one control period; velocities are integrated exactly."""
-
-    def __post_init__(self) -> None:
-        check_range(self, "max_speed_mps", self.max_speed_mps, 0.0, 10.0, exclusive_low=True)
-        check_range(
-            self, "max_turn_rate_radps", self.max_turn_rate_radps, 0.0, 10.0, exclusive_low=True
-        )
-        check_range(
-            self,
-            "linear_time_constant_s",
-            self.linear_time_constant_s,
-            0.0,
-            100.0,
-            exclusive_low=True,
-        )
-        check_range(
-            self,
-            "angular_time_constant_s",
-            self.angular_time_constant_s,
-            0.0,
-            100.0,
-            exclusive_low=True,
-        )
-        check_range(self, "physics_dt_s", self.physics_dt_s, 0.0, 1.0, exclusive_low=True)
-
-
-@dataclass(frozen=True)
-class IncrementDynamics:
-    """Every action moves the body by a constant step, no velocity memory (Tables III-IV)."""
-
-    SECTION = "dynamics"
-
-    kind: Literal["increment"] = "increment"
-    """Dynamics model name."""
-    forward_step_m: float = 0.2
-    """Distance moved by one forward action (paper: 0.2 m)."""
-    turn_step_rad: float = 0.2
-    """Rotation by one turn action (paper: 0.2 rad)."""
-
-    def __post_init__(self) -> None:
-        check_range(self, "forward_step_m", self.forward_step_m, 0.0, 10.0, exclusive_low=True)
-        check_range(self, "turn_step_rad", self.turn_step_rad, 0.0, math.pi, exclusive_low=True)
-
-
-Dynamics = InertiaDynamics | IncrementDynamics
 
 
 @dataclass(frozen=True)

@@ -16,10 +16,10 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.actions import NUM_ACTIONS, Action
+from contracts.motion import Outcome
 from contracts.settings import check_range
 from sim import rng
 from sim.config import WorldConfig
-from sim.task import Outcome
 from sim.world import Observation, WorldState, observe, reset, scatter, step, take_rows
 
 TEST_EPISODE_STEPS = 500

@@ -12,6 +12,7 @@ from functools import cache
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts import motion
 from contracts.observation import LidarSpec
 from sim.config import WALLS, ArenaConfig
 
@@ -58,21 +59,10 @@ def wall_segments(arena: ArenaConfig) -> WallSegments:
 
 
 def clearance(xy: F64, arena: ArenaConfig, obstacle_xy: F64, obstacle_radius_m: float) -> F64:
-    """Distance from each robot centre (N, 2) to the nearest wall or obstacle surface.
-
-    This is the exact value that the minimum of a dense lidar scan approximates (the paper's d_l).
-    """
+    """Distance from each robot centre (N, 2) to the nearest wall or obstacle surface of the
+    arena (`contracts.motion.clearance` with its solid wall segments)."""
     segments = wall_segments(arena)
-    point = xy[:, None, :]
-    span = segments.end - segments.start
-    t = np.clip(((point - segments.start) * span).sum(-1) / (span * span).sum(-1), 0.0, 1.0)
-    nearest = segments.start + t[..., None] * span
-    wall_distance: F64 = np.sqrt(((point - nearest) ** 2).sum(-1)).min(axis=1)
-    if obstacle_xy.shape[1] == 0:
-        return wall_distance
-    offset = obstacle_xy - xy[:, None, :]
-    obstacle_distance: F64 = np.sqrt((offset**2).sum(-1)).min(axis=1) - obstacle_radius_m
-    return np.minimum(wall_distance, obstacle_distance)
+    return motion.clearance(xy, segments.start, segments.end, obstacle_xy, obstacle_radius_m)
 
 
 def cast_lidar(

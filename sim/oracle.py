@@ -28,44 +28,48 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from contracts import lookahead
 from contracts.actions import NUM_ACTIONS
+from contracts.lookahead import (
+    LookaheadModel,
+    Rollouts,
+    candidate_sequences,
+    random_blocks_needed,
+)
 from sim import rng
-from sim.config import IncrementDynamics, WorldConfig
-from sim.dynamics import move_obstacles, step_increment, step_inertia
+from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, drive
-from sim.geometry import clearance
-from sim.task import Outcome, outcome
+from sim.geometry import wall_segments
 from sim.world import Observation, WorldState
 
 F64 = NDArray[np.float64]
 
-_HOLDS = (1, 3, 6, 10)
 _SEQUENCE_STREAM = 211
-_RANDOM_HOLD_STEPS = 3
 
 DOOM_HORIZON_S = 4.0
 """How far ahead `doomed_actions` looks: an action is doomed when every continuation collides
 within this time."""
 
 
-def structured_sequences(horizon: int) -> NDArray[np.int64]:
-    """(S, horizon) sequences: action a held, then action b, for every a, b and hold."""
-    structured = [
-        [a] * hold + [b] * (horizon - hold)
-        for a in range(NUM_ACTIONS)
-        for hold in (*_HOLDS, horizon)
-        for b in range(NUM_ACTIONS)
-        if hold <= horizon
-    ]
-    return np.array(structured, dtype=np.int64)[:, :horizon]
+def lookahead_model(config: WorldConfig) -> LookaheadModel:
+    """What the look ahead knows of `config`'s world: all of it (its walls with their openings)."""
+    segments = wall_segments(config.arena)
+    return LookaheadModel(
+        dynamics=config.dynamics,
+        control_period_s=config.control_period_s,
+        robot_radius_m=config.robot_radius_m,
+        obstacle_radius_m=config.obstacles.radius_m,
+        room_size_m=config.arena.size_m,
+        wall_start=segments.start,
+        wall_end=segments.end,
+    )
 
 
 def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) -> NDArray[np.int64]:
     """(S, horizon) candidate sequences: the structured ones plus `random_count` random
     sequences of actions held three steps each."""
-    blocks = -(-horizon // _RANDOM_HOLD_STEPS)
-    random = rng.integers(0, NUM_ACTIONS, size=(random_count, blocks))
-    return np.concatenate([structured_sequences(horizon), _held(random, horizon)])
+    random = rng.integers(0, NUM_ACTIONS, size=(random_count, random_blocks_needed(horizon)))
+    return candidate_sequences(random, horizon)
 
 
 def keyed_sequences(
@@ -76,86 +80,21 @@ def keyed_sequences(
     keys = rng.episode_keys(
         rng.episode_keys(state.seed, state.episode) ^ np.uint64(salt), state.steps
     )
-    blocks = -(-horizon // _RANDOM_HOLD_STEPS)
-    draw = rng.uniform(keys, _SEQUENCE_STREAM, (random_count, blocks))
+    draw = rng.uniform(keys, _SEQUENCE_STREAM, (random_count, random_blocks_needed(horizon)))
     random = np.minimum((draw * NUM_ACTIONS).astype(np.int64), NUM_ACTIONS - 1)
-    shared = structured_sequences(horizon)
-    structured = np.broadcast_to(shared, (state.pose.shape[0], *shared.shape))
-    return np.concatenate([structured, _held(random, horizon)], axis=1)
-
-
-def _held(blocks: NDArray[np.int64], horizon: int) -> NDArray[np.int64]:
-    return blocks.repeat(_RANDOM_HOLD_STEPS, axis=-1)[..., :horizon]
-
-
-class Rollouts(NamedTuple):
-    """How each candidate sequence of each world played out."""
-
-    outcome: NDArray[np.int8]
-    """(N, S) SUCCESS, COLLISION, or RUNNING (neither within the horizon)."""
-    end_step: NDArray[np.int64]
-    """(N, S) the step (1-based) at which the sequence reached the target or collided; the
-    horizon where it did neither."""
-    score: NDArray[np.float64]
-    """(N, S) the planner's score: early success best, late collision better than early,
-    otherwise close to the target and clear of surfaces."""
+    return candidate_sequences(random, horizon)
 
 
 def simulate(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> Rollouts:
     """Play every candidate sequence, (S, H) shared by all worlds or (N, S, H) per world, from
     each world of `state`, knowing the obstacles' future exactly."""
-    worlds = state.pose.shape[0]
-    if sequences.ndim == 2:
-        sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
-    candidates, horizon = sequences.shape[1:]
-    actions = sequences.reshape(worlds * candidates, horizon)  # world-major like the states
-    pose = np.repeat(state.pose, candidates, axis=0)
-    velocity = np.repeat(state.velocity, candidates, axis=0)
-    obstacles = np.repeat(state.obstacle_xy, candidates, axis=0)
-    obstacle_velocity = np.repeat(state.obstacle_velocity, candidates, axis=0)
-    target = np.repeat(state.target_xy, candidates, axis=0)
-    count = worlds * candidates
-    result = np.full(count, Outcome.RUNNING, dtype=np.int8)
-    end_step = np.full(count, horizon, dtype=np.int64)
-    score = np.zeros(count)
-    alive = np.ones(count, dtype=bool)
-    distance = gap = np.zeros(count)
-    for h in range(horizon):
-        if isinstance(config.dynamics, IncrementDynamics):
-            pose, velocity = step_increment(pose, velocity, actions[:, h], config.dynamics)
-        else:
-            pose, velocity = step_inertia(
-                pose, velocity, actions[:, h], config.dynamics, config.control_period_s
-            )
-        obstacles, obstacle_velocity = move_obstacles(
-            obstacles,
-            obstacle_velocity,
-            config.obstacles.radius_m,
-            config.arena.size_m,
-            config.control_period_s,
-        )
-        distance = np.linalg.norm(target - pose[:, :2], axis=1)
-        gap = clearance(pose[:, :2], config.arena, obstacles, config.obstacles.radius_m)
-        now = outcome(distance, gap, config.robot_radius_m)
-        ended = alive & (now != Outcome.RUNNING)
-        result[ended] = now[ended]
-        end_step[ended] = h + 1
-        score[ended & (now == Outcome.SUCCESS)] = 1000.0 - h
-        score[ended & (now == Outcome.COLLISION)] = -1000.0 + h
-        alive &= ~ended
-    score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], 1.0)
-    shape = (worlds, candidates)
-    return Rollouts(result.reshape(shape), end_step.reshape(shape), score.reshape(shape))
+    return lookahead.simulate(lookahead_model(config), state, sequences)
 
 
 def plan(config: WorldConfig, state: WorldState, sequences: NDArray[np.int64]) -> NDArray[np.int64]:
     """(N,) the first action of the best of the candidate sequences, (S, H) shared or (N, S, H)
     per world, for each world in `state`."""
-    worlds = state.pose.shape[0]
-    if sequences.ndim == 2:
-        sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
-    best = np.argmax(simulate(config, state, sequences).score, axis=1)
-    return np.asarray(sequences[np.arange(worlds), best, 0], dtype=np.int64)
+    return lookahead.best_first_actions(lookahead_model(config), state, sequences)
 
 
 def doom_horizon_steps(config: WorldConfig, horizon_s: float = DOOM_HORIZON_S) -> int:
@@ -194,17 +133,7 @@ def collision_shares(
     share grades how close to doom an action is, where the doom label is all or nothing."""
     horizon = doom_horizon_steps(config, horizon_s)
     tails = keyed_sequences(state, horizon, random_sequences, salt)[:, :, : horizon - 1]
-    worlds, tail_count = tails.shape[:2]
-    first = np.repeat(np.arange(NUM_ACTIONS), tail_count)
-    sequences = np.concatenate(
-        [
-            np.broadcast_to(first[None, :, None], (worlds, first.size, 1)),
-            np.tile(tails, (1, NUM_ACTIONS, 1)),
-        ],
-        axis=2,
-    )
-    collided = simulate(config, state, sequences).outcome == Outcome.COLLISION
-    return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
+    return lookahead.collision_shares(lookahead_model(config), state, tails)
 
 
 class StateError(NamedTuple):

@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import Outcome
 from sim.config import WorldConfig
 from sim.geometry import wall_segments
-from sim.task import Outcome
-from sim.world import observe, reset, step
+from sim.world import Observation, Transition, WorldState, observe, reset, step
 
 if TYPE_CHECKING:
     from matplotlib.artist import Artist
@@ -102,6 +102,48 @@ class EpisodeRecord:
         }[self.outcome]
 
 
+class EpisodeRecorder:
+    """Keeps every state of one world's episode (index 0 of a batch of one) as it runs."""
+
+    def __init__(self, state: WorldState, observation: Observation) -> None:
+        self.target_xy = np.array(state.target_xy[0], dtype=np.float64)
+        self.poses: list[F64] = []
+        self.obstacles: list[F64] = []
+        self.scans: list[NDArray[np.float32]] = []
+        self.actions: list[int] = []
+        self.rewards: list[float] = []
+        self.outcome = Outcome.RUNNING
+        self._keep(state, observation)
+
+    def add(
+        self, state: WorldState, observation: Observation, transition: Transition, action: int
+    ) -> None:
+        """Keep the state one step led to."""
+        self._keep(state, observation)
+        self.actions.append(action)
+        self.rewards.append(float(transition.reward[0]))
+        self.outcome = Outcome(int(transition.outcome[0]))
+
+    def _keep(self, state: WorldState, observation: Observation) -> None:
+        self.poses.append(state.pose[0].copy())
+        self.obstacles.append(state.obstacle_xy[0].copy())
+        if observation.scan_m is not None:
+            self.scans.append(observation.scan_m[0].copy())
+
+    def record(self, config: WorldConfig) -> EpisodeRecord:
+        """The episode so far."""
+        return EpisodeRecord(
+            config=config,
+            poses=np.array(self.poses, dtype=np.float64),
+            obstacle_xy=np.array(self.obstacles, dtype=np.float64).reshape(len(self.poses), -1, 2),
+            target_xy=self.target_xy,
+            scans=None if config.lidar is None else np.array(self.scans, dtype=np.float32),
+            actions=np.array(self.actions, dtype=np.int64),
+            outcome=self.outcome,
+            rewards=np.array(self.rewards, dtype=np.float64),
+        )
+
+
 def record_episode(
     config: WorldConfig,
     agent: Agent,
@@ -120,33 +162,13 @@ def record_episode(
     state = reset(config, np.array([seed], dtype=np.int64), np.array([episode], dtype=np.int64))
     observation = observe(config, state)
     agent.start(np.array([0], dtype=np.intp), np.array([episode], dtype=np.int64))
-    poses = [state.pose[0].copy()]
-    obstacles = [state.obstacle_xy[0].copy()]
-    scans = [] if observation.scan_m is None else [observation.scan_m[0].copy()]
-    actions: list[int] = []
-    rewards: list[float] = []
+    recorder = EpisodeRecorder(state, observation)
     while True:
         action = np.asarray(agent.act(observation), dtype=np.int64).reshape(1)
         state, observation, transition = step(config, state, action)
-        actions.append(int(action[0]))
-        rewards.append(float(transition.reward[0]))
-        poses.append(state.pose[0].copy())
-        obstacles.append(state.obstacle_xy[0].copy())
-        if observation.scan_m is not None:
-            scans.append(observation.scan_m[0].copy())
+        recorder.add(state, observation, transition, int(action[0]))
         if transition.terminated[0] or transition.truncated[0]:
-            result = Outcome(int(transition.outcome[0]))
-            break
-    return EpisodeRecord(
-        config=config,
-        poses=np.array(poses, dtype=np.float64),
-        obstacle_xy=np.array(obstacles, dtype=np.float64).reshape(len(poses), -1, 2),
-        target_xy=np.array(state.target_xy[0], dtype=np.float64),
-        scans=None if config.lidar is None else np.array(scans, dtype=np.float32),
-        actions=np.array(actions, dtype=np.int64),
-        outcome=result,
-        rewards=np.array(rewards, dtype=np.float64),
-    )
+            return recorder.record(config)
 
 
 def draw_png(record: EpisodeRecord, path: Path, rays: bool = False) -> Path:
@@ -221,6 +243,33 @@ def render_episode(
     png = draw_png(record, out_dir / f"{stem}.png", rays=rays)
     gif = draw_gif(record, out_dir / f"{stem}.gif", rays=rays)
     return png, gif
+
+
+class EpisodeCanvas:
+    """Pictures of an episode still under way, one per call (gymnasium's `render`).
+
+    The figure is laid out once per episode (`restart`), and each call draws the last step of the
+    record it is given by blitting, so a picture every step costs milliseconds, not a new figure.
+    """
+
+    def __init__(self, rays: bool = True, dpi: int = GIF_DPI) -> None:
+        _require_viz()
+        self.rays = rays
+        self.dpi = dpi
+        self._scene: _Scene | None = None
+
+    def restart(self) -> None:
+        """The next record drawn is of a new episode."""
+        self._scene = None
+
+    def draw(self, record: EpisodeRecord) -> NDArray[np.uint8]:
+        """The picture (H, W, 3) of the record's last step; the record extends the one before
+        it since `restart` (same start, target and obstacles)."""
+        if self._scene is None:
+            self._scene = _Scene(record, rays=self.rays, dpi=self.dpi)
+        else:
+            self._scene.record = record
+        return np.asarray(self._scene.frame(record.steps), dtype=np.uint8)
 
 
 def _require_viz() -> None:
@@ -422,7 +471,10 @@ class _Scene:
         if self.rays:
             self._show_rays(t)
 
-        label = record.outcome_label if t == record.steps else "running"
+        # A record of an episode still under way (gymnasium's render) ends neither at the target,
+        # in a collision nor at the step limit: its last step is "running", not "unfinished".
+        ended = record.outcome != Outcome.RUNNING or record.steps >= config.max_episode_steps
+        label = record.outcome_label if t == record.steps and ended else "running"
         self.title.set_text(f"{config.name}: {label}, step {t} of {record.steps}")
 
     def _show_trails(self, t: int) -> None:

@@ -6,35 +6,13 @@ poses and clearances, without a live environment, so both sides share one defini
 
 from __future__ import annotations
 
-from enum import IntEnum
-
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import Outcome, outcome
 from sim.config import RewardConfig
 
 F64 = NDArray[np.float64]
-
-
-class Outcome(IntEnum):
-    """How a step left the episode."""
-
-    RUNNING = 0
-    SUCCESS = 1
-    COLLISION = 2
-
-
-def outcome(distance_to_target_m: F64, clearance_m: F64, robot_radius_m: float) -> NDArray[np.int8]:
-    """SUCCESS within l of the target, else COLLISION within l of a surface, else RUNNING.
-
-    Reaching the target is checked first: a robot that touches the target and a wall in the same
-    step has reached the target.
-    """
-    success = distance_to_target_m < robot_radius_m
-    collision = ~success & (clearance_m < robot_radius_m)
-    return np.where(
-        success, Outcome.SUCCESS, np.where(collision, Outcome.COLLISION, Outcome.RUNNING)
-    ).astype(np.int8)
 
 
 def reward(

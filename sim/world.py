@@ -14,12 +14,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from contracts.errors import ConfigError
+from contracts.motion import Outcome, move_obstacles, outcome, step_robot
 from contracts.observation import target_features
 from sim import rng
-from sim.config import IncrementDynamics, WorldConfig
-from sim.dynamics import move_obstacles, step_increment, step_inertia
+from sim.config import WorldConfig
 from sim.geometry import cast_lidar, clearance
-from sim.task import Outcome, outcome, reward
+from sim.task import reward
 
 F64 = NDArray[np.float64]
 
@@ -173,12 +173,9 @@ def step(
 ) -> tuple[WorldState, Observation, Transition]:
     """Apply one action per world for one control period."""
     action = np.asarray(action)
-    if isinstance(config.dynamics, IncrementDynamics):
-        pose, velocity = step_increment(state.pose, state.velocity, action, config.dynamics)
-    else:
-        pose, velocity = step_inertia(
-            state.pose, state.velocity, action, config.dynamics, config.control_period_s
-        )
+    pose, velocity = step_robot(
+        state.pose, state.velocity, action, config.dynamics, config.control_period_s
+    )
     obstacle_xy, obstacle_velocity = move_obstacles(
         state.obstacle_xy,
         state.obstacle_velocity,

@@ -43,13 +43,20 @@ from numpy.typing import NDArray
 
 from contracts import wire
 from contracts.errors import ConfigError
+from contracts.motion import (
+    IncrementDynamics,
+    InertiaDynamics,
+    Outcome,
+    action_velocities,
+    move_obstacles,
+    outcome,
+)
 from contracts.settings import check_range
 from contracts.transport import ZenohSettings, open_session
-from sim.config import IncrementDynamics, InertiaDynamics, WorldConfig
-from sim.dynamics import action_velocities, move_obstacles
+from sim.config import WorldConfig
 from sim.evaluate import EvalSettings
 from sim.render import EpisodeRecord
-from sim.task import Outcome, outcome, reward
+from sim.task import reward
 from sim.world import WorldState, observe, reset
 from simcar.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
 from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
@@ -193,6 +200,12 @@ COMMAND_MATCH = 0.01
 the bridge's RC overrides are quantised to 1 us of PWM, 0.0025 of full travel)."""
 
 
+LOCKSTEP_EPISODE_S = 1000.0
+"""In lockstep, poses and scans are stamped with the simulator's clock, which the world's steps
+advance (not the wall clock, which the waits for commands stretch): episode i starts at
+(i + 1) * this many seconds, so stamps stay unique, and the controller's obstacle tracker sees
+the periods the world really took."""
+
 LOCKSTEP_INCREMENT_TIME_CONSTANT_S = 1e-6
 """The car's lag in increment worlds in lockstep: a period's move falls short of the increment
 by the change of velocity times this (a micrometre)."""
@@ -285,6 +298,7 @@ class SimCar:
         self.episodes: list[EpisodeLog] = []
         self._velocities = np.array(action_velocities(world.dynamics, world.control_period_s))
         self._last_command: wire.Twist2D | None = None
+        self._episode_start_s = 0.0
         self._command_arrival_s = -math.inf
         self._decisions: deque[Decision] = deque(maxlen=32)
         """The newest decisions the controller's status reported (under `_decided`)."""
@@ -371,6 +385,7 @@ class SimCar:
     ) -> EpisodeLog | None:
         world, settings = self.world, self.settings
         state = reset(world, np.array([settings.seed]), np.array([index]))
+        self._episode_start_s = (index + 1) * LOCKSTEP_EPISODE_S
         self._wait_for_rest(index)
         self.vehicle.set_pose(*state.pose[0])
         entry = EpisodeLog(index, "unfinished", 0, target=state.target_xy[0].tolist())
@@ -507,9 +522,12 @@ class SimCar:
         with_scan: bool = True,
         observation_scan: NDArray[np.float32] | None = None,
     ) -> float:
-        """Publish the pose (and the target) and the scan, stamped alike; returns the stamp."""
+        """Publish the pose (and the target) and the scan, stamped alike; returns the stamp: the
+        wall clock, or in lockstep the simulator's clock (`LOCKSTEP_EPISODE_S`)."""
         settings = self.settings
         stamp = time.time()
+        if settings.lockstep:
+            stamp = self._episode_start_s + float(state.steps[0]) * self.world.control_period_s
         x, y, yaw = state.pose[0]
         if target:
             tx, ty = state.target_xy[0]

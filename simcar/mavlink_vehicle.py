@@ -70,9 +70,8 @@ from contracts.mavlink import (
     open_connection,
     wrap_pi,
 )
+from contracts.motion import InertiaDynamics, step_velocity_lag
 from contracts.settings import check_range, from_dict, load_toml, parse_assignments, with_overrides
-from sim.config import InertiaDynamics
-from sim.dynamics import step_velocity_lag
 
 log = logging.getLogger("simcar.mavlink_vehicle")
 

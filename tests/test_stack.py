@@ -21,11 +21,11 @@ import numpy as np
 import pytest
 
 from contracts import wire
+from contracts.motion import move_obstacles
 from controller.decision import Controller, Input
 from controller.policy import PolicyRuntime
 from qnav.stack import episode_health
 from sim.config import scenario
-from sim.dynamics import move_obstacles
 from sim.evaluate import EvalResult, EvalSettings, StreamPolicyAgent, evaluate
 from sim.world import observe, reset
 from simcar.car import EpisodeLog, decision_of, note_decision, scan_message, write_log
@@ -116,6 +116,33 @@ def test_among_moving_obstacles_the_full_stack_scores_within_five_hundredths_of_
     # docs/deploy.md).
 
 
+@pytest.mark.stack
+@pytest.mark.timeout(1500)
+def test_with_the_look_ahead_the_full_stack_dodges_as_the_shield_does_in_process(
+    tmp_path: Path,
+) -> None:
+    # The controller daemon runs the tracker and the forecast on the wire's scans and poses
+    # (lookahead.mode = "shield"); in process, `qnav eval --lookahead shield` runs the same look
+    # ahead per world.
+    done = subprocess.run(
+        [sys.executable, "-m", "qnav", "stack", "--policy", str(OBSTACLES_POLICY), "--episodes",
+         str(EPISODES), "--out", str(tmp_path / "stack"), "--json", "--no-record",
+         "--lookahead", "shield"],
+        capture_output=True, text=True, timeout=1440, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    stack = json.loads(done.stdout.strip().splitlines()[-1])
+    print(
+        f"shielded: stack {stack['success']:.3f}, in process {stack['in_process']['success']:.3f}"
+        f"; episode by episode: {stack['agreement']}"
+    )
+    assert stack["episodes"] == EPISODES and stack["timing"] == "lockstep"
+    assert abs(stack["gap"]) <= 0.05
+    # Alone this policy reaches 0.500 on these episodes (the test above); shielded, it must
+    # succeed in clearly more of them, not one or two by luck.
+    assert stack["success"] * EPISODES >= 0.5 * EPISODES + 8
+
+
 def test_the_stack_on_sitl_needs_a_binary_and_a_loopback_only_namespace(tmp_path: Path) -> None:
     # SITL serves unauthenticated TCP ports: `qnav stack --vehicle sitl` starts it only where
     # loopback is the only interface (make stack-sitl). Both refusals name what to do.
@@ -182,8 +209,12 @@ def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None
     # A command held for one period moves the lockstep car by the increment itself, whatever
     # the action before (a lag of its own made each change of action fall 5-10 % short, and a
     # walls-increment episode flip-flop left and right to 500 steps).
-    from sim.config import IncrementDynamics
-    from sim.dynamics import action_velocities, step_increment, step_velocity_lag
+    from contracts.motion import (
+        IncrementDynamics,
+        action_velocities,
+        step_increment,
+        step_velocity_lag,
+    )
     from simcar.car import SimCarSettings, vehicle_dynamics
 
     world = scenario("walls-increment")

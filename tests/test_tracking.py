@@ -7,13 +7,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from contracts.actions import NUM_ACTIONS
+from contracts.lookahead import shielded_actions
+from controller.lookahead import LookaheadSettings
 from controller.perception import TrackerSettings
 from qnav.tracking import (
-    ShieldedAgent,
+    LookaheadAgent,
     TrackerCheckSettings,
     measure_tracker,
     run_perceiving_oracle,
-    shielded_actions,
 )
 from sim.config import SCENARIOS
 from sim.evaluate import EvalSettings, GoToTargetAgent, evaluate, go_to_target
@@ -59,8 +60,13 @@ def test_the_shield_turns_the_blind_controller_into_one_that_dodges() -> None:
     episodes = 32
     settings = EvalSettings(episodes=episodes, num_worlds=episodes, seed=77, max_episode_steps=100)
     blind = evaluate(INERTIA, GoToTargetAgent(), settings)
-    shield = ShieldedAgent(
-        _GoToTargetValues(episodes), INERTIA, episodes, tracker=TrackerSettings(), seed=77
+    shield = LookaheadAgent(
+        _GoToTargetValues(episodes),
+        INERTIA,
+        episodes,
+        tracker=TrackerSettings(),
+        lookahead=LookaheadSettings(mode="shield"),
+        seed=77,
     )
     shielded = evaluate(INERTIA, shield, settings)
     # The blind controller collides in about a third of the episodes (0.656 success over 2000;
@@ -79,11 +85,20 @@ def test_the_planner_on_tracks_succeeds_where_the_blind_controller_collides() ->
 
 def test_eval_rejects_a_shield_without_a_policy_naming_the_option() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "qnav", "eval", "--scenario", "obstacles-inertia", "--shield"],
+        [
+            sys.executable,
+            "-m",
+            "qnav",
+            "eval",
+            "--scenario",
+            "obstacles-inertia",
+            "--lookahead",
+            "shield",
+        ],
         capture_output=True,
         text=True,
         timeout=120,
         check=False,
     )
     assert result.returncode != 0
-    assert "--shield" in result.stderr
+    assert "--lookahead" in result.stderr

@@ -7,9 +7,9 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from contracts.motion import Outcome
 from sim.config import WorldConfig
 from sim.evaluate import Agent
-from sim.task import Outcome
 from sim.world import WorldState, observe, reset, step
 from training.replay import Episode
 

@@ -25,6 +25,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, replace
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
@@ -32,6 +33,7 @@ import torch
 from numpy.typing import NDArray
 
 from contracts.errors import PolicyFileError
+from contracts.motion import action_velocities
 from contracts.observation import distance_scale_m
 from contracts.policy_file import (
     FRAME_INPUT,
@@ -45,7 +47,6 @@ from contracts.policy_file import (
     PolicyContract,
 )
 from sim.config import WorldConfig
-from sim.dynamics import action_velocities
 from sim.evaluate import EvalResult, StreamPolicy
 from training.networks import QNetwork, StreamingQNetwork
 from training.quantize import quantize_int8
@@ -82,7 +83,13 @@ def policy_contract(
         state_slots=streaming.state_slots,
         state_size=streaming.state_size,
         weight_type=weight_type,
+        motion=motion_of(world),
     )
+
+
+def motion_of(world: WorldConfig) -> dict[str, Any]:
+    """The contract's `motion` entry for a policy trained in `world`."""
+    return {"dynamics": asdict(world.dynamics), "robot_radius_m": world.robot_radius_m}
 
 
 def export_onnx(
@@ -392,6 +399,8 @@ def reexport_file(
     contract = source_contract
     if weight_type is not None and weight_type != source_contract.weight_type:
         contract = replace(source_contract, weight_type=weight_type, evaluation={})
+    if not contract.motion:  # a file from before the entry: its scenario's default world
+        contract = replace(contract, motion=motion_of(scenario(contract.scenario)))
     note = {
         "file": str(source),
         "format": found,

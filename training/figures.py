@@ -12,9 +12,9 @@ import torch
 from numpy.typing import NDArray
 
 from contracts.actions import Action
+from contracts.motion import Outcome
 from contracts.observation import distance_scale_m
 from sim.config import WorldConfig
-from sim.task import Outcome
 from sim.world import observe, reset, step
 from training.agent import observation_frames
 from training.networks import QNetwork

@@ -31,13 +31,13 @@ from torch import nn
 from torch.nn import functional
 from tqdm import tqdm
 
+from contracts.motion import Outcome
 from contracts.observation import TARGET_FEATURES
 from contracts.policy_file import CONV_CHANNELS, CONV_STRIDE
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
 from sim.oracle import OracleDriver
-from sim.task import Outcome
 from training.collect import collect_round
 from training.networks import ModelKind, QNetwork
 from training.replay import Episode, EpisodeReplay

@@ -26,11 +26,11 @@ from torch import nn
 from tqdm import tqdm
 
 from contracts.actions import NUM_ACTIONS
+from contracts.motion import Outcome
 from contracts.observation import TARGET_FEATURES
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
 from sim.oracle import OracleDriver
-from sim.task import Outcome
 from sim.world import Observation, WorldState
 from training.imitate import (
     AGREEMENT_PROBE,

@@ -18,11 +18,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from contracts.actions import Action
+from contracts.motion import Outcome, move_obstacles, outcome
 from contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
 from sim.config import WorldConfig
-from sim.dynamics import move_obstacles
 from sim.geometry import add_circles_to_scan, cast_lidar, clearance
-from sim.task import Outcome, outcome, reward
+from sim.task import reward
 from sim.world import obstacle_speeds, targets_around
 
 _LOCAL_CANDIDATES = 64

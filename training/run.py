@@ -33,13 +33,13 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from contracts.errors import ConfigError
+from contracts.motion import Outcome
 from contracts.observation import distance_scale_m, encode_scan
 from contracts.settings import from_dict, to_dict, to_toml
 from sim.config import WorldConfig
 from sim.decisive import DecisiveStates, GaugeSettings, cached, score
 from sim.evaluate import EvalResult, EvalSettings, evaluate
 from sim.oracle import OracleDriver
-from sim.task import Outcome
 from sim.world import observe, reset
 from training.agent import TorchAgent, greedy_actions
 from training.collect import collect_round

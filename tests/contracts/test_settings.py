@@ -4,13 +4,12 @@ from pathlib import Path
 import pytest
 
 from contracts.errors import ConfigError
+from contracts.motion import IncrementDynamics, InertiaDynamics
 from contracts.observation import LidarSpec
 from contracts.settings import field_docs, parse_assignments, to_toml, with_overrides
 from sim.config import (
     SCENARIOS,
     ArenaConfig,
-    IncrementDynamics,
-    InertiaDynamics,
     ObstacleConfig,
     RewardConfig,
     SpawnConfig,

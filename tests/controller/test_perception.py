@@ -98,6 +98,22 @@ def test_a_tracker_follows_a_crossing_cylinder_to_its_velocity() -> None:
     assert np.allclose(tracks.velocity_mps[0], velocity, atol=1e-3)
 
 
+def test_two_cylinders_side_by_side_are_two_detections_not_one() -> None:
+    # Touching in the scan (one run of neighbouring returns), they are cut where the two circle
+    # fits leave the least residual: each centre to a millimetre.
+    pose = np.array([5.0, 2.0, 0.0])
+    left, right = np.array([4.8, 5.0]), np.array([5.15, 5.25])  # the right one half behind
+    ranges = np.minimum(_scan_of(left, pose), _scan_of(right, pose))
+    tracker = ObstacleTracker(TrackerSettings(), box_walls(10.0), BEAMS)
+    points = scan_points(ranges, pose, BEAMS)
+    runs = clusters(points, off_the_walls(points, tracker.walls, 0.1), 0.3)
+    assert len(runs) == 1, "the two arcs make one run: the case to split"
+    found = tracker.detect(ranges, pose)
+    assert len(found) == 2
+    for centre in (left, right):
+        assert np.min(np.linalg.norm(found - centre, axis=1)) < 1e-3
+
+
 def test_a_lost_track_coasts_then_goes() -> None:
     settings = TrackerSettings(coast_frames=2)
     tracker = ObstacleTracker(settings, box_walls(10.0), BEAMS)

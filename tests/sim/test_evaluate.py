@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from contracts.actions import Action
+from contracts.motion import Outcome
 from sim.config import scenario
 from sim.evaluate import (
     EvalResult,
@@ -14,7 +15,6 @@ from sim.evaluate import (
     evaluate,
     go_to_target,
 )
-from sim.task import Outcome
 from sim.world import WorldState
 
 

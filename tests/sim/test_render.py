@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from contracts.motion import Outcome
 from sim.config import scenario
 from sim.evaluate import EvalSettings, RandomAgent, evaluate
 from sim.render import draw_gif, draw_png, record_episode, render_episode
-from sim.task import Outcome
 from sim.world import Observation
 
 pytest.importorskip("matplotlib")

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
+from contracts.motion import Outcome, outcome
 from sim.config import RewardConfig
-from sim.task import Outcome, outcome, reward
+from sim.task import reward
 
 L = 0.5
 

@@ -4,9 +4,10 @@ paper's best recurrent seed in both obstacle tables, so the paper's results are 
 
 import pytest
 
+from contracts.motion import IncrementDynamics, InertiaDynamics
 from sim import paper
 from sim.calibrate import calibrate
-from sim.config import IncrementDynamics, InertiaDynamics, scenario
+from sim.config import scenario
 
 
 @pytest.mark.slow

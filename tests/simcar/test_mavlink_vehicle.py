@@ -27,8 +27,8 @@ from contracts.mavlink import (
     TYPE_MASK_VELOCITY_YAW_RATE,
     open_connection,
 )
+from contracts.motion import step_velocity_lag
 from contracts.settings import with_overrides
-from sim.dynamics import step_velocity_lag
 from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 IGNORE = 65535

@@ -3,9 +3,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from contracts.motion import IncrementDynamics, step_increment
 from contracts.observation import encode_frame, encode_scan, target_features
-from sim.config import IncrementDynamics, Opening, WorldConfig, scenario
-from sim.dynamics import step_increment
+from sim.config import Opening, WorldConfig, scenario
 from sim.evaluate import RandomAgent
 from sim.geometry import cast_lidar, clearance
 from sim.world import observe, reset, step

@@ -4,8 +4,13 @@ import numpy as np
 import pytest
 
 from contracts.actions import Action
-from sim.config import IncrementDynamics, InertiaDynamics
-from sim.dynamics import move_obstacles, step_increment, step_inertia
+from contracts.motion import (
+    IncrementDynamics,
+    InertiaDynamics,
+    move_obstacles,
+    step_increment,
+    step_inertia,
+)
 
 START = np.array([[5.0, 5.0, 0.0]])
 REST = np.zeros((1, 2))

@@ -1,0 +1,198 @@
+"""A short look ahead: play candidate action sequences forward with the shared motion model and
+score them, knowing (or believing) where the obstacles are and how fast they move.
+
+The simulator's oracle planner (`sim.oracle`) runs it on the world's true state; the onboard
+controller (`controller.lookahead`) runs the same code on what its obstacle tracker perceives.
+Candidates are the structured sequences (one action held for a while, then another) plus random
+ones held three steps at a time, which each caller draws its own way.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts.actions import NUM_ACTIONS
+from contracts.motion import Dynamics, Outcome, clearance, move_obstacles, outcome, step_robot
+
+F64 = NDArray[np.float64]
+
+HOLDS = (1, 3, 6, 10)
+"""Steps the first action of a structured sequence is held before the second takes over."""
+RANDOM_HOLD_STEPS = 3
+"""Steps each action of a random candidate sequence is held."""
+
+
+class LookaheadModel(NamedTuple):
+    """What the look ahead knows of the world it forecasts."""
+
+    dynamics: Dynamics
+    """The robot's motion model (the training world's)."""
+    control_period_s: float
+    """Time each action of a sequence is held."""
+    robot_radius_m: float
+    """The paper's l: reaching within it of the target succeeds, of a surface collides."""
+    obstacle_radius_m: float
+    """Radius of the (cylindrical) obstacles."""
+    room_size_m: float
+    """Side of the square room [0, size]^2 the obstacles bounce around in."""
+    wall_start: F64
+    """(K, 2) start points of the solid wall segments."""
+    wall_end: F64
+    """(K, 2) end points of the solid wall segments."""
+
+
+class Situation(Protocol):
+    """The state a look ahead starts from, for N worlds (`sim.world.WorldState` is one)."""
+
+    @property
+    def pose(self) -> F64:
+        """(N, 3) x, y, heading."""
+
+    @property
+    def velocity(self) -> F64:
+        """(N, 2) forward speed and turn rate (zero under increment dynamics)."""
+
+    @property
+    def target_xy(self) -> F64:
+        """(N, 2) the target."""
+
+    @property
+    def obstacle_xy(self) -> F64:
+        """(N, M, 2) obstacle centres."""
+
+    @property
+    def obstacle_velocity(self) -> F64:
+        """(N, M, 2) obstacle velocities."""
+
+
+class Rollouts(NamedTuple):
+    """How each candidate sequence of each world played out."""
+
+    outcome: NDArray[np.int8]
+    """(N, S) SUCCESS, COLLISION, or RUNNING (neither within the horizon)."""
+    end_step: NDArray[np.int64]
+    """(N, S) the step (1-based) at which the sequence reached the target or collided; the
+    horizon where it did neither."""
+    score: NDArray[np.float64]
+    """(N, S) the planner's score: early success best, late collision better than early,
+    otherwise close to the target and clear of surfaces."""
+
+
+def structured_sequences(horizon: int) -> NDArray[np.int64]:
+    """(S, horizon) sequences: action a held, then action b, for every a, b and hold."""
+    structured = [
+        [a] * hold + [b] * (horizon - hold)
+        for a in range(NUM_ACTIONS)
+        for hold in (*HOLDS, horizon)
+        for b in range(NUM_ACTIONS)
+        if hold <= horizon
+    ]
+    return np.array(structured, dtype=np.int64)[:, :horizon]
+
+
+def held(blocks: NDArray[np.int64], horizon: int) -> NDArray[np.int64]:
+    """(..., horizon) sequences of the random actions `blocks` (..., B), each held
+    `RANDOM_HOLD_STEPS` steps."""
+    return blocks.repeat(RANDOM_HOLD_STEPS, axis=-1)[..., :horizon]
+
+
+def candidate_sequences(random_blocks: NDArray[np.int64], horizon: int) -> NDArray[np.int64]:
+    """(..., S, horizon): the structured sequences, then the random actions `random_blocks`
+    (..., R, B) held `RANDOM_HOLD_STEPS` steps each."""
+    shared = structured_sequences(horizon)
+    structured = np.broadcast_to(shared, (*random_blocks.shape[:-2], *shared.shape))
+    return np.concatenate([structured, held(random_blocks, horizon)], axis=-2)
+
+
+def random_blocks_needed(horizon: int) -> int:
+    """Random actions that fill a sequence of `horizon` steps, each held `RANDOM_HOLD_STEPS`."""
+    return -(-horizon // RANDOM_HOLD_STEPS)
+
+
+def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int64]) -> Rollouts:
+    """Play every candidate sequence, (S, H) shared by all worlds or (N, S, H) per world, from
+    each world of `state`, the obstacles moving straight on and bouncing off the room's walls."""
+    worlds = state.pose.shape[0]
+    if sequences.ndim == 2:
+        sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
+    candidates, horizon = sequences.shape[1:]
+    actions = sequences.reshape(worlds * candidates, horizon)  # world-major like the states
+    pose = np.repeat(state.pose, candidates, axis=0)
+    velocity = np.repeat(state.velocity, candidates, axis=0)
+    obstacles = np.repeat(state.obstacle_xy, candidates, axis=0)
+    obstacle_velocity = np.repeat(state.obstacle_velocity, candidates, axis=0)
+    target = np.repeat(state.target_xy, candidates, axis=0)
+    count = worlds * candidates
+    result = np.full(count, Outcome.RUNNING, dtype=np.int8)
+    end_step = np.full(count, horizon, dtype=np.int64)
+    score = np.zeros(count)
+    alive = np.ones(count, dtype=bool)
+    distance = gap = np.zeros(count)
+    for h in range(horizon):
+        pose, velocity = step_robot(
+            pose, velocity, actions[:, h], model.dynamics, model.control_period_s
+        )
+        obstacles, obstacle_velocity = move_obstacles(
+            obstacles,
+            obstacle_velocity,
+            model.obstacle_radius_m,
+            model.room_size_m,
+            model.control_period_s,
+        )
+        distance = np.linalg.norm(target - pose[:, :2], axis=1)
+        gap = clearance(
+            pose[:, :2], model.wall_start, model.wall_end, obstacles, model.obstacle_radius_m
+        )
+        now = outcome(distance, gap, model.robot_radius_m)
+        ended = alive & (now != Outcome.RUNNING)
+        result[ended] = now[ended]
+        end_step[ended] = h + 1
+        score[ended & (now == Outcome.SUCCESS)] = 1000.0 - h
+        score[ended & (now == Outcome.COLLISION)] = -1000.0 + h
+        alive &= ~ended
+    score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], 1.0)
+    shape = (worlds, candidates)
+    return Rollouts(result.reshape(shape), end_step.reshape(shape), score.reshape(shape))
+
+
+def best_first_actions(
+    model: LookaheadModel, state: Situation, sequences: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """(N,) the first action of the best-scoring candidate sequence, (S, H) shared or (N, S, H)
+    per world, for each world in `state`."""
+    worlds = state.pose.shape[0]
+    if sequences.ndim == 2:
+        sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
+    best = np.argmax(simulate(model, state, sequences).score, axis=1)
+    return np.asarray(sequences[np.arange(worlds), best, 0], dtype=np.int64)
+
+
+def collision_shares(
+    model: LookaheadModel, state: Situation, tails: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """(N, A): the share of the continuations `tails` (N, T, H-1) that collide within H steps
+    after taking each action first (1 where the action is doomed). The same continuations follow
+    every first action, so actions are judged alike."""
+    worlds, tail_count = tails.shape[:2]
+    first = np.repeat(np.arange(NUM_ACTIONS), tail_count)
+    sequences = np.concatenate(
+        [
+            np.broadcast_to(first[None, :, None], (worlds, first.size, 1)),
+            np.tile(tails, (1, NUM_ACTIONS, 1)),
+        ],
+        axis=2,
+    )
+    collided = simulate(model, state, sequences).outcome == Outcome.COLLISION
+    return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
+
+
+def shielded_actions(
+    q: NDArray[np.floating], collision_share: NDArray[np.floating], tolerance: float
+) -> NDArray[np.int64]:
+    """(N,) the highest-valued action among those whose share of colliding continuations is
+    within `tolerance` of the safest action's."""
+    allowed = collision_share <= collision_share.min(axis=1, keepdims=True) + tolerance
+    return np.asarray(np.where(allowed, q, -np.inf).argmax(axis=1), dtype=np.int64)

@@ -1,0 +1,224 @@
+"""The onboard look ahead: obstacles tracked in each scan, every action's risk forecast a few
+seconds ahead, and the policy overruled where its choice is riskier than another action.
+
+The paper's network does not perceive moving obstacles (docs/learner.md, "Why: perception and
+the doom function's appetite for data"); a tracker (`controller.perception`) and a short
+forecast with the training world's own motion model (`contracts.lookahead`, the same code the
+simulator's oracle plans with) do. Each decision:
+
+1. a new scan updates the obstacle tracks (room frame, from the motion-capture pose);
+2. the car's own speed and turn rate come from its poses at the last three decisions;
+3. every first action is followed by the same continuations (the structured ones and random ones
+   drawn from a seeded generator restarted with each episode) over `horizon_s`, and the share
+   of them that collide is that action's risk;
+4. the policy's best-valued action among the least risky is taken (`shielded_actions`);
+   or, in "plan" mode, the first action of the best-scoring candidate sequence (the simulator's
+   oracle planner, on the perceived state), whatever the policy's values.
+
+`Lookahead` holds one car's state; the controller (`controller.decision`) calls it, and the
+simulator's in-process evaluation runs the same class (`qnav.tracking.LookaheadAgent`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts.actions import NUM_ACTIONS
+from contracts.errors import ConfigError
+from contracts.lookahead import (
+    LookaheadModel,
+    best_first_actions,
+    candidate_sequences,
+    collision_shares,
+    random_blocks_needed,
+)
+from contracts.motion import Dynamics, InertiaDynamics
+from contracts.settings import check_range
+from controller.perception import ObstacleTracker, TrackerSettings, box_walls, own_velocity
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LookaheadSettings:
+    """Whether and how the controller forecasts each action's risk before acting."""
+
+    SECTION = "lookahead"
+
+    mode: Literal["off", "shield", "plan"] = "off"
+    """"off": the policy decides alone. "shield": the policy's best-valued action among the
+    least likely to collide (the forecast overrules it only there). "plan": the first action of
+    the best-scoring candidate sequence (reach the target early, collide late or never, else end
+    near the target and clear of surfaces), the policy's values reported but not used."""
+    room_size_m: float = 10.0
+    """Side of the square room [0, size]^2 in the motion-capture frame: its walls are known (a
+    lidar return on them is not an obstacle, and obstacles bounce off them)."""
+    horizon_s: float = 4.0
+    """How far ahead each action is forecast."""
+    random_sequences: int = 64
+    """Random continuations tried after each first action, beside the structured ones."""
+    tolerance: float = 0.0
+    """Actions whose share of colliding continuations is within this of the safest action's
+    count as safe too (the policy picks among them)."""
+    seed: int = 0
+    """Seed of the random continuations (the generator restarts with every episode)."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("off", "shield", "plan"):
+            raise ConfigError(f"lookahead.mode = {self.mode!r}: choose off, shield or plan")
+        check_range(self, "room_size_m", self.room_size_m, 0.0, 1000.0, exclusive_low=True)
+        check_range(self, "horizon_s", self.horizon_s, 0.0, 60.0, exclusive_low=True)
+        check_range(self, "random_sequences", self.random_sequences, 0, 100_000)
+        check_range(self, "tolerance", self.tolerance, 0.0, 1.0)
+
+
+FAR_AWAY_M = 1e4
+"""Where a padding obstacle is put when beliefs with different numbers of tracks are stacked:
+out of every rollout's reach."""
+
+
+class Belief(NamedTuple):
+    """What the car believes of its world now: one world of a `contracts.lookahead.Situation`."""
+
+    pose: F64
+    """(1, 3) x, y, heading (motion capture)."""
+    velocity: F64
+    """(1, 2) forward speed and turn rate, from the last poses (zero under increments)."""
+    target_xy: F64
+    """(1, 2) the target."""
+    obstacle_xy: F64
+    """(1, M, 2) the tracked obstacles' centres."""
+    obstacle_velocity: F64
+    """(1, M, 2) their velocities."""
+
+
+class Lookahead:
+    """One car's tracker, pose history and forecast (module docstring: the steps)."""
+
+    def __init__(
+        self,
+        settings: LookaheadSettings,
+        tracker: TrackerSettings,
+        *,
+        dynamics: Dynamics,
+        robot_radius_m: float,
+        control_period_s: float,
+        beam_angles_rad: F64,
+    ) -> None:
+        self.settings = settings
+        self.tracker_settings = tracker
+        walls = box_walls(settings.room_size_m)
+        self.walls = walls
+        self.model = LookaheadModel(
+            dynamics=dynamics,
+            control_period_s=control_period_s,
+            robot_radius_m=robot_radius_m,
+            obstacle_radius_m=tracker.obstacle_radius_m,
+            room_size_m=settings.room_size_m,
+            wall_start=walls[:, :2],
+            wall_end=walls[:, 2:],
+        )
+        self.beam_angles_rad = beam_angles_rad
+        self.horizon = max(1, round(settings.horizon_s / control_period_s))
+        self.restart()
+
+    def restart(self) -> None:
+        """Forget the tracks and poses and restart the continuations' generator: a new episode."""
+        self.tracker = ObstacleTracker(self.tracker_settings, self.walls, self.beam_angles_rad)
+        self._random = np.random.default_rng(self.settings.seed)
+        self._poses: list[F64] = []
+        self._pose_times_s: list[float] = []
+        self._scan_time_s: float | None = None
+
+    def observe(
+        self, pose_time_s: float, pose: F64, scan_time_s: float, scan_m: NDArray[np.floating]
+    ) -> None:
+        """Take in the newest pose (x, y, heading) and scan (ranges along `beam_angles_rad`)
+        at a decision, with the times they were taken: a scan already tracked is not tracked
+        again, and a pose no newer than the last is not kept."""
+        if scan_time_s != self._scan_time_s:
+            self.tracker.update(scan_time_s, scan_m, pose)
+            self._scan_time_s = scan_time_s
+        if not self._pose_times_s or pose_time_s > self._pose_times_s[-1]:
+            self._poses = [*self._poses[-2:], np.asarray(pose, dtype=np.float64)]
+            self._pose_times_s = [*self._pose_times_s[-2:], pose_time_s]
+
+    def belief(self, target_xy: F64) -> Belief:
+        """The state the forecast starts from (after at least one `observe`)."""
+        tracks = self.tracker.tracks()
+        velocity = np.zeros(2)
+        if isinstance(self.model.dynamics, InertiaDynamics):
+            velocity = own_velocity(np.array(self._poses), np.diff(self._pose_times_s))
+        return Belief(
+            pose=self._poses[-1][None],
+            velocity=velocity[None],
+            target_xy=np.asarray(target_xy, dtype=np.float64).reshape(1, 2),
+            obstacle_xy=tracks.xy_m[None],
+            obstacle_velocity=tracks.velocity_mps[None],
+        )
+
+    def candidates(self) -> NDArray[np.int64]:
+        """(1, S, H) this decision's candidate sequences: the structured ones and
+        `random_sequences` fresh random ones."""
+        size = (1, self.settings.random_sequences, random_blocks_needed(self.horizon))
+        random = self._random.integers(0, NUM_ACTIONS, size=size)
+        return candidate_sequences(random, self.horizon)
+
+    def continuations(self) -> NDArray[np.int64]:
+        """(1, T, H - 1) the continuations that follow every first action this decision."""
+        return self.candidates()[:, :, : self.horizon - 1]
+
+    def plan(self, target_xy: F64) -> int:
+        """The first action of the best-scoring candidate sequence over the horizon."""
+        return int(plans_of([self], [target_xy])[0])
+
+    def risks(self, target_xy: F64) -> F64:
+        """(A,) each first action's share of colliding continuations within the horizon."""
+        return np.asarray(risks_of([self], [target_xy])[0])
+
+
+def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
+    """(N, A) `Lookahead.risks` of several cars at once (one forecast over all of them; their
+    models must be alike): each draws its own continuations, as it would alone."""
+    if not lookaheads:
+        return np.zeros((0, NUM_ACTIONS))
+    beliefs = [car.belief(target) for car, target in zip(lookaheads, targets_xy, strict=True)]
+    tails = np.concatenate([car.continuations() for car in lookaheads])
+    return collision_shares(lookaheads[0].model, stacked(beliefs), tails)
+
+
+def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:
+    """(N,) `Lookahead.plan` of several cars at once (their models must be alike)."""
+    if not lookaheads:
+        return np.zeros(0, dtype=np.int64)
+    beliefs = [car.belief(target) for car, target in zip(lookaheads, targets_xy, strict=True)]
+    sequences = np.concatenate([car.candidates() for car in lookaheads])
+    return best_first_actions(lookaheads[0].model, stacked(beliefs), sequences)
+
+
+def stacked(beliefs: list[Belief]) -> Belief:
+    """Several cars' beliefs as one state of N worlds, the obstacles padded far away."""
+    most = max(b.obstacle_xy.shape[1] for b in beliefs)
+
+    def padded(values: F64, fill: float) -> F64:
+        pad = np.full((1, most - values.shape[1], 2), fill)
+        return np.concatenate([values, pad], axis=1)
+
+    return Belief(
+        pose=np.concatenate([b.pose for b in beliefs]),
+        velocity=np.concatenate([b.velocity for b in beliefs]),
+        target_xy=np.concatenate([b.target_xy for b in beliefs]),
+        obstacle_xy=np.concatenate([padded(b.obstacle_xy, FAR_AWAY_M) for b in beliefs]),
+        obstacle_velocity=np.concatenate([padded(b.obstacle_velocity, 0.0) for b in beliefs]),
+    )
+
+
+def beam_angles(num_beams: int) -> F64:
+    """(B,) the policy's beam angles: beam i at i * 2 pi / B from the heading, counter-clockwise
+    (`contracts.policy_file.BEAM_CONVENTION`)."""
+    return np.arange(num_beams, dtype=np.float64) * (2 * math.pi / num_beams)

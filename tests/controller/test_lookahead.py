@@ -1,0 +1,133 @@
+"""The onboard look ahead: its belief is the simulator's truth where the lidar is exact, and the
+controller runs it on every decision as the in-process shield does."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from contracts import wire
+from contracts.errors import PolicyFileError
+from contracts.lookahead import collision_shares
+from controller.decision import Controller, Input, Reason
+from controller.lookahead import Lookahead, LookaheadSettings, beam_angles
+from controller.perception import TrackerSettings
+from controller.policy import PolicyRuntime
+from sim.config import scenario
+from sim.evaluate import EvalSettings, StreamPolicyAgent
+from sim.oracle import lookahead_model
+from sim.world import observe, reset, step
+from simcar.car import scan_message
+
+DATA = Path(__file__).parents[1] / "data" / "stack"
+OBSTACLES_POLICY = DATA / "obstacles-inertia.onnx"
+WALLS_POLICY = DATA / "policy.onnx"
+
+
+def _car(world_name: str) -> Lookahead:
+    world = scenario(world_name)
+    assert world.lidar is not None
+    return Lookahead(
+        replace(LookaheadSettings(), mode="shield", room_size_m=world.arena.size_m),
+        TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
+        dynamics=world.dynamics,
+        robot_radius_m=world.robot_radius_m,
+        control_period_s=world.control_period_s,
+        beam_angles_rad=beam_angles(world.lidar.num_beams),
+    )
+
+
+@pytest.mark.parametrize("world_name", ["obstacles-increment", "obstacles-inertia"])
+def test_with_an_exact_lidar_the_belief_is_the_truth_and_so_are_the_risks(world_name: str) -> None:
+    world = scenario(world_name)
+    car = _car(world_name)
+    state = reset(world, np.array([5]), np.array([3]))
+    rng = np.random.default_rng(0)
+    period = world.control_period_s
+    for frame in range(8):
+        scan = observe(world, state).scan_m
+        assert scan is not None
+        car.observe(frame * period, state.pose[0], frame * period, scan[0])
+        if frame >= 3:
+            belief = car.belief(state.target_xy[0])
+            # Every obstacle the lidar sees is tracked where it is, at its velocity.
+            seen = np.linalg.norm(state.obstacle_xy[0] - state.pose[0, :2], axis=1) < 6.0
+            for xy, velocity in zip(
+                state.obstacle_xy[0][seen], state.obstacle_velocity[0][seen], strict=True
+            ):
+                nearest = np.argmin(np.linalg.norm(belief.obstacle_xy[0] - xy, axis=1))
+                np.testing.assert_allclose(belief.obstacle_xy[0, nearest], xy, atol=1e-6)
+                np.testing.assert_allclose(
+                    belief.obstacle_velocity[0, nearest], velocity, atol=1e-6
+                )
+            # Its own velocity: exact under increments (none); under inertia, from poses, close
+            # once an action has been held (the estimate lags a change of action).
+            if frame % 4 == 3:
+                np.testing.assert_allclose(belief.velocity[0], state.velocity[0], atol=0.03)
+            if world_name == "obstacles-increment":
+                tails = rng.integers(0, 3, size=(1, 40, 7))
+                model = lookahead_model(world)
+                truth = collision_shares(model, state, tails)
+                np.testing.assert_array_equal(collision_shares(car.model, belief, tails), truth)
+        state, _, _ = step(world, state, np.array([frame // 4 % 2]))  # forward, then left
+
+
+def test_the_shield_refuses_a_policy_file_without_a_motion_model_naming_the_fix() -> None:
+    runtime = PolicyRuntime(WALLS_POLICY)
+    assert not runtime.contract.motion
+    with pytest.raises(PolicyFileError, match="qnav export"):
+        Controller(runtime, lookahead=LookaheadSettings(mode="shield"))
+    Controller(runtime)  # without the shield the file runs as before
+
+
+def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes() -> None:
+    # The daemon's decision step, fed the simulator's own messages stamped with its clock, and
+    # `qnav eval --lookahead shield` on one stream: the same look ahead, the same actions, step
+    # by step.
+    from qnav.tracking import LookaheadAgent
+
+    world = scenario("obstacles-inertia")
+    assert world.lidar is not None
+    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
+    period, test = world.control_period_s, EvalSettings()
+    overruled = 0
+    for episode in (0, 1, 2):
+        controller = Controller(
+            PolicyRuntime(OBSTACLES_POLICY), lookahead=settings, tracker=TrackerSettings()
+        )
+        agent = LookaheadAgent(
+            StreamPolicyAgent(PolicyRuntime(OBSTACLES_POLICY), 1),
+            world,
+            1,
+            tracker=TrackerSettings(),
+            lookahead=settings,
+        )
+        agent.start(np.arange(1), np.array([episode]))
+        state = reset(world, np.array([test.seed]), np.array([episode]))
+        observation = observe(world, state)
+        tx, ty = state.target_xy[0]
+        for k in range(60):
+            now = k * period
+            (x, y, yaw), scan = state.pose[0], observation.scan_m
+            assert scan is not None
+            target = wire.Pose2D(now, "map", tx, ty)
+            controller.receive(Input.TARGET, wire.encode_pose_msg(target), now)
+            pose = wire.Pose2D(now, "map", x, y, yaw)
+            controller.receive(Input.POSE, wire.encode_pose_msg(pose), now)
+            message = scan_message(scan[0], now, "laser", world.lidar.max_range_m)
+            controller.receive(Input.SCAN, message, now)
+            status = controller.decide(now).status
+            expected = agent.act(observation)
+            if status.reason != Reason.POLICY:
+                break
+            assert status.action == int(expected[0]), (episode, k, status.risks)
+            assert status.risks is not None and len(status.risks) == 3
+            state, observation, transition = step(world, state, expected)
+            if transition.terminated[0]:
+                break
+        overruled += controller.counters.overruled
+        assert controller.counters.overruled == agent.overruled
+    assert overruled > 0, "the look ahead overruled nothing: these episodes test no shield"
