@@ -13,7 +13,8 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from types import FrameType
+from types import FrameType, TracebackType
+from typing import Self
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 """The signals that end a daemon in order (its stops sent, its session closed)."""
@@ -54,6 +55,31 @@ class RateLimitedLog:
         suffix = f" ({held} more since the last warning)" if held else ""
         self.logger.warning("%s%s", message, suffix)
         return True
+
+
+class Service:
+    """Something started and closed (a daemon, a test vehicle): `start()` it and `close()` it,
+    or use it as `with Thing(...) as thing:`."""
+
+    def start(self) -> None:
+        """Start working (threads, connections)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Stop working and release what `start` took."""
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        trace: TracebackType | None,
+    ) -> None:
+        self.close()
 
 
 @contextmanager

@@ -26,10 +26,9 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from types import TracebackType
 from typing import Any
 
-from contracts.daemon import RateLimitedLog, stop_on_signals
+from contracts.daemon import RateLimitedLog, Service, stop_on_signals
 from contracts.errors import ConfigError
 from contracts.health import Heartbeat
 from contracts.mavlink import key_file_is_private, load_signing_key
@@ -63,7 +62,7 @@ LOOP_MAX_WAIT_S = 0.1
 """The bridge thread looks at its clocks at least this often (requests from zenoh wait for it)."""
 
 
-class Bridge:
+class Bridge(Service):
     """zenoh to MAVLink with a failsafe; `start()` it, `close()` it (or use `with`).
 
     `journal`, if given, is told every call into the core with its inputs, the actions and
@@ -212,18 +211,6 @@ class Bridge:
         self.link.close()
         self._heartbeat.close()
         log.info("bridge closed")
-
-    def __enter__(self) -> Bridge:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        trace: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- carrying out the core's decisions ----------------------------------------------------
 

@@ -21,9 +21,9 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any
 
+from contracts.daemon import Service
 from contracts.mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     drain,
@@ -76,7 +76,7 @@ def apply_frame(
     return c * x - s * y + tx, s * x + c * y + ty, wrap_pi(yaw + math.atan2(s, c))
 
 
-class FirmwareVehicle:
+class FirmwareVehicle(Service):
     """The autopilot's pose, armed flag and mode, read on a MAVLink link of its own."""
 
     def __init__(self, settings: FirmwareVehicleSettings) -> None:
@@ -93,18 +93,6 @@ class FirmwareVehicle:
         """LOCAL_POSITION_NED messages received."""
         self._conn: Any = None
         self._thread: threading.Thread | None = None
-
-    def __enter__(self) -> FirmwareVehicle:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def start(self, timeout_s: float = 30.0) -> None:
         """Connect (retrying while the autopilot's port is not open yet) and start reading."""

@@ -38,12 +38,11 @@ from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from contracts.daemon import stop_on_signals
+from contracts.daemon import Service, stop_on_signals
 from contracts.errors import ConfigError
 from contracts.mavlink import (
     GCS_SYSTEM_ID,
@@ -198,7 +197,7 @@ def pwm_to_fraction(
     return max(-1.0, (pwm_us - trim_us) / (trim_us - low_us))
 
 
-class MavlinkVehicle:
+class MavlinkVehicle(Service):
     """The car: `start()` runs its loop in a thread, `stop()` ends it; `pose()` reads it."""
 
     def __init__(
@@ -249,8 +248,8 @@ class MavlinkVehicle:
         self._thread = threading.Thread(target=self._loop, name="mavlink-vehicle", daemon=True)
         self._thread.start()
 
-    def stop(self) -> None:
-        """Stop the thread and close the connection."""
+    def close(self) -> None:
+        """Stop the thread and close the connection (also `stop()`)."""
         self._stopping.set()
         if self._thread is not None:
             self._thread.join()
@@ -259,17 +258,7 @@ class MavlinkVehicle:
             self._conn.close()
             self._conn = None
 
-    def __enter__(self) -> MavlinkVehicle:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        trace: TracebackType | None,
-    ) -> None:
-        self.stop()
+    stop = close
 
     # -- what tests and other processes read --------------------------------------------------
 

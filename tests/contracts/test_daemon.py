@@ -10,7 +10,7 @@ import threading
 
 import pytest
 
-from contracts.daemon import RateLimitedLog, free_port, stop_on_signals
+from contracts.daemon import RateLimitedLog, Service, free_port, stop_on_signals
 
 
 def test_malformed_input_warnings_are_logged_at_a_bounded_rate(
@@ -61,3 +61,19 @@ def test_a_free_port_can_be_bound_for_tcp_and_udp() -> None:
         with socket.socket(socket.AF_INET, kind) as sock:
             sock.bind(("127.0.0.1", port))
             assert sock.getsockname()[1] == port
+
+
+def test_a_service_in_a_with_block_is_started_and_closed_even_on_an_error() -> None:
+    calls: list[str] = []
+
+    class Thing(Service):
+        def start(self) -> None:
+            calls.append("start")
+
+        def close(self) -> None:
+            calls.append("close")
+
+    with pytest.raises(RuntimeError), Thing() as thing:
+        assert isinstance(thing, Thing) and calls == ["start"]
+        raise RuntimeError("inside")
+    assert calls == ["start", "close"]
