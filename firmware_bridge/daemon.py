@@ -66,7 +66,7 @@ class Bridge(Service):
     """zenoh to MAVLink with a failsafe; `start()` it, `close()` it (or use `with`).
 
     `journal`, if given, is told every call into the core with its inputs, the actions and
-    whether each send went out (`firmware_bridge.playback.Journal` records them to replay)."""
+    whether each send went out (`firmware_bridge.playback.Recorder` writes them down to replay)."""
 
     def __init__(
         self,
