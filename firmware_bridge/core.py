@@ -153,7 +153,7 @@ class BridgeCore:
         self._next_state_s = -math.inf
         self._next_reconnect_s = -math.inf
         self._state_dirty = True
-        # The exit sequence (`shutdown`, then `exit_step` until it returns None).
+        # The exit sequence (`shutdown`, then `exit_step` until `exit_wait_until_s` is None).
         self._exit_phase = "running"
         self._rest_start_s = 0.0
         self._rest_deadline_s = 0.0
@@ -165,7 +165,7 @@ class BridgeCore:
 
     @property
     def closed(self) -> bool:
-        """True once `shutdown` ran: no command goes out any more."""
+        """True once `refuse_commands` (or `shutdown`) ran: no command goes out any more."""
         return self.gate.closed
 
     def sent(self, action: Send, ok: bool) -> None:
