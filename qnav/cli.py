@@ -17,19 +17,43 @@ from pathlib import Path
 from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from contracts.health import DEFAULT_MAX_AGE_S
 from contracts.observation import WINDOW_LENGTH
-from contracts.policy_file import CONV_CHANNELS, CONV_STRIDE, WEIGHT_TYPES
+from contracts.policy_file import WEIGHT_TYPES
 from qnav import __version__
 
 Handler = Callable[[argparse.Namespace], int]
 
 
+EXTRAS = {
+    "torch": "train",
+    "onnx": "train",
+    "onnxscript": "train",
+    "matplotlib": "viz",
+    "PIL": "viz",
+    "ray": "cluster",
+    "stable_baselines3": "dev",
+}
+"""The optional packages a verb may need, and the extra of `pyproject.toml` that installs each;
+the base install is the car's (no torch, no plotting)."""
+
+
 def _lazy(target: str) -> Handler:
-    """A handler `module:function` imported when called."""
+    """A handler `module:function` imported when called; an optional package missing from this
+    install is a ConfigError naming the extra that brings it."""
 
     def run(args: argparse.Namespace) -> int:
         module, function = target.split(":")
-        handler: Handler = getattr(importlib.import_module(module), function)
-        return handler(args)
+        try:
+            handler: Handler = getattr(importlib.import_module(module), function)
+            return handler(args)
+        except ModuleNotFoundError as error:
+            package = (error.name or "").split(".")[0]
+            if package not in EXTRAS:
+                raise
+            extra = EXTRAS[package]
+            raise ConfigError(
+                f"this needs {package}, which this install leaves out (the base install is the "
+                f"car's): pip install 'qnav[{extra}]'"
+            ) from None
 
     return run
 
@@ -320,26 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--model", default="recurrent", choices=["recurrent", "feedforward"], help="network"
     )
     imitate.add_argument(
-        "--conv-channels",
-        type=int,
-        default=CONV_CHANNELS,
-        help=f"channels per lidar convolution (paper: {CONV_CHANNELS})",
-    )
-    imitate.add_argument(
-        "--conv-stride",
-        type=int,
-        default=CONV_STRIDE,
-        help=f"stride of each lidar convolution (paper: {CONV_STRIDE})",
-    )
-    imitate.add_argument(
         "--privileged",
         action="store_true",
         help="copy with a network given the obstacles' exact positions and velocities instead",
-    )
-    imitate.add_argument(
-        "--scan-difference",
-        action="store_true",
-        help="give the lidar encoder each scan's change since the previous one as a 2nd channel",
     )
     imitate.add_argument(
         "--window",
@@ -735,6 +742,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench_policy.add_argument("--json", action="store_true", help="print one JSON object")
     bench_policy.set_defaults(handler=_lazy("qnav.commands:bench_policy"))
+    bench_lookahead = benches.add_parser(
+        "lookahead",
+        help="the controller's look ahead per decision: tracker update, shield forecast, plan",
+    )
+    _world_options(bench_lookahead, "obstacles-inertia")
+    bench_lookahead.add_argument(
+        "--decisions", type=int, default=2000, help="timed decisions (2000)"
+    )
+    bench_lookahead.add_argument("--json", action="store_true", help="print one JSON object")
+    bench_lookahead.set_defaults(handler=_lazy("qnav.commands:bench_lookahead"))
     bench_controller = benches.add_parser(
         "controller",
         help="end to end: scan published by one process to command received by another",

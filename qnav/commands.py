@@ -57,8 +57,8 @@ def evaluate(args: argparse.Namespace) -> int:
             else (RandomAgent(worlds, seed=args.seed), "oracle planner (knows the future)")
         )
     else:
+        from training.agent import policy_agent
         from training.policy import load_network
-        from training.run import policy_agent
 
         network, run = load_network(args.policy)
         world = (
@@ -376,7 +376,7 @@ def gauge(args: argparse.Namespace) -> int:
     for run in args.runs:
         from training.diagnose import decisive_report
         from training.policy import load_network
-        from training.run import decisive_states
+        from training.validation import decisive_states
 
         network, settings = load_network(run)
         train = replace(settings.train, gauge_episodes=args.episodes)
@@ -508,9 +508,6 @@ def imitate(args: argparse.Namespace) -> int:
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
     settings = ImitationSettings(
         model=args.model,
-        conv_channels=args.conv_channels,
-        conv_stride=args.conv_stride,
-        scan_difference=args.scan_difference,
         episodes=args.episodes,
         held_out_episodes=args.held_out_episodes,
         dagger_rounds=args.dagger_rounds,
@@ -537,12 +534,7 @@ def imitate(args: argparse.Namespace) -> int:
 def _imitation_report(
     world: str, settings: ImitationSettings, result: ImitationResult, *, privileged: bool
 ) -> str:
-    copy = (
-        "a network given the world's state"
-        if privileged
-        else f"{settings.model}, {settings.conv_channels} lidar channels of stride "
-        f"{settings.conv_stride}" + (", scan differences" if settings.scan_difference else "")
-    )
+    copy = "a network given the world's state" if privileged else settings.model
     test = result.test
     lines = [
         f"{world}, {copy}: planner success {result.planner_success:.3f} on the "
@@ -612,6 +604,23 @@ def export(args: argparse.Namespace) -> int:
         )
         if AGREEMENT_KEY in e:
             print(f"  its decisions agree with the float32 network's in {e[AGREEMENT_KEY]:.2%}")
+    return 0
+
+
+def bench_lookahead(args: argparse.Namespace) -> int:
+    """Per-decision wall time of the controller's look ahead."""
+    from qnav.tracking import time_lookahead
+
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    report = time_lookahead(world, args.decisions)
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    print(f"{world.name}, {report['decisions']:.0f} decisions, one car at a time (ms):")
+    for name in ("track", "shield", "plan"):
+        print(
+            f"  {name:<7} p50 {report[name + '_ms_p50']:6.1f}  p99 {report[name + '_ms_p99']:6.1f}"
+        )
     return 0
 
 

@@ -153,7 +153,8 @@ def export_best(run: Path, episodes: int) -> Path:
     import torch
 
     from training.export import evaluate_file, export_onnx, policy_contract
-    from training.run import make_network, read_settings, source_commit
+    from training.policy import make_network
+    from training.run_folder import read_settings, source_commit
 
     settings = read_settings(run)
     weights = best_weights(run)

@@ -337,3 +337,53 @@ class LookaheadAgent:
         self.decisions += action.size
         self.steps += 1
         return action
+
+
+def time_lookahead(
+    world: WorldConfig, decisions: int = 2000, seed: int = 1005, worlds: int = 20
+) -> dict[str, float]:
+    """Wall time of the controller's look ahead per decision, one car at a time as the daemon
+    runs it: the tracker's update, the shield's forecast and the plan, on the perception probe's
+    drive (go-to-target with held random actions); median and 99th percentile, milliseconds."""
+    if world.lidar is None:
+        raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
+    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
+    cars = [
+        Lookahead(
+            settings,
+            TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
+            dynamics=world.dynamics,
+            robot_radius_m=world.robot_radius_m,
+            control_period_s=world.control_period_s,
+            beam_angles_rad=world.lidar.beam_angles_rad(),
+        )
+        for _ in range(worlds)
+    ]
+    batched = BatchedWorld(world, worlds, seed=seed)
+    observation = batched.reset(seed)
+    driver = WanderingGoToTarget(worlds, 0.3, seed)
+    times: dict[str, list[float]] = {"track": [], "shield": [], "plan": []}
+    while len(times["plan"]) < decisions:
+        assert observation.scan_m is not None
+        steps = batched.state.steps
+        for row, car in enumerate(cars):
+            if steps[row] == 0:
+                car.restart()
+            now = float(steps[row]) * world.control_period_s
+            target = observation.target_xy[row]
+            started = time.perf_counter()
+            car.observe(now, observation.pose[row], now, observation.scan_m[row])
+            tracked = time.perf_counter()
+            car.risks(target)
+            shielded = time.perf_counter()
+            car.plan(target)
+            planned = time.perf_counter()
+            times["track"].append(tracked - started)
+            times["shield"].append(shielded - tracked)
+            times["plan"].append(planned - shielded)
+        observation = batched.step(driver(observation.target_features())).observation
+    report: dict[str, float] = {"decisions": float(len(times["plan"]))}
+    for name, values in times.items():
+        median, p99 = np.percentile(np.array(values) * 1e3, [50, 99])
+        report[f"{name}_ms_p50"], report[f"{name}_ms_p99"] = float(median), float(p99)
+    return report

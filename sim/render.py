@@ -277,8 +277,8 @@ def _require_viz() -> None:
     try:
         import matplotlib  # noqa: F401 - optional extra, imported on use
         import PIL  # noqa: F401
-    except ImportError as error:
-        raise RuntimeError(_VIZ_MISSING) from error
+    except ImportError as error:  # named, so `qnav` reports the extra as for any verb
+        raise ModuleNotFoundError(_VIZ_MISSING, name=error.name or "matplotlib") from error
 
 
 class _Scene:

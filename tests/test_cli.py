@@ -4,6 +4,7 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -68,6 +69,15 @@ def test_bench_sim_json_has_the_documented_shape() -> None:
     assert all(r["steps_per_second"] > 0 for r in report["results"])
 
 
+def test_bench_lookahead_json_times_each_part_of_the_decision() -> None:
+    result = _qnav("bench", "lookahead", "--decisions", "40", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["decisions"] >= 40
+    for part in ("track", "shield", "plan"):
+        assert 0 < report[f"{part}_ms_p50"] <= report[f"{part}_ms_p99"]
+
+
 def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
     printed = _qnav("settings", "--scenario", "obstacles-increment", "--set", "obstacles.count=2")
     assert printed.returncode == 0
@@ -84,3 +94,28 @@ def test_settings_reference_in_docs_is_current() -> None:
 
     docs = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
     assert docs.read_text() == settings_reference(), "run `make docs` to regenerate"
+
+
+@pytest.mark.parametrize(
+    ("blocked", "argv", "extra"),
+    [
+        ("torch", ["train", "--scenario", "walls-increment", "--episodes", "2"], "train"),
+        ("matplotlib", ["render", "--scenario", "walls-inertia", "--out", "unused"], "viz"),
+    ],
+)
+def test_a_verb_whose_extra_is_not_installed_names_the_extra(
+    blocked: str, argv: list[str], extra: str, tmp_path: Path
+) -> None:
+    # On the car's install (no extras) `qnav train` used to end in a torch traceback. The package
+    # is made unimportable in a fresh interpreter, as if it had never been installed.
+    code = (
+        f"import sys; sys.modules[{blocked!r}] = None; from qnav.cli import main; "
+        f"sys.exit(main({argv!r}))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False,
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert f"pip install 'qnav[{extra}]'" in done.stderr
+    assert "Traceback" not in done.stderr

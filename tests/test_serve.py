@@ -161,7 +161,7 @@ def _run_folder(root: Path) -> Path:
     from contracts.settings import to_toml
     from tests.conftest import policy_network
     from training.config import TrainSettings
-    from training.run import RunSettings
+    from training.run_folder import RunSettings
 
     run = root / "walls-inertia" / "recurrent-seed0"
     run.mkdir(parents=True)

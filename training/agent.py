@@ -7,7 +7,8 @@ import torch
 from numpy.typing import NDArray
 
 from contracts.actions import NUM_ACTIONS
-from contracts.observation import FrameWindow, encode_frame
+from contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from sim.config import WorldConfig
 from sim.evaluate import ExplorationHold
 from sim.world import Observation
 from training.networks import QNetwork
@@ -67,3 +68,25 @@ class TorchAgent:
         self.last_q = q
         action = q.argmax(axis=1)
         return self.exploration(action)
+
+
+def policy_agent(
+    network: QNetwork,
+    world: WorldConfig,
+    num_worlds: int,
+    window: int,
+    *,
+    epsilon: float = 0.0,
+    hold_steps: int = 5,
+    seed: int = 0,
+) -> TorchAgent:
+    """A greedy (or epsilon-greedy) agent of the network for this world."""
+    return TorchAgent(
+        network,
+        num_worlds,
+        window,
+        distance_scale_m(world.lidar),
+        epsilon=epsilon,
+        hold_steps=hold_steps,
+        seed=seed,
+    )

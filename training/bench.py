@@ -17,7 +17,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from sim.config import scenario
-from training.learner import td_update
+from training.algorithm import td_update
 from training.networks import QNetwork
 from training.replay import Batch
 

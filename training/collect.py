@@ -11,7 +11,7 @@ from contracts.motion import Outcome
 from sim.config import WorldConfig
 from sim.evaluate import Agent
 from sim.world import WorldState, observe, reset, step
-from training.replay import Episode
+from training.episode_log import Episode
 
 
 def collect_round(
@@ -26,9 +26,9 @@ def collect_round(
     """Run one episode per world, each with the layout of (seed, its episode id), to its end.
 
     With a `demonstrator` (the worlds' full state -> actions, e.g. `sim.oracle.OracleDriver`)
-    it drives instead of the agent (which may then be None), and the episodes are marked as
-    demonstrations. With a `labeller` the episodes store its action for each state visited
-    instead of the action taken (DAgger's labels, `training.imitate`)."""
+    it drives instead of the agent (which may then be None). With a `labeller` the episodes
+    store its action for each state visited instead of the action taken (DAgger's labels).
+    Both serve `training.imitate`; training runs drive with the agent."""
     if agent is None and demonstrator is None:
         raise ValueError("collect_round needs an agent or a demonstrator")
     n = episode_ids.size
@@ -71,7 +71,6 @@ def collect_round(
             action=act[: length[i], i],
             target_xy=state.target_xy[i],
             outcome=int(ending[i]),
-            demonstrated=demonstrator is not None,
         )
         for i in range(n)
     ]

@@ -10,7 +10,12 @@ from contracts.observation import WINDOW_LENGTH
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from training.networks import ModelKind
-from training.replay import ObstacleRedraw, Relabel
+
+Relabel = Literal["paper", "local", "hindsight", "none"]
+"""How a sampled transition gets its target (`training.sampling.draw_targets`): a fresh uniform
+one in the arena (the paper), a fresh one drawn as the simulator spawns targets around the
+robot's pose at that step (local), a position the robot reached later in the same episode
+(hindsight), or the episode's own."""
 
 
 @dataclass(frozen=True)
@@ -63,46 +68,13 @@ class TrainSettings:
     some target, not under the next one."""
     priority_correction_start: float = 0.4
     """Importance-weight exponent at the first iteration, annealed linearly to 1 at the last."""
-    mirror_probability: float = 0.0
-    """Chance that a sampled transition is seen in a mirror through the robot's heading (scan
-    reversed, target bearing and turns swapped side; `training.replay.mirror_batch`): twice
-    the experience from the same episodes (paper: none)."""
     obstacle_redraw_probability: float = 0.0
     """Chance that a sampled transition sees freshly drawn obstacles along its stored path
-    instead of the episode's own (`training.replay.redraw_obstacles`; paper: none)."""
-    obstacle_near_probability: float = 0.0
-    """Chance that a re-drawn obstacle starts within 3 m of the robot rather than anywhere in the
-    arena (`training.replay.ObstacleRedraw`), so that more samples hold an obstacle that
-    matters."""
-    obstacle_bootstrap_within_m: float = 0.0
-    """With re-drawn obstacles, an n-step return stops and bootstraps at the first step where a
-    fresh obstacle's surface comes this close to the robot (0: never): the stored actions never
-    saw that obstacle (`training.replay.ObstacleRedraw`)."""
-    next_scan_weight: float = 0.0
-    """Weight of an auxiliary loss, in training only: predict the next frame's near ranges from
-    the window's summary and the action taken (`training.networks.NextScanPredictor`; 0: off;
-    paper: none)."""
-    next_scan_range_m: float = 5.0
-    """Range within which the auxiliary loss predicts returns; farther ones count as this far."""
-    next_scan_sectors: int = 72
-    """Sectors of the predicted scan (each the nearest return over its beams; must divide the
-    lidar's beam count)."""
-    demonstration_episodes: int = 0
-    """The first this many training episodes are driven by the oracle planner, which knows the
-    obstacles' future (`sim.oracle.OracleDriver`), instead of the agent; they count towards
-    `episodes` (0: none; paper: none, this is outside its method)."""
-    demonstration_margin: float = 0.05
-    """Q-value lead the learner's large-margin loss asks of a demonstrated action over every
-    other (DQfD's margin)."""
-    demonstration_loss_weight: float = 1.0
-    """Weight of the large-margin loss against the TD loss."""
+    instead of the episode's own (`training.sampling.redraw_obstacles`; paper: none)."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
     """LSTM and hidden layer width (paper: 512)."""
-    encoder_init: Literal["default", "centred"] = "default"
-    """The lidar convolutions' initial biases: torch's default, or centred so that each channel
-    is positive on half of the world's first scans (`training.networks.centre_encoder`)."""
     loss: Literal["mse", "huber"] = "mse"
     """TD loss: the paper's squared error, or Huber."""
     grad_clip_norm: float = 0.0
@@ -143,16 +115,7 @@ class TrainSettings:
         check_range(self, "epsilon_decay", self.epsilon_decay, 0.0, 1.0)
         check_range(self, "epsilon_min", self.epsilon_min, 0.0, 1.0)
         check_range(self, "hold_steps", self.hold_steps, 1, 10_000)
-        check_range(self, "mirror_probability", self.mirror_probability, 0.0, 1.0)
         check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
-        check_range(self, "obstacle_near_probability", self.obstacle_near_probability, 0.0, 1.0)
-        check_range(self, "obstacle_bootstrap_within_m", self.obstacle_bootstrap_within_m, 0.0, 1e3)
-        check_range(self, "next_scan_weight", self.next_scan_weight, 0.0, 1e6)
-        check_range(self, "next_scan_range_m", self.next_scan_range_m, 0.0, 1e4, exclusive_low=True)
-        check_range(self, "next_scan_sectors", self.next_scan_sectors, 1, 100_000)
-        check_range(self, "demonstration_episodes", self.demonstration_episodes, 0, self.episodes)
-        check_range(self, "demonstration_margin", self.demonstration_margin, 0.0, 1e6)
-        check_range(self, "demonstration_loss_weight", self.demonstration_loss_weight, 0.0, 1e6)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)
@@ -167,16 +130,6 @@ class TrainSettings:
         check_range(self, "threads", self.threads, 1, 1024)
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise ConfigError(f"train.device = {self.device!r}: choose auto, cpu, cuda or cuda:N")
-
-    def obstacle_redraw(self) -> ObstacleRedraw | None:
-        """How sampled transitions get fresh obstacles, or None to keep the episodes' own."""
-        if self.obstacle_redraw_probability == 0.0:
-            return None
-        return ObstacleRedraw(
-            probability=self.obstacle_redraw_probability,
-            near_probability=self.obstacle_near_probability,
-            bootstrap_within_m=self.obstacle_bootstrap_within_m,
-        )
 
     def priority_correction(self, iteration: int) -> float:
         """Importance-weight exponent at an iteration: from the start value to 1 over the run."""

@@ -24,11 +24,13 @@ from typing import cast
 
 import numpy as np
 import torch
+from numpy.typing import NDArray
 from torch.nn import functional
 
 from contracts.actions import NUM_ACTIONS, Action
-from contracts.observation import distance_scale_m, encode_frame
+from contracts.observation import distance_scale_m, encode_frame, encode_scan
 from contracts.policy_file import CONV_CHANNELS
+from sim.config import WorldConfig
 from sim.decisive import (
     DecisiveStates,
     constant_choice,
@@ -38,14 +40,16 @@ from sim.decisive import (
 )
 from sim.evaluate import EvalSettings, evaluate
 from sim.world import Observation, observe, reset
-from training.agent import TorchAgent, greedy_actions
+from training.agent import TorchAgent, greedy_actions, policy_agent
+from training.algorithm import bootstrap_windows, double_dqn_target
 from training.collect import collect_round
 from training.episode_log import read_rounds
-from training.learner import bootstrap_windows, double_dqn_target
 from training.networks import QNetwork, channel_activity
 from training.policy import load_network
 from training.replay import Batch, EpisodeReplay
-from training.run import RunSettings, decisive_states, first_scans, policy_agent
+from training.run_folder import RunSettings
+from training.sampling import sample
+from training.validation import decisive_states
 
 _FRESH_LAYOUT_SEED = 777_777
 """Layouts of the fresh episodes (neither training, validation nor test use it)."""
@@ -158,9 +162,11 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
     agent.exploration.epsilon[:] = [train.epsilon(int(i)) for i in schedule]
     for episode in collect_round(world, agent, _FRESH_LAYOUT_SEED, schedule):
         fresh.add(episode)
-    sample = np.random.default_rng(0)
-    replay_batch = replay.sample(samples, sample, train.relabel, train.n_step, train.gamma)
-    fresh_batch = fresh.sample(samples, sample, train.relabel, train.n_step, train.gamma)
+    rng = np.random.default_rng(0)
+    replay_batch, fresh_batch = (
+        sample(stored, samples, rng, train.relabel, n_step=train.n_step, gamma=train.gamma)
+        for stored in (replay, fresh)
+    )
     target_std, lidar_std = _gate_inputs(network, replay_batch)
     actions, success = _test_actions(network, settings)
     decisive = None
@@ -236,6 +242,14 @@ def _dead_channels(network: QNetwork, settings: RunSettings) -> tuple[int, ...]:
         return ()
     scans = torch.from_numpy(first_scans(settings.world, seed=5))
     return tuple(int((layer == 0).sum()) for layer in channel_activity(network.encoder, scans))
+
+
+def first_scans(world: WorldConfig, seed: int, count: int = 256) -> NDArray[np.float32]:
+    """Encoded first scans (count, B) of `count` episodes of the world, layouts from `seed`."""
+    state = reset(world, np.full(count, seed, dtype=np.int64), np.arange(count, dtype=np.int64))
+    scan = observe(world, state).scan_m
+    assert scan is not None
+    return encode_scan(scan, distance_scale_m(world.lidar))
 
 
 class _CountingAgent:

@@ -1,4 +1,4 @@
-"""Collected episodes on disk, one file per collection round, so a killed run loses none.
+"""Collected episodes, and their files: one per collection round, so a killed run loses none.
 
 Each file is written to a temporary name and renamed, so a file either holds a whole round or
 does not exist.
@@ -7,10 +7,27 @@ does not exist.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
-from training.replay import Episode
+
+class Episode(NamedTuple):
+    """One finished episode, as collected."""
+
+    pose: NDArray[np.float64]
+    """(T + 1, 3) poses from the first observation to the last."""
+    scan_m: NDArray[np.float32] | None
+    """(T + 1, B) raw ranges in metres, or None without a lidar."""
+    clearance_m: NDArray[np.float64]
+    """(T + 1,) distance to the nearest surface at each observation."""
+    action: NDArray[np.int64]
+    """(T,) actions taken."""
+    target_xy: NDArray[np.float64]
+    """(2,) the episode's own target."""
+    outcome: int
+    """How it ended (sim.task.Outcome; RUNNING = truncated)."""
 
 
 def write_round(folder: Path, round_index: int, episodes: list[Episode]) -> Path:
@@ -30,7 +47,6 @@ def write_round(folder: Path, round_index: int, episodes: list[Episode]) -> Path
         action=np.concatenate([e.action for e in episodes]),
         target=np.stack([e.target_xy for e in episodes]),
         outcome=np.array([e.outcome for e in episodes]),
-        demonstrated=np.array([e.demonstrated for e in episodes]),
     )
     partial.replace(path)
     return path
@@ -45,10 +61,9 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
             frame_ends = np.cumsum(lengths + 1)
             action_ends = np.cumsum(lengths)
             has_scan = data["scan"].size > 0
-            # Rounds written before demonstrations existed hold none.
-            demonstrated = (
-                data["demonstrated"] if "demonstrated" in data else np.zeros(lengths.size, bool)
-            )
+            # Rounds written while demonstrations existed (up to commit b8dfe92) also hold a
+            # `demonstrated` flag per episode: runs that used them cannot resume
+            # (`training.run_folder.read_settings`), and the flag is ignored.
             episodes = []
             for i, length in enumerate(lengths):
                 frames = slice(frame_ends[i] - length - 1, frame_ends[i])
@@ -60,7 +75,6 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
                         action=data["action"][action_ends[i] - length : action_ends[i]],
                         target_xy=data["target"][i],
                         outcome=int(data["outcome"][i]),
-                        demonstrated=bool(demonstrated[i]),
                     )
                 )
             rounds.append(episodes)

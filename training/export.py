@@ -241,7 +241,7 @@ def export_run(
     """Export a training run's network to `output` (weights in `weight_type`), then test the
     file itself and record it."""
     from training.policy import load_network
-    from training.run import source_commit
+    from training.run_folder import source_commit
 
     network, run = load_network(run_dir)
     results_path = run_dir / "results.json"

@@ -16,9 +16,8 @@ from contracts.motion import Outcome
 from contracts.observation import distance_scale_m
 from sim.config import WorldConfig
 from sim.world import observe, reset, step
-from training.agent import observation_frames
+from training.agent import observation_frames, policy_agent
 from training.networks import QNetwork
-from training.run import policy_agent
 
 _ARROWS = {
     Action.FORWARD: ("^", "tab:blue", "forward"),

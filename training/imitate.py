@@ -33,15 +33,16 @@ from tqdm import tqdm
 
 from contracts.motion import Outcome
 from contracts.observation import TARGET_FEATURES
-from contracts.policy_file import CONV_CHANNELS, CONV_STRIDE
 from contracts.settings import check_range
 from sim.config import WorldConfig
 from sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
 from sim.oracle import OracleDriver
+from training.agent import policy_agent
+from training.algorithm import cpu_has_bf16
 from training.collect import collect_round
+from training.episode_log import Episode
 from training.networks import ModelKind, QNetwork
-from training.replay import Episode, EpisodeReplay
-from training.run import cpu_has_bf16, policy_agent
+from training.replay import EpisodeReplay
 
 DEMONSTRATION_LAYOUT_SEED = 555_555
 """Layouts of the demonstrations: neither the training runs', the validation's nor the test's."""
@@ -57,14 +58,6 @@ class ImitationSettings:
 
     model: ModelKind = "recurrent"
     """Network to train (the paper's sizes)."""
-    conv_channels: int = CONV_CHANNELS
-    """Channels of each lidar convolution (the paper's 8; others only to ask whether the
-    encoder's width is the limit)."""
-    conv_stride: int = CONV_STRIDE
-    """Stride of each lidar convolution (the paper's 3; smaller keeps finer angular detail)."""
-    scan_difference: bool = False
-    """Give the encoder each frame's change since the previous one as a second input channel
-    (`training.networks.scan_change`): the obstacles' motion made explicit."""
     episodes: int = 2000
     """Planner episodes to copy."""
     held_out_episodes: int = 200
@@ -101,8 +94,6 @@ class ImitationSettings:
         check_range(self, "batch_size", self.batch_size, 1, 10**6)
         check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
         check_range(self, "threads", self.threads, 1, 1024)
-        check_range(self, "conv_channels", self.conv_channels, 1, 1024)
-        check_range(self, "conv_stride", self.conv_stride, 1, 6)
         check_range(self, "dagger_rounds", self.dagger_rounds, 0, 1000)
         check_range(self, "dagger_episodes", self.dagger_episodes, 1, 10**7)
         check_range(self, "dodge_weight", self.dodge_weight, 1e-3, 1e3)
@@ -278,13 +269,7 @@ def imitate(world: WorldConfig, settings: ImitationSettings, window: int) -> Imi
     frames, actions = _windows(_replay_of(world, copied, settings, window))
     held_frames, held_actions = _windows(_replay_of(world, held_out, settings, window))
 
-    network = QNetwork(
-        settings.model,
-        world.lidar.num_beams if world.lidar else None,
-        conv_channels=settings.conv_channels,
-        conv_stride=settings.conv_stride,
-        scan_difference=settings.scan_difference,
-    )
+    network = QNetwork(settings.model, world.lidar.num_beams if world.lidar else None)
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     rng = np.random.default_rng(settings.seed)
     copied_windows = actions.size

@@ -24,79 +24,41 @@ from contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_
 ModelKind = Literal["recurrent", "feedforward"]
 
 
-def conv_output_length(num_beams: int, stride: int = CONV_STRIDE) -> int:
+def conv_output_length(num_beams: int) -> int:
     """Length of the lidar encoder's output per channel."""
     length = num_beams
     for _ in range(CONV_LAYERS):
-        length = (length - CONV_KERNEL) // stride + 1
+        length = (length - CONV_KERNEL) // CONV_STRIDE + 1
     return length
 
 
-SCAN_CHANGE_SCALE = 20.0
-"""Scan differences (`scan_change`) are multiplied by this before clipping to [-1, 1]: with
-scans encoded as range / 20 m, a difference reads in metres, so an obstacle's step of 0.1-0.3 m
-between frames is a tenth or more of the channel's span instead of a hundredth."""
-
-
-def scan_change(scans: Tensor) -> Tensor:
-    """(N, T, B) encoded scans of a window -> each frame's scan minus the previous frame's,
-    scaled by `SCAN_CHANGE_SCALE` and clipped to [-1, 1]; zero for the window's first frame."""
-    change = torch.diff(scans, dim=1, prepend=scans[:, :1])
-    return (change * SCAN_CHANGE_SCALE).clamp(-1.0, 1.0)
-
-
 class LidarEncoder(nn.Module):
-    """3 x Conv1d(8 channels, kernel 6, stride 3) + ReLU over a scan: (M, B) -> (M, 8 * L).
+    """3 x Conv1d(8 channels, kernel 6, stride 3) + ReLU over a scan: (M, B) -> (M, 8 * L),
+    the encoder policy files fix (`contracts.policy_file`)."""
 
-    Other channel counts and strides, and a second input channel with the scan's change since
-    the previous frame (`scan_change`), exist for diagnostics only (`qnav imitate`): policy
-    files fix the paper's encoder."""
-
-    def __init__(
-        self,
-        num_beams: int,
-        channels: int = CONV_CHANNELS,
-        stride: int = CONV_STRIDE,
-        scan_difference: bool = False,
-    ) -> None:
+    def __init__(self, num_beams: int) -> None:
         super().__init__()
-        if conv_output_length(num_beams, stride) < 1:
+        if conv_output_length(num_beams) < 1:
             raise ValueError(
-                f"num_beams = {num_beams} is too few for three stride-{stride} convolutions"
+                f"num_beams = {num_beams} is too few for three stride-{CONV_STRIDE} convolutions"
             )
-        self.scan_difference = scan_difference
-        layers: list[nn.Module] = []
-        previous = 2 if scan_difference else 1
-        for _ in range(CONV_LAYERS):
-            layers += [nn.Conv1d(previous, channels, CONV_KERNEL, stride), nn.ReLU()]
-            previous = channels
-        self.layers = nn.Sequential(*layers)
-        self.output_size = channels * conv_output_length(num_beams, stride)
+        self.layers = conv_layers(CONV_CHANNELS)
+        self.output_size = CONV_CHANNELS * conv_output_length(num_beams)
 
     def forward(self, scans: Tensor) -> Tensor:
-        """(M, B) scans, or (M, 2, B) scans and their changes -> (M, output_size)."""
-        inputs = scans.unsqueeze(1) if scans.dim() == 2 else scans
-        return self.layers(inputs).flatten(1)  # type: ignore[no-any-return]
+        """(M, B) scans -> (M, output_size)."""
+        return self.layers(scans.unsqueeze(1)).flatten(1)  # type: ignore[no-any-return]
 
 
-def centre_encoder(encoder: LidarEncoder, scans: Tensor) -> None:
-    """Set each convolution's biases so that every channel is positive on half of `scans`.
-
-    Encoded scans all lie in [0, 1] and change little along a scan, so with the default
-    initialisation a channel's kernel mostly sees one level: many channels start negative on
-    every scan (dead: a ReLU passes no gradient, so they never recover) or positive on every one
-    (linear). Centring each channel's pre-activation on real scans, layer by layer, starts every
-    channel where it responds to some scans and not others (a data-dependent initialisation, as
-    in Kraehenbuehl et al. 2016 and Mishkin and Matas 2016); the architecture is unchanged.
-    """
-    with torch.no_grad():
-        x = scans.unsqueeze(1)
-        for layer in encoder.layers:
-            if isinstance(layer, nn.Conv1d):
-                assert layer.bias is not None
-                pre = layer(x)
-                layer.bias -= pre.transpose(0, 1).flatten(1).median(dim=1).values
-            x = layer(x)
+def conv_layers(channels: int) -> nn.Sequential:
+    """The encoder's three convolutions (kernel 6, stride 3), each followed by a ReLU, with
+    `channels` outputs each (policy files fix 8; a lab probe may widen them)."""
+    layers: list[nn.Module] = []
+    previous = 1
+    for _ in range(CONV_LAYERS):
+        layers += [nn.Conv1d(previous, channels, CONV_KERNEL, CONV_STRIDE), nn.ReLU()]
+        previous = channels
+    return nn.Sequential(*layers)
 
 
 def channel_activity(encoder: LidarEncoder, scans: Tensor) -> list[Tensor]:
@@ -125,20 +87,12 @@ class QNetwork(nn.Module):
         kind: ModelKind,
         num_beams: int | None,
         hidden_size: int = 512,
-        *,
-        conv_channels: int = CONV_CHANNELS,
-        conv_stride: int = CONV_STRIDE,
-        scan_difference: bool = False,
     ) -> None:
         super().__init__()
         self.kind: ModelKind = kind
         self.num_beams = num_beams or 0
         self.hidden_size = hidden_size
-        self.encoder = (
-            LidarEncoder(num_beams, conv_channels, conv_stride, scan_difference)
-            if num_beams
-            else None
-        )
+        self.encoder = LidarEncoder(num_beams) if num_beams else None
         self.feature_size = (self.encoder.output_size if self.encoder else 0) + TARGET_FEATURES
         self.lstm = (
             nn.LSTM(self.feature_size, hidden_size, batch_first=True)
@@ -179,40 +133,6 @@ class QNetwork(nn.Module):
         return self.q_from_features(self.frame_features(frames))
 
 
-class NextScanPredictor(nn.Module):
-    """An auxiliary head, used in training only: the window's summary and the action taken ->
-    the next frame's near ranges (`near_scan_bins`).
-
-    Dodging a moving obstacle needs its motion, which only the window shows; a loss on what the
-    next scan will be asks the LSTM for exactly that (as UNREAL's auxiliary tasks do, Jaderberg
-    et al. 2017), where the TD error alone may not. The policy never runs it: it is not part of
-    the Q-network, its checkpoint or the exported file.
-    """
-
-    def __init__(self, summary_size: int, bins: int, hidden_size: int = 256) -> None:
-        super().__init__()
-        self.layers = nn.Sequential(
-            nn.Linear(summary_size + NUM_ACTIONS, hidden_size),
-            nn.ReLU(),
-            nn.Linear(hidden_size, bins),
-        )
-
-    def forward(self, summary: Tensor, action: Tensor) -> Tensor:
-        taken = functional.one_hot(action, NUM_ACTIONS).to(summary.dtype)
-        return self.layers(torch.cat([summary, taken], dim=-1))  # type: ignore[no-any-return]
-
-
-def near_scan_bins(scans: Tensor, bins: int, near_fraction: float) -> Tensor:
-    """Encoded scans (N, B) -> (N, bins): the nearest return in each of `bins` equal sectors,
-    as a fraction of `near_fraction` (the near range over the encoding's range) clipped to 1,
-    so that only what is near, which decides collisions, carries weight."""
-    n, beams = scans.shape
-    if beams % bins:
-        raise ValueError(f"{beams} beams do not split into {bins} equal sectors")
-    nearest = scans.reshape(n, bins, beams // bins).amin(dim=-1)
-    return (nearest / near_fraction).clamp(max=1.0)
-
-
 class StreamingQNetwork(nn.Module):
     """A QNetwork stepped one frame at a time, carrying the windows still in progress.
 
@@ -230,8 +150,6 @@ class StreamingQNetwork(nn.Module):
 
     def __init__(self, network: QNetwork, window_length: int) -> None:
         super().__init__()
-        if network.encoder is not None and network.encoder.scan_difference:
-            raise ValueError("a network reading scan differences cannot be stepped frame by frame")
         self.num_beams = network.num_beams
         self.encoder = network.encoder
         self.lstm = network.lstm
@@ -263,10 +181,7 @@ def frame_features(encoder: LidarEncoder | None, num_beams: int, frames: Tensor)
     if encoder is None:
         return frames
     n, t, _ = frames.shape
-    scans = frames[..., :num_beams]
-    if encoder.scan_difference:
-        scans = torch.stack([scans, scan_change(scans)], dim=2)
-    encoded = encoder(scans.reshape(n * t, -1, num_beams)).reshape(n, t, -1)
+    encoded = encoder(frames[..., :num_beams].reshape(n * t, num_beams)).reshape(n, t, -1)
     return torch.cat([encoded, frames[..., num_beams:]], dim=-1)
 
 

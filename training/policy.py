@@ -1,4 +1,7 @@
-"""Loading a trained Q-network from a run folder."""
+"""A trained Q-network: the network a run's settings make, with its weights from the run folder.
+
+Loading one imports no training loop (`tests/training/test_imports.py`).
+"""
 
 from __future__ import annotations
 
@@ -7,8 +10,16 @@ from pathlib import Path
 import torch
 
 from contracts.errors import ConfigError
+from sim.config import WorldConfig
+from training.config import TrainSettings
 from training.networks import QNetwork
-from training.run import RunSettings, make_network, read_settings
+from training.run_folder import RunSettings, read_settings
+
+
+def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
+    """The Q-network for this world and these settings (fresh weights)."""
+    beams = world.lidar.num_beams if world.lidar else None
+    return QNetwork(settings.model, beams, settings.hidden_size)
 
 
 def load_network(run_dir: Path) -> tuple[QNetwork, RunSettings]:

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from contracts.actions import NUM_ACTIONS
 from contracts.errors import ConfigError
-from contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from contracts.observation import TARGET_FEATURES, FrameWindow, distance_scale_m, encode_frame
 from contracts.policy_file import CONV_CHANNELS
 from contracts.settings import check_range
 from sim.config import WorldConfig
@@ -33,7 +33,7 @@ from sim.evaluate import WanderingGoToTarget
 from sim.oracle import PERCEIVED
 from sim.world import BatchedWorld, WorldState, observe
 from training.agent import greedy_actions
-from training.networks import QNetwork
+from training.networks import QNetwork, conv_layers, conv_output_length, lstm_last_output
 
 
 @dataclass(frozen=True)
@@ -57,8 +57,6 @@ class ProbeSettings:
     """Adam's learning rate."""
     decisive_weight: float = 3.0
     """Weight of a decisive window's loss against an ordinary one's."""
-    scan_difference: bool = False
-    """Give the encoder each frame's change since the previous one as a second channel."""
     inputs: Literal["lidar", "state"] = "lidar"
     """What the fitted network sees: "lidar" (the paper's network on the policy's window) or
     "state" (the exact world state, per obstacle, through `ObstacleSetNetwork`): the state
@@ -196,11 +194,7 @@ def probe(
     if settings.inputs == "state":
         network = ObstacleSetNetwork()
     else:
-        network = QNetwork(
-            "recurrent",
-            world.lidar.num_beams if world.lidar is not None else None,
-            scan_difference=settings.scan_difference,
-        )
+        network = QNetwork("recurrent", world.lidar.num_beams if world.lidar is not None else None)
 
     def inputs(states: DecisiveStates) -> tuple[torch.Tensor, ...]:
         if settings.inputs == "state":
@@ -269,7 +263,8 @@ class PerceptionSettings:
     learning_rate: float = 1e-3
     """Adam's learning rate."""
     conv_channels: int = CONV_CHANNELS
-    """Channels of each of the encoder's three convolutions (the paper: 8)."""
+    """Channels of each of the encoder's three convolutions (the paper: 8; policy files fix 8,
+    so only this probe's `PerceptionNetwork` widens them)."""
     seed: int = 5
     """Seed of the training layouts and the fit; the held-out layouts use seed + 1000."""
     threads: int = 2
@@ -285,6 +280,28 @@ class PerceptionSettings:
         check_range(self, "learning_rate", self.learning_rate, 0.0, 1.0, exclusive_low=True)
         check_range(self, "conv_channels", self.conv_channels, 1, 4096)
         check_range(self, "threads", self.threads, 1, 1024)
+
+
+class PerceptionNetwork(torch.nn.Module):
+    """The paper's recurrent network up to the window's summary (three convolutions per scan,
+    an LSTM over the window), with `channels` per convolution: policy files fix the paper's 8
+    (`training.networks.LidarEncoder`), this probe may widen them."""
+
+    def __init__(self, num_beams: int, channels: int, hidden_size: int = 512) -> None:
+        super().__init__()
+        self.num_beams = num_beams
+        self.convolutions = conv_layers(channels)
+        features = channels * conv_output_length(num_beams) + TARGET_FEATURES
+        self.lstm = torch.nn.LSTM(features, hidden_size, batch_first=True)
+        self.summary_size = hidden_size
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        """(N, k, F) windows of frames -> (N, hidden_size): the LSTM's last output."""
+        n, k, _ = frames.shape
+        scans = frames[..., : self.num_beams].reshape(n * k, 1, self.num_beams)
+        encoded = self.convolutions(scans).flatten(1).reshape(n, k, -1)
+        features = torch.cat([encoded, frames[..., self.num_beams :]], dim=-1)
+        return lstm_last_output(self.lstm, features)
 
 
 class PerceptionEpoch(NamedTuple):
@@ -349,15 +366,14 @@ def perceive(
 
     history = [PerceptionEpoch(0, math.nan, errors(np.broadcast_to(mean, held_truth.shape)))]
     torch.manual_seed(settings.seed)
-    network = QNetwork("recurrent", world.lidar.num_beams, conv_channels=settings.conv_channels)
+    network = PerceptionNetwork(world.lidar.num_beams, settings.conv_channels)
     head = torch.nn.Linear(network.summary_size, len(PERCEIVED))
     optimizer = torch.optim.Adam(
         [*network.parameters(), *head.parameters()], lr=settings.learning_rate
     )
 
     def predict(frames: torch.Tensor) -> torch.Tensor:
-        summary = network.window_summary(network.frame_features(frames))
-        return torch.as_tensor(head(summary))
+        return torch.as_tensor(head(network(frames)))
 
     inputs = torch.from_numpy(windows)
     targets = torch.from_numpy((truth - mean) / spread)

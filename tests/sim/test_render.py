@@ -111,6 +111,6 @@ def test_missing_plotting_libraries_raise_the_install_hint(
 ) -> None:
     record = record_episode(scenario("walls-inertia"), RandomAgent(1), seed=0, max_steps=3)
     monkeypatch.setitem(sys.modules, "matplotlib", None)
-    with pytest.raises(RuntimeError, match=r"pip install 'qnav\[viz\]'"):
+    with pytest.raises(ModuleNotFoundError, match=r"pip install 'qnav\[viz\]'"):
         draw_png(record, tmp_path / "never.png")
     assert not (tmp_path / "never.png").exists()

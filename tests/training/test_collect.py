@@ -21,10 +21,9 @@ def _always(action: int) -> Callable[[WorldState], NDArray[np.int64]]:
     return choose
 
 
-def test_a_demonstrator_drives_and_its_episodes_are_marked() -> None:
+def test_a_demonstrator_drives_instead_of_the_agent() -> None:
     episodes = collect_round(WORLD, None, 0, IDS, demonstrator=_always(0))
     for episode in episodes:
-        assert episode.demonstrated
         assert (episode.action == 0).all()
         # Always forward: the heading never changes.
         np.testing.assert_allclose(episode.pose[:, 2], episode.pose[0, 2])
@@ -36,4 +35,3 @@ def test_a_labeller_is_stored_while_the_agent_drives() -> None:
     for plain, relabelled in zip(driven, labelled, strict=True):
         np.testing.assert_array_equal(relabelled.pose, plain.pose)  # the same drive
         assert (relabelled.action == 2).all() and not (plain.action == 2).all()
-        assert not relabelled.demonstrated

@@ -4,11 +4,10 @@ from pathlib import Path
 
 import numpy as np
 
-from training.episode_log import read_rounds, write_round
-from training.replay import Episode
+from training.episode_log import Episode, read_rounds, write_round
 
 
-def _episode(steps: int, demonstrated: bool) -> Episode:
+def _episode(steps: int) -> Episode:
     rng = np.random.default_rng(steps)
     return Episode(
         pose=rng.random((steps + 1, 3)),
@@ -17,12 +16,11 @@ def _episode(steps: int, demonstrated: bool) -> Episode:
         action=rng.integers(0, 3, steps),
         target_xy=rng.random(2),
         outcome=1,
-        demonstrated=demonstrated,
     )
 
 
 def test_a_written_round_reads_back_episode_for_episode(tmp_path: Path) -> None:
-    episodes = [_episode(3, True), _episode(5, False)]
+    episodes = [_episode(3), _episode(5)]
     write_round(tmp_path, 0, episodes)
     (read,) = read_rounds(tmp_path)
     for got, wanted in zip(read, episodes, strict=True):
@@ -30,12 +28,14 @@ def test_a_written_round_reads_back_episode_for_episode(tmp_path: Path) -> None:
             np.testing.assert_array_equal(getattr(got, name), getattr(wanted, name), name)
 
 
-def test_a_round_written_before_demonstrations_existed_reads_as_undemonstrated(
-    tmp_path: Path,
-) -> None:
-    path = write_round(tmp_path, 0, [_episode(3, True)])
+def test_a_round_written_while_demonstrations_existed_still_reads(tmp_path: Path) -> None:
+    # Rounds written up to commit b8dfe92 also hold a `demonstrated` flag per episode.
+    episodes = [_episode(3), _episode(4)]
+    path = write_round(tmp_path, 0, episodes)
     with np.load(path) as data:
-        older = {name: data[name] for name in data.files if name != "demonstrated"}
-    np.savez(path, **older)
+        older = {name: data[name] for name in data.files}
+    np.savez(path, **older, demonstrated=np.array([False, False]))
     (read,) = read_rounds(tmp_path)
-    assert read[0].demonstrated is False
+    for got, wanted in zip(read, episodes, strict=True):
+        for name in Episode._fields:
+            np.testing.assert_array_equal(getattr(got, name), getattr(wanted, name), name)

@@ -7,9 +7,10 @@ import numpy as np
 import torch
 
 from tests.training.test_replay import _episode, _replay
-from training.learner import td_update
+from training.algorithm import td_update
 from training.networks import QNetwork
 from training.replay import EpisodeReplay
+from training.sampling import sample
 
 
 def _two_episode_replay() -> EpisodeReplay:
@@ -22,7 +23,7 @@ def test_a_step_with_a_high_priority_is_drawn_in_proportion_and_weighted_down() 
     replay.reprioritise(stored, np.full(stored.size, 0.01))
     heavy = stored[3]
     replay.reprioritise(np.array([heavy]), np.array([10.0]))
-    batch = replay.sample(4000, np.random.default_rng(0), "paper", priority_exponent=1.0)
+    batch = sample(replay, 4000, np.random.default_rng(0), "paper", priority_exponent=1.0)
     assert batch.stored is not None and batch.weight is not None
     share = float(np.mean(batch.stored == heavy))
     expected = 10.001 / (10.001 + (stored.size - 1) * 0.011)
@@ -40,14 +41,14 @@ def test_new_steps_get_the_largest_priority_seen() -> None:
 
 
 def test_uniform_sampling_carries_no_weights() -> None:
-    batch = _two_episode_replay().sample(64, np.random.default_rng(0), "paper")
+    batch = sample(_two_episode_replay(), 64, np.random.default_rng(0), "paper")
     assert batch.weight is None and batch.stored is not None
 
 
 def test_a_transition_of_weight_zero_teaches_nothing() -> None:
     torch.manual_seed(0)
     replay = _two_episode_replay()
-    batch = replay.sample(16, np.random.default_rng(1), "paper", priority_exponent=0.5)
+    batch = sample(replay, 16, np.random.default_rng(1), "paper", priority_exponent=0.5)
     online = QNetwork("recurrent", 720, 16)
     before = copy.deepcopy(online.state_dict())
     optimizer = torch.optim.Adam(online.parameters(), lr=1e-2)

@@ -3,21 +3,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from contracts.motion import IncrementDynamics, step_increment
-from contracts.observation import encode_frame, encode_scan, target_features
-from sim.config import Opening, WorldConfig, scenario
+from contracts.observation import encode_scan
+from sim.config import scenario
 from sim.evaluate import RandomAgent
 from sim.geometry import cast_lidar, clearance
 from sim.world import observe, reset, step
-from training.replay import (
-    Batch,
-    Episode,
-    EpisodeReplay,
-    ObstacleRedraw,
-    draw_obstacle_paths,
-    mirror_batch,
-    view_with_obstacles,
-)
+from training.episode_log import Episode
+from training.replay import EpisodeReplay
+from training.sampling import draw_obstacle_paths, draw_targets, sample, view_with_obstacles
 
 CONFIG = scenario("walls-increment")
 
@@ -107,7 +100,7 @@ def test_sampled_targets_follow_the_relabel_rule(relabel: str) -> None:
     replay = _replay(episode)
     rng = np.random.default_rng(0)
     now = np.arange(episode.action.size)
-    targets = replay._targets(now, rng, relabel)  # type: ignore[arg-type]
+    targets = draw_targets(replay, now, rng, relabel)  # type: ignore[arg-type]
     if relabel == "none":
         np.testing.assert_array_equal(targets, np.repeat(episode.target_xy[None], now.size, 0))
     elif relabel == "hindsight":
@@ -128,7 +121,7 @@ def test_sampled_targets_follow_the_relabel_rule(relabel: str) -> None:
 def test_hindsight_makes_some_sampled_transitions_successes() -> None:
     episode, _, _ = _episode(6)
     replay = _replay(episode)
-    batch = replay.sample(512, np.random.default_rng(0), "hindsight")
+    batch = sample(replay, 512, np.random.default_rng(0), "hindsight")
     assert (batch.reward == 1.0).any()
     assert (batch.terminal[batch.reward == 1.0]).all()
 
@@ -149,80 +142,6 @@ def test_n_step_returns_sum_the_simulators_discounted_rewards_to_the_episode_end
 
 
 OBSTACLES = scenario("obstacles-inertia")
-
-
-def _mirror_config(config: WorldConfig) -> WorldConfig:
-    """The same arena reflected through the vertical line x = size / 2."""
-    size = config.arena.size_m
-    other_side = {"east": "west", "west": "east", "south": "south", "north": "north"}
-    openings = tuple(
-        Opening(
-            other_side[o.wall],  # type: ignore[arg-type]
-            size - o.centre_m if o.wall in ("south", "north") else o.centre_m,
-            o.width_m,
-        )
-        for o in config.arena.openings
-    )
-    return replace(config, arena=replace(config.arena, openings=openings))
-
-
-def _mirror_pose(pose: np.ndarray, size: float) -> np.ndarray:
-    return np.stack([size - pose[..., 0], pose[..., 1], np.pi - pose[..., 2]], axis=-1)
-
-
-def test_a_mirrored_transition_is_what_the_robot_sees_in_the_mirrored_world() -> None:
-    config, size = OBSTACLES, OBSTACLES.arena.size_m
-    mirrored_config = _mirror_config(config)
-    rng = np.random.default_rng(4)
-    pose = np.column_stack([rng.uniform(1, 9, (64, 2)), rng.uniform(-np.pi, np.pi, 64)])
-    obstacles = rng.uniform(1, 9, (64, 5, 2))
-    target = rng.uniform(1, 9, (64, 2))
-    lidar = config.lidar
-    assert lidar is not None
-    scan = cast_lidar(pose, lidar, config.arena, obstacles, 0.4)
-    mirrored_obstacles = np.stack([size - obstacles[..., 0], obstacles[..., 1]], axis=-1)
-    seen_in_mirror = cast_lidar(
-        _mirror_pose(pose, size), lidar, mirrored_config.arena, mirrored_obstacles, 0.4
-    )
-    frames = encode_frame(scan, target_features(pose, target), lidar.max_range_m)
-    mirrored_target = np.stack([size - target[:, 0], target[:, 1]], axis=-1)
-    frames_in_mirror = encode_frame(
-        seen_in_mirror,
-        target_features(_mirror_pose(pose, size), mirrored_target),
-        lidar.max_range_m,
-    )
-    action = rng.integers(0, 3, 64)
-    batch = Batch(
-        frames=frames[:, None, :],
-        action=action,
-        reward=np.zeros(64, np.float32),
-        terminal=np.zeros(64, bool),
-        steps=np.ones(64, np.int64),
-        discount=np.ones(64, np.float32),
-    )
-    mirrored = mirror_batch(batch, np.ones(64, bool), lidar.num_beams)
-    np.testing.assert_allclose(mirrored.frames[:, 0], frames_in_mirror, atol=2e-6)
-    # The mirrored action moves the mirrored robot as the action moved the robot.
-    moved, _ = step_increment(pose, np.zeros((64, 2)), action, IncrementDynamics())
-    moved_in_mirror, _ = step_increment(
-        _mirror_pose(pose, size), np.zeros((64, 2)), mirrored.action, IncrementDynamics()
-    )
-    np.testing.assert_allclose(
-        np.cos(moved_in_mirror[:, 2]), np.cos(_mirror_pose(moved, size)[:, 2]), atol=1e-9
-    )
-    np.testing.assert_allclose(moved_in_mirror[:, :2], _mirror_pose(moved, size)[:, :2], atol=1e-9)
-
-
-def test_mirroring_twice_gives_the_batch_back_and_unchosen_rows_are_untouched() -> None:
-    episode, _, _ = _episode(5)
-    batch = _replay(episode).sample(64, np.random.default_rng(0), "paper", n_step=3)
-    chosen = np.random.default_rng(1).random(64) < 0.5
-    once = mirror_batch(batch, chosen, 720)
-    np.testing.assert_array_equal(once.frames[~chosen], batch.frames[~chosen])
-    assert (once.action[chosen] != batch.action[chosen])[batch.action[chosen] != 0].all()
-    twice = mirror_batch(once, chosen, 720)
-    np.testing.assert_array_equal(twice.frames, batch.frames)
-    np.testing.assert_array_equal(twice.action, batch.action)
 
 
 def _obstacle_episode(seed: int) -> Episode:
@@ -290,7 +209,7 @@ def test_redrawn_obstacles_give_the_scans_and_clearances_the_simulator_computes(
     centres = draw_obstacle_paths(
         OBSTACLES, pose, np.zeros((replay.size, 0), bool), history=1, rng=np.random.default_rng(3)
     )
-    scans, gaps, _ = view_with_obstacles(
+    scans, gaps = view_with_obstacles(
         OBSTACLES, pose, centres, replay.walls_scan[index], replay.walls_clearance[index]
     )
     lidar = OBSTACLES.lidar
@@ -307,63 +226,11 @@ def test_sampling_with_redrawn_obstacles_recomputes_collisions_from_the_fresh_ob
     replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
     for seed in range(6):
         replay.add(_obstacle_episode(seed))
-    plain = replay.sample(512, np.random.default_rng(0), "none", n_step=1)
-    redrawn = replay.sample(
-        512, np.random.default_rng(0), "none", n_step=1, obstacles=ObstacleRedraw()
+    plain = sample(replay, 512, np.random.default_rng(0), "none", n_step=1)
+    redrawn = sample(
+        replay, 512, np.random.default_rng(0), "none", n_step=1, obstacle_redraw_probability=1.0
     )
     assert plain.frames.shape == redrawn.frames.shape
     assert not np.array_equal(plain.frames[..., :720], redrawn.frames[..., :720])
     # Targets and actions are those of the same transitions; only the obstacles changed.
     np.testing.assert_array_equal(plain.frames[..., 720:], redrawn.frames[..., 720:])
-
-
-def test_near_obstacles_start_around_the_robot_and_still_never_touch_it_before_now() -> None:
-    replay, index = _obstacle_windows()
-    pose = replay.pose[index]
-    law = ObstacleRedraw(near_probability=1.0, near_radius_m=2.5)
-    moving = np.diff(index, axis=1) > 0
-    rng = np.random.default_rng(5)
-    centres = draw_obstacle_paths(OBSTACLES, pose, moving, history=5, rng=rng, law=law)
-    start = np.linalg.norm(centres[:, 0] - pose[:, 0, None, :2], axis=-1)
-    assert (start <= 2.5 + 1e-9).all()
-    gap = np.linalg.norm(centres - pose[:, :, None, :2], axis=-1) - OBSTACLES.obstacles.radius_m
-    assert (gap[:, :5] >= OBSTACLES.robot_radius_m).mean() > 0.999
-
-
-def test_returns_bootstrap_at_the_first_step_a_fresh_obstacle_comes_near() -> None:
-    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
-    for seed in range(6):
-        replay.add(_obstacle_episode(seed))
-
-    def sample(within_m: float) -> Batch:
-        law = ObstacleRedraw(bootstrap_within_m=within_m)
-        return replay.sample(256, np.random.default_rng(0), "paper", n_step=5, obstacles=law)
-
-    # Every fresh obstacle is within 1 km: each return stops after its first step.
-    assert (sample(1e3).steps == 1).all()
-    # Never near enough: the returns run as far as without the rule.
-    np.testing.assert_array_equal(sample(0.0).steps, sample(1e-9).steps)
-    assert (sample(0.0).steps > 1).any()
-
-
-def test_demonstrated_transitions_keep_their_own_target_and_obstacles() -> None:
-    shown = _obstacle_episode(1)._replace(demonstrated=True)
-    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
-    replay.add(_obstacle_episode(0))
-    replay.add(shown)
-    batch = replay.sample(
-        256, np.random.default_rng(0), "paper", n_step=3, obstacles=ObstacleRedraw()
-    )
-    assert batch.demonstrated is not None
-    assert 0 < batch.demonstrated.sum() < 256
-    rows = np.flatnonzero(batch.demonstrated)
-    # Every demonstrated row is one of the demonstration's transitions, exactly as it happened.
-    own = replay.transitions_at(
-        np.arange(replay.first[replay.size - 1], replay.size - 1),
-        np.repeat(shown.target_xy[None], shown.action.size, axis=0),
-        n_step=3,
-    )
-    for row in rows:
-        match = np.flatnonzero((own.frames == batch.frames[row]).all(axis=(1, 2)))
-        assert match.size, row
-        assert own.reward[match[0]] == batch.reward[row]

@@ -17,7 +17,8 @@ from controller.onnx_file import read_onnx
 from sim.config import scenario
 from training.config import FAST
 from training.episode_log import read_rounds
-from training.run import read_settings, train
+from training.run import train
+from training.run_folder import read_settings
 
 TINY = [
     "--train-set", "train.hidden_size=16",
@@ -126,35 +127,3 @@ def test_a_run_folder_refuses_other_settings(tmp_path: Path) -> None:
     train(world, settings, tmp_path, progress=False)
     with pytest.raises(ConfigError, match="other settings"):
         train(world, replace(settings, seed=9), tmp_path, progress=False)
-
-
-def test_a_run_with_the_next_scan_loss_checkpoints_its_predictor(tmp_path: Path) -> None:
-    import torch
-
-    world = scenario("obstacles-increment")
-    settings = replace(
-        FAST, episodes=4, parallel_worlds=4, hidden_size=8, iterations_per_episode=1.0,
-        batch_size=8, warmup_episodes=0, eval_every_episodes=0, final_eval_episodes=2,
-        max_episode_steps=20, next_scan_weight=1.0,
-    )  # fmt: skip
-    first = train(world, settings, tmp_path, progress=False)
-    saved = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
-    assert saved["next_scan"]["layers.2.weight"].shape == (settings.next_scan_sectors, 256)
-    assert train(world, settings, tmp_path, progress=False) == first  # resumes with it
-
-
-def test_next_scan_sectors_must_divide_the_beams(tmp_path: Path) -> None:
-    settings = replace(FAST, episodes=8, next_scan_weight=1.0, next_scan_sectors=7)
-    with pytest.raises(ConfigError, match=r"train\.next_scan_sectors = 7 does not divide"):
-        train(scenario("obstacles-increment"), settings, tmp_path, progress=False)
-
-
-def test_a_run_collects_its_demonstrations_first_and_marks_them(tmp_path: Path) -> None:
-    settings = replace(
-        FAST, episodes=8, parallel_worlds=4, hidden_size=8, iterations_per_episode=1.0,
-        batch_size=8, warmup_episodes=0, eval_every_episodes=0, final_eval_episodes=2,
-        max_episode_steps=20, demonstration_episodes=6,
-    )  # fmt: skip
-    train(scenario("obstacles-increment"), settings, tmp_path, progress=False)
-    rounds = read_rounds(tmp_path / "episodes")
-    assert [[e.demonstrated for e in r] for r in rounds] == [[True] * 4, [True] * 2, [False] * 2]

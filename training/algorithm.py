@@ -1,9 +1,14 @@
-"""The double-DQN update (the paper's Eq. 3), with the encoder run once per frame."""
+"""The algorithm: double DQN (the paper's Eq. 3) with its target network and optimiser.
+
+`DoubleDQN` holds the online network, its target copy and Adam; `update` takes one gradient
+step on a sampled batch (`td_update`, the encoder run once per frame) and syncs the target:
+hard copies every `target_update_period` iterations, as the paper, or Polyak averaging.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import NamedTuple
+import copy
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -11,8 +16,55 @@ from numpy.typing import NDArray
 from torch import Tensor
 from torch.nn import functional
 
-from training.networks import NextScanPredictor, QNetwork, near_scan_bins
+from training.config import TrainSettings
+from training.networks import QNetwork
 from training.replay import Batch
+
+
+class DoubleDQN:
+    """The online network, its target copy and the optimiser, on the settings' device."""
+
+    def __init__(self, online: QNetwork, settings: TrainSettings) -> None:
+        self.settings = settings
+        self.device = choose_device(settings.device)
+        self.bf16 = settings.bf16_matmul and (self.device.type == "cuda" or cpu_has_bf16())
+        self.online = online.to(self.device)
+        self.target = copy.deepcopy(self.online)
+        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=settings.learning_rate)
+
+    def update(self, batch: Batch, iteration: int) -> Update:
+        """One gradient step on a batch, then the target's sync; `iteration` counts the
+        iterations so far, this one included."""
+        settings = self.settings
+        update = td_update(
+            self.online,
+            self.target,
+            self.optimizer,
+            batch,
+            window=settings.window,
+            loss_kind=settings.loss,
+            grad_clip_norm=settings.grad_clip_norm,
+            bf16=self.bf16,
+        )
+        if settings.target_smoothing:
+            soft_update(self.target, self.online, settings.target_smoothing)
+        elif iteration % settings.target_update_period == 0:
+            self.target.load_state_dict(self.online.state_dict())
+        return update
+
+    def state_dict(self) -> dict[str, Any]:
+        """The networks' and the optimiser's state, for a checkpoint."""
+        return {
+            "online": self.online.state_dict(),
+            "target": self.target.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, saved: dict[str, Any]) -> None:
+        """Resume from a checkpoint's `state_dict`."""
+        self.online.load_state_dict(saved["online"])
+        self.target.load_state_dict(saved["target"])
+        self.optimizer.load_state_dict(saved["optimizer"])
 
 
 def double_dqn_target(
@@ -38,45 +90,6 @@ def bootstrap_windows(features: Tensor, steps: Tensor, window: int) -> Tensor:
     return features.gather(1, index[..., None].expand(-1, -1, features.shape[-1]))
 
 
-@dataclass(frozen=True)
-class NextScanLoss:
-    """The auxiliary next-scan loss of `td_update` (`TrainSettings.next_scan_weight`)."""
-
-    predictor: NextScanPredictor
-    """The head that predicts the next frame's near ranges."""
-    weight: float
-    """Its squared error's weight against the TD loss."""
-    sectors: int
-    """Sectors of the predicted scan."""
-    near_fraction: float
-    """The near range as a fraction of the encoding's range."""
-
-    def __call__(self, summary: Tensor, action: Tensor, next_scans: Tensor) -> Tensor:
-        predicted = self.predictor(summary, action).float()
-        wanted = near_scan_bins(next_scans, self.sectors, self.near_fraction)
-        return self.weight * functional.mse_loss(predicted, wanted)
-
-
-def large_margin_loss(q: Tensor, demonstrated_action: Tensor, margin: float) -> Tensor:
-    """DQfD's supervised loss (Hester et al. 2018) per row: max_a [Q(s, a) + margin * (a is
-    not the demonstrated action)] - Q(s, a_demo). Zero once the demonstrated action leads
-    every other by the margin."""
-    penalty = torch.full_like(q, margin)
-    penalty.scatter_(1, demonstrated_action.unsqueeze(1), 0.0)
-    taken = q.gather(1, demonstrated_action.unsqueeze(1)).squeeze(1)
-    return (q + penalty).amax(dim=1) - taken
-
-
-@dataclass(frozen=True)
-class DemonstrationLoss:
-    """The large-margin loss of `td_update` on demonstrated transitions."""
-
-    margin: float
-    """Q-value lead the demonstrated action must have over every other."""
-    weight: float
-    """The loss's weight against the TD loss (it is averaged over the whole batch)."""
-
-
 class Update(NamedTuple):
     """What one gradient step measured."""
 
@@ -96,14 +109,8 @@ def td_update(
     loss_kind: str = "mse",
     grad_clip_norm: float = 0.0,
     bf16: bool = False,
-    next_scan: NextScanLoss | None = None,
-    demonstration: DemonstrationLoss | None = None,
 ) -> Update:
-    """One gradient step on a batch; returns its TD loss and per-transition TD errors.
-
-    The step also follows the auxiliary next-scan loss when `next_scan` is given (its predictor
-    must be in `optimizer`) and the large-margin loss on the batch's demonstrated transitions
-    when `demonstration` is given."""
+    """One gradient step on a batch; returns its TD loss and per-transition TD errors."""
     device = next(online.parameters()).device
     frames = torch.from_numpy(batch.frames).to(device)
     action = torch.from_numpy(batch.action).to(device)
@@ -114,11 +121,6 @@ def td_update(
         summary = online.window_summary(features[:, :window])
         q = online.head(summary).float()
         q_taken = q.gather(1, action.unsqueeze(1)).squeeze(1)
-        auxiliary = (
-            next_scan(summary, action, frames[:, window, : online.num_beams])
-            if next_scan is not None
-            else None
-        )
         with torch.no_grad():
             later = bootstrap_windows(features.detach(), steps, window)
             q_next_online = online.q_from_features(later).float()
@@ -138,13 +140,8 @@ def td_update(
     if batch.weight is not None:
         per_transition = per_transition * torch.from_numpy(batch.weight).to(device)
     loss = per_transition.mean()
-    total = loss if auxiliary is None else loss + auxiliary
-    if demonstration is not None and batch.demonstrated is not None:
-        shown = torch.from_numpy(batch.demonstrated).to(device)
-        margins = large_margin_loss(q, action, demonstration.margin)
-        total = total + demonstration.weight * (margins * shown).mean()
     optimizer.zero_grad(set_to_none=True)
-    total.backward()  # type: ignore[no-untyped-call]
+    loss.backward()  # type: ignore[no-untyped-call]
     if grad_clip_norm > 0:
         torch.nn.utils.clip_grad_norm_(
             [p for group in optimizer.param_groups for p in group["params"]], grad_clip_norm
@@ -152,3 +149,23 @@ def td_update(
     optimizer.step()
     td_error = (y - q_taken).detach().cpu().numpy().astype(np.float32)
     return Update(float(loss.item()), td_error)
+
+
+def soft_update(target: QNetwork, online: QNetwork, rate: float) -> None:
+    """target <- (1 - rate) * target + rate * online, parameter by parameter."""
+    with torch.no_grad():
+        for mine, theirs in zip(target.parameters(), online.parameters(), strict=True):
+            mine.lerp_(theirs, rate)
+
+
+def choose_device(name: str) -> torch.device:
+    """The torch device `TrainSettings.device` names ("auto": cuda when available)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def cpu_has_bf16() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (otherwise autocast would be slower)."""
+    checks = ("_is_amx_tile_supported", "_is_avx512_bf16_supported")
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)

@@ -1,0 +1,55 @@
+"""A run folder's settings: what it was started with, and folders older than a removal."""
+
+from pathlib import Path
+
+import pytest
+
+from contracts.errors import ConfigError
+from contracts.settings import to_toml
+from sim.config import scenario
+from training.config import TrainSettings
+from training.run_folder import LAST_COMMIT_WITH_EXPERIMENTS, RunFolder, RunSettings, read_settings
+
+SETTINGS = RunSettings(scenario("walls-increment"), TrainSettings(hidden_size=8, seed=4))
+
+
+def _started_with(tmp_path: Path, extra: str) -> Path:
+    """A run folder whose settings.toml also holds `extra` lines in its [train] table."""
+    RunFolder(tmp_path).start(SETTINGS)
+    path = tmp_path / "settings.toml"
+    path.write_text(to_toml(SETTINGS).replace("[train]\n", "[train]\n" + extra))
+    return tmp_path
+
+
+def test_a_started_folder_reads_back_its_settings_and_refuses_others(tmp_path: Path) -> None:
+    RunFolder(tmp_path).start(SETTINGS)
+    assert read_settings(tmp_path) == SETTINGS
+    other = RunSettings(SETTINGS.world, TrainSettings(hidden_size=8, seed=5))
+    with pytest.raises(ConfigError, match="other settings"):
+        RunFolder(tmp_path).start(other)
+
+
+def test_a_folder_from_before_the_removal_reads_while_the_removed_experiments_were_off(
+    tmp_path: Path,
+) -> None:
+    older = (
+        "mirror_probability = 0.0\nnext_scan_weight = 0.0\nnext_scan_sectors = 36\n"
+        'demonstration_episodes = 0\ndemonstration_margin = 0.2\nencoder_init = "default"\n'
+    )
+    assert read_settings(_started_with(tmp_path, older)) == SETTINGS
+
+
+@pytest.mark.parametrize(
+    ("line", "name"),
+    [
+        ("next_scan_weight = 1.0\n", "train.next_scan_weight"),
+        ('encoder_init = "centred"\n', "train.encoder_init"),
+        ("demonstration_episodes = 40\ndemonstration_margin = 0.1\n", "demonstration_episodes"),
+    ],
+)
+def test_a_folder_that_used_a_removed_experiment_is_refused_by_name(
+    tmp_path: Path, line: str, name: str
+) -> None:
+    with pytest.raises(ConfigError, match=name) as refused:
+        read_settings(_started_with(tmp_path, line))
+    assert LAST_COMMIT_WITH_EXPERIMENTS in str(refused.value)

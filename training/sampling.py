@@ -1,0 +1,238 @@
+"""Sampling strategies over the replay storage: which stored steps, which targets, which
+obstacles.
+
+Beside the storage (`training.replay`), as Stable-Baselines3 keeps HER's goal selection beside
+its buffer. A batch is drawn in three steps, each a strategy of its own:
+
+1. the stored steps: uniformly (the paper), or in proportion to their last |TD error|
+   (prioritized replay, Schaul et al. 2016), with importance weights;
+2. each step's target (`Relabel`): fresh in the arena (the paper), around the robot (local), a
+   position reached later (hindsight), or the episode's own;
+3. each step's obstacles: the episode's own, or, with a probability, fresh ones moving along
+   the stored path (`redraw_obstacles`).
+
+The reward and termination are then recomputed for that target and those obstacles
+(`EpisodeReplay.transitions_at`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from contracts.motion import move_obstacles
+from sim.config import WorldConfig
+from sim.geometry import add_circles_to_scan
+from sim.world import obstacle_speeds, targets_around
+from training.config import Relabel
+from training.replay import Batch, EpisodeReplay
+
+_LOCAL_CANDIDATES = 64
+"""Candidates per local target (as in the simulator's spawn)."""
+_OBSTACLE_CANDIDATES = 8
+"""Candidate paths per re-drawn obstacle; the first that never touches the robot before the
+sampled step is used (each is accepted with probability about 0.9, so all 8 fail with
+probability about 1e-8)."""
+_SPEED_CANDIDATES = 8
+"""Box-Muller candidates per re-drawn obstacle speed; each lies in the speed range with
+probability about 0.9."""
+
+
+def sample(
+    replay: EpisodeReplay,
+    batch_size: int,
+    rng: np.random.Generator,
+    relabel: Relabel,
+    *,
+    n_step: int = 1,
+    gamma: float = 0.97,
+    obstacle_redraw_probability: float = 0.0,
+    priority_exponent: float = 0.0,
+    priority_correction: float = 1.0,
+) -> Batch:
+    """Random transitions of the replay, each with its own target drawn by `relabel` and, with
+    probability `obstacle_redraw_probability`, fresh obstacles in place of its episode's own.
+
+    Transitions are drawn uniformly, or with `priority_exponent` > 0 in proportion to their
+    priority to that power, with importance weights (N p)^-`priority_correction` scaled to at
+    most 1 in `Batch.weight`."""
+    now, weight = choose_steps(replay, batch_size, rng, priority_exponent, priority_correction)
+    redraw = None
+    if obstacle_redraw_probability > 0.0 and replay.has_obstacles:
+        redraw = rng.random(batch_size) < obstacle_redraw_probability
+    targets = draw_targets(replay, now, rng, relabel)
+    seen = None
+    if redraw is not None and redraw.any():
+        seen = redraw_obstacles_in_windows(replay, now, n_step, redraw, rng)
+    batch = replay.transitions_at(now, targets, n_step, gamma, seen=seen)
+    return batch._replace(stored=now, weight=weight)
+
+
+def choose_steps(
+    replay: EpisodeReplay,
+    batch_size: int,
+    rng: np.random.Generator,
+    priority_exponent: float = 0.0,
+    priority_correction: float = 1.0,
+) -> tuple[NDArray[np.int64], NDArray[np.float32] | None]:
+    """Stored frames to leave (N,), uniformly or by priority, and the importance weights of a
+    prioritized choice (None for a uniform one)."""
+    stored = replay.transitions()
+    if priority_exponent <= 0.0:
+        return stored[rng.integers(0, stored.size, batch_size)], None
+    chance = replay.priority[stored] ** priority_exponent
+    chance /= chance.sum()
+    picked = rng.choice(stored.size, batch_size, p=chance)
+    raw = (stored.size * chance[picked]) ** -priority_correction
+    return stored[picked], (raw / raw.max()).astype(np.float32)
+
+
+def draw_targets(
+    replay: EpisodeReplay, now: NDArray[np.int64], rng: np.random.Generator, relabel: Relabel
+) -> NDArray[np.float64]:
+    """A target (N, 2) for each transition leaving frames `now`, as `relabel` says."""
+    if relabel == "none":
+        return replay.own_target[now]
+    if relabel == "hindsight":
+        # A position reached after this step, in the same episode ("future" strategy).
+        later = rng.integers(now + 1, replay.last[now] + 1)
+        return replay.pose[later, :2]
+    low = replay.config.spawn.wall_margin_m
+    high = replay.config.arena.size_m - low
+    if relabel == "local":
+        draws = rng.random((now.size, _LOCAL_CANDIDATES, 2))
+        return targets_around(replay.config, replay.pose[now, :2], draws)
+    return rng.uniform(low, high, size=(now.size, 2))
+
+
+def redraw_obstacles_in_windows(
+    replay: EpisodeReplay,
+    now: NDArray[np.int64],
+    n_step: int,
+    redraw: NDArray[np.bool_],
+    rng: np.random.Generator,
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Encoded scans (N, k + n, B) and clearances (N, k + n) of the transitions' windows, with
+    fresh obstacles where `redraw` (N,) is true and the stored ones elsewhere."""
+    frame_index = replay.window_index(now, n_step)
+    scans, clearances = replay.scan[frame_index], replay.clearance[frame_index]
+    rows = np.flatnonzero(redraw)
+    scans[rows], clearances[rows] = redraw_obstacles(
+        replay.config,
+        replay.pose[frame_index[rows]],
+        np.diff(frame_index[rows], axis=1) > 0,
+        replay.walls_scan[frame_index[rows]],
+        replay.walls_clearance[frame_index[rows]],
+        history=replay.window,
+        rng=rng,
+    )
+    return scans, clearances
+
+
+def redraw_obstacles(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    moving: NDArray[np.bool_],
+    walls_scan: NDArray[np.float32],
+    walls_clearance: NDArray[np.float64],
+    *,
+    history: int,
+    rng: np.random.Generator,
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Encoded scans (N, T, B) and clearances (N, T) along stored robot paths (N, T, 3), with
+    fresh obstacles (`draw_obstacle_paths`) in place of the episode's own.
+
+    The obstacles never react to the robot, so its stored path is as possible among any other
+    obstacles as among those it met: like the paper's re-drawn targets, a fresh set per sample
+    lets one stored step teach about many layouts. `walls_scan` and `walls_clearance` are what
+    the stored poses see without obstacles.
+    """
+    centres = draw_obstacle_paths(config, pose, moving, history=history, rng=rng)
+    return view_with_obstacles(config, pose, centres, walls_scan, walls_clearance)
+
+
+def draw_obstacle_paths(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    moving: NDArray[np.bool_],
+    *,
+    history: int,
+    rng: np.random.Generator,
+) -> NDArray[np.float64]:
+    """Fresh obstacle centres (N, T, M, 2) along robot paths (N, T, 3).
+
+    Each obstacle starts at a uniform position in the arena with a uniform heading and the
+    simulator's speed law, and moves by the simulator's own `move_obstacles`, one control period
+    per step where `moving` (N, T - 1) is true (frames repeated at an episode's start or end
+    stand still). It stays clear of the robot over the first `history` frames (up to the sampled
+    step, which the episode survived): of `_OBSTACLE_CANDIDATES` paths, the first that does is
+    used.
+    """
+    n, frames = pose.shape[:2]
+    obstacles = config.obstacles
+    m, radius, size = obstacles.count, obstacles.radius_m, config.arena.size_m
+    shape = (n, m, _OBSTACLE_CANDIDATES)
+    xy = radius + (size - 2 * radius) * rng.random((*shape, 2))
+    heading = 2 * np.pi * rng.random(shape)
+    # One speed per obstacle, shared by its candidate paths (each candidate still moves at a
+    # speed from the simulator's law; only one of them is kept).
+    speed = obstacle_speeds(config, rng.random((n, m, 1, _SPEED_CANDIDATES, 2)))
+    velocity = np.stack([np.cos(heading), np.sin(heading)], axis=-1) * speed[..., None]
+    path = [xy]
+    for step in range(frames - 1):
+        if step + 1 == history:
+            xy, velocity, path = _first_clear_candidate(config, pose, xy, velocity, path)
+        moved, turned = move_obstacles(xy, velocity, radius, size, config.control_period_s)
+        advance = moving[:, step, None, None, None]
+        xy, velocity = np.where(advance, moved, xy), np.where(advance, turned, velocity)
+        path.append(xy)
+    if len(path) <= history:
+        _, _, path = _first_clear_candidate(config, pose, xy, velocity, path)
+    return np.stack(path, axis=1)[:, :, :, 0]
+
+
+def _first_clear_candidate(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    velocity: NDArray[np.float64],
+    path: list[NDArray[np.float64]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], list[NDArray[np.float64]]]:
+    """Keep, of each obstacle's candidates (N, M, C, 2), the first whose path so far stays clear
+    of the robot (else the first): its position, velocity and path, with C = 1."""
+    history = len(path)
+    centres = np.stack(path, axis=1)  # (N, history, M, C, 2)
+    gap = np.linalg.norm(centres - pose[:, :history, None, None, :2], axis=-1)
+    clear = (gap - config.obstacles.radius_m >= config.robot_radius_m).all(axis=1)  # (N, M, C)
+    index = np.argmax(clear, axis=2)[:, :, None, None]
+
+    def keep(array: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.take_along_axis(array, index, axis=2)
+
+    return keep(xy), keep(velocity), [keep(frame) for frame in path]
+
+
+def view_with_obstacles(
+    config: WorldConfig,
+    pose: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    walls_scan: NDArray[np.float32],
+    walls_clearance: NDArray[np.float64],
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Encoded scans (N, T, B) and clearances (N, T) from poses (N, T, 3) among obstacles
+    (N, T, M, 2), given what the poses see without them."""
+    n, frames, m = centres.shape[:3]
+    radius = config.obstacles.radius_m
+    flat_pose, flat_centres = pose.reshape(n * frames, 3), centres.reshape(n * frames, m, 2)
+    scans = walls_scan.copy()
+    if config.lidar is not None:
+        add_circles_to_scan(
+            scans.reshape(n * frames, -1),
+            flat_pose,
+            config.lidar,
+            flat_centres,
+            radius,
+            scale_m=config.lidar.max_range_m,
+        )
+    gap = np.linalg.norm(centres - pose[:, :, None, :2], axis=-1).min(axis=-1) - radius
+    return scans, np.minimum(walls_clearance, gap)
