@@ -13,6 +13,7 @@ COPY pyproject.toml README.md ./
 COPY qnav ./qnav
 COPY contracts ./contracts
 COPY sim ./sim
+COPY simcar ./simcar
 COPY training ./training
 COPY controller ./controller
 COPY firmware_bridge ./firmware_bridge

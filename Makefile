@@ -78,10 +78,12 @@ stack-sitl: $(STAMP)
 	$(SITL_NETNS) sh -c '$(if $(SITL_NETNS),ip link set lo up && )$(BIN)/python -m qnav stack --vehicle sitl --policy $(STACK_POLICY) --episodes $(STACK_EPISODES) --no-record --out out/stack-sitl $(STACK_ARGS)'
 
 # Regenerate the playback tests' reference decisions on purpose, and show what changed
-# (tests/data/make_playback_data.py --refs; docs/recordings.md). Commit the new references.
+# (tests/data/make_playback_data.py --refs, docs/recordings.md; the bridge's:
+# tests/data/make_bridge_playback.py --refs, docs/bridge.md). Commit the new references.
 playback-refs: $(STAMP)
 	$(BIN)/python tests/data/make_playback_data.py --refs
-	git diff --stat -- tests/data/playback
+	$(BIN)/python tests/data/make_bridge_playback.py --refs
+	git diff --stat -- tests/data/playback tests/data/bridge_playback
 
 bench-sim: $(STAMP)
 	$(BIN)/qnav bench sim

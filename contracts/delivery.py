@@ -209,30 +209,33 @@ def generate_key_pair() -> tuple[bytes, bytes]:
 
 def load_private_key(path: Path, setting: str) -> Any:
     """The Ed25519 private key in the PEM file `path`; `ConfigError` naming `setting` if not."""
-    from cryptography.hazmat.primitives import serialization
-    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
-
-    try:
-        key = serialization.load_pem_private_key(Path(path).read_bytes(), password=None)
-    except (OSError, ValueError, TypeError) as error:
-        why = f"not a readable private key ({error})"
-        raise ConfigError(f"{setting} = {str(path)!r}: {why}") from None
-    if not isinstance(key, Ed25519PrivateKey):
-        raise ConfigError(f"{setting} = {str(path)!r}: not an Ed25519 key")
-    return key
+    return _load_pem_key(path, setting, private=True)
 
 
 def load_public_key(path: Path, setting: str) -> Any:
     """The Ed25519 public key in the PEM file `path`; `ConfigError` naming `setting` if not."""
-    from cryptography.hazmat.primitives import serialization
-    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+    return _load_pem_key(path, setting, private=False)
 
+
+def _load_pem_key(path: Path, setting: str, *, private: bool) -> Any:
+    """The one PEM reader of both keys (the server's private one, the car's public one)."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import (
+        Ed25519PrivateKey,
+        Ed25519PublicKey,
+    )
+
+    kind = "private" if private else "public"
     try:
-        key = serialization.load_pem_public_key(Path(path).read_bytes())
+        data = Path(path).read_bytes()
+        if private:
+            key: Any = serialization.load_pem_private_key(data, password=None)
+        else:
+            key = serialization.load_pem_public_key(data)
     except (OSError, ValueError, TypeError) as error:
-        why = f"not a readable public key ({error})"
+        why = f"not a readable {kind} key ({error})"
         raise ConfigError(f"{setting} = {str(path)!r}: {why}") from None
-    if not isinstance(key, Ed25519PublicKey):
+    if not isinstance(key, Ed25519PrivateKey if private else Ed25519PublicKey):
         raise ConfigError(f"{setting} = {str(path)!r}: not an Ed25519 key")
     return key
 

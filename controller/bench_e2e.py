@@ -25,7 +25,6 @@ import argparse
 import math
 import os
 import platform
-import socket
 import subprocess
 import sys
 import tempfile
@@ -37,6 +36,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from contracts import wire
+from contracts.daemon import free_port
 from contracts.settings import to_toml
 from contracts.transport import ZenohSettings, open_session
 from controller.config import ControllerSettings, DaemonConfig, SafetySettings
@@ -44,14 +44,6 @@ from controller.config import ControllerSettings, DaemonConfig, SafetySettings
 _ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 WARMUP_S = 1.0
 """Scans published before the timed ones, to let connections and caches settle."""
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 def daemon_config(policy: Path, endpoint: str) -> DaemonConfig:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import gc
 import logging
-import signal
 import sys
 import tempfile
 import textwrap
@@ -31,10 +30,10 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from contracts import delivery, wire
+from contracts.daemon import RateLimitedLog, stop_on_signals
 from contracts.errors import PolicyFileError
 from contracts.health import Heartbeat
 from contracts.policy_file import PolicyContract
@@ -47,28 +46,6 @@ from controller.delivery import Candidate, PolicyFetcher
 from controller.policy import PolicyRuntime
 
 log = logging.getLogger("qnav.controller")
-
-
-class BoundedLog:
-    """Warnings of one kind at most once per interval; the ones held back are counted."""
-
-    def __init__(self, logger: logging.Logger, interval_s: float) -> None:
-        self.logger = logger
-        self.interval_s = interval_s
-        self._last: dict[str, float] = {}
-        self._held: dict[str, int] = {}
-
-    def warning(self, kind: str, message: str, now: float) -> bool:
-        """Log `message` unless one of this kind was logged less than an interval ago."""
-        last = self._last.get(kind)
-        if last is not None and now - last < self.interval_s:
-            self._held[kind] = self._held.get(kind, 0) + 1
-            return False
-        held = self._held.pop(kind, 0)
-        suffix = f" ({held} more since the last warning)" if held else ""
-        self.logger.warning("%s%s", message, suffix)
-        self._last[kind] = now
-        return True
 
 
 class Ratekeeper:
@@ -124,7 +101,7 @@ class Daemon:
         self.period_s = controller.period_s
         self.decide_on_scan = config.controller.trigger == "scan"
         self.stopping = threading.Event()
-        self.bounded = BoundedLog(log, config.controller.log_interval_s)
+        self.bounded = RateLimitedLog(log, config.controller.log_interval_s)
         self._lock = threading.Lock()
         """Held by whoever talks to the controller or publishes (zenoh's threads, the loop)."""
         self._closed = False
@@ -388,17 +365,8 @@ def build(config: DaemonConfig) -> Daemon:
 
 def serve(daemon: Daemon) -> None:
     """Run `daemon` in this (main) thread until SIGINT or SIGTERM."""
-
-    def on_signal(number: int, frame: FrameType | None) -> None:
-        log.info("%s: stopping", signal.Signals(number).name)
-        daemon.request_stop()
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_on_signals(daemon.stopping, log):
         daemon.run()
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
 
 
 def main(args: argparse.Namespace) -> int:

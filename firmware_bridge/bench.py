@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from contracts.daemon import free_port, stop_on_signals
 from contracts.errors import ConfigError
 from contracts.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
@@ -54,13 +55,6 @@ VEHICLE_HEARTBEAT_S = 0.5
 ECHO_KEY = "qnav/bench_echo"
 COMMAND_GAP_S = 0.004
 """Pause between timed commands (the controller sends one per 0.2 s; this keeps the run short)."""
-
-
-def free_port(kind: socket.SocketKind) -> int:
-    """A port on 127.0.0.1 that nothing uses right now."""
-    with socket.socket(socket.AF_INET, kind) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 class _FakeAutopilot:
@@ -292,9 +286,10 @@ def _echo(zenoh_port: int, udp_port: int) -> None:
     """The baseline's other end: each sample on ECHO_KEY goes back as one UDP datagram."""
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     destination = ("127.0.0.1", udp_port)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda number, frame: stop.set())
-    with open_session(ZenohSettings(connect=(f"tcp/127.0.0.1:{zenoh_port}",))) as session:
+    with (
+        stop_on_signals() as stop,
+        open_session(ZenohSettings(connect=(f"tcp/127.0.0.1:{zenoh_port}",))) as session,
+    ):
         session.declare_subscriber(
             ECHO_KEY, lambda sample: out.sendto(sample.payload.to_bytes(), destination)
         )

@@ -940,7 +940,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     vehicle.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
-    vehicle.set_defaults(handler=_lazy("sim.mavlink_vehicle:run"))
+    vehicle.set_defaults(handler=_lazy("simcar.mavlink_vehicle:run"))
 
 
 def _bench_bridge(benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -35,8 +35,8 @@ def main() -> int:
     """Run the demo."""
     from controller.policy import PolicyRuntime
     from qnav.stack import run_stack
-    from sim.car import EpisodeLog, episode_record
     from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+    from simcar.car import EpisodeLog, episode_record
     from training.config import preset
     from training.export import export_run
     from training.run import train

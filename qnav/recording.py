@@ -5,11 +5,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import signal
 import threading
 from pathlib import Path
 from typing import Any
 
+from contracts.daemon import stop_on_signals
 from contracts.errors import ConfigError
 from contracts.settings import from_dict, load_toml, with_overrides
 from contracts.transport import ZenohSettings
@@ -27,13 +27,6 @@ def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return overrides
 
 
-def _stop_on_signals() -> threading.Event:
-    stop = threading.Event()
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, lambda *_: stop.set())
-    return stop
-
-
 def record_verb(args: argparse.Namespace) -> int:
     """Record the project's topics to MCAP until SIGINT/SIGTERM (or --duration-s)."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -44,10 +37,10 @@ def record_verb(args: argparse.Namespace) -> int:
     )
     if args.out is not None:
         settings = dataclasses.replace(settings, output_dir=str(args.out))
-    stop = _stop_on_signals()
-    if args.duration_s:
-        threading.Timer(args.duration_s, stop.set).start()
-    writer = record(settings, stop, folder=args.folder)
+    with stop_on_signals() as stop:
+        if args.duration_s:
+            threading.Timer(args.duration_s, stop.set).start()
+        writer = record(settings, stop, folder=args.folder)
     print(f"recorded {writer.messages} messages into {', '.join(map(str, writer.files)) or '-'}")
     return 0
 
@@ -88,7 +81,8 @@ def playback_verb(args: argparse.Namespace) -> int:
     if args.into_controller:
         return _into_controller(args, messages, len(files))
     settings = with_overrides(ZenohSettings(), _zenoh_overrides(args))
-    count = play(messages, settings, speed=args.speed, stop=_stop_on_signals())
+    with stop_on_signals() as stop:
+        count = play(messages, settings, speed=args.speed, stop=stop)
     print(f"published {count} of {len(messages)} messages from {len(files)} file(s)")
     return 0
 

@@ -20,16 +20,15 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import sys
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from contracts import delivery, wire
+from contracts.daemon import stop_on_signals
 from contracts.errors import ConfigError, PolicyFileError
 from contracts.policy_file import PolicyContract
 from contracts.transport import ZenohSettings, open_session
@@ -358,15 +357,8 @@ def serve_verb(args: argparse.Namespace) -> int:
         chunk_bytes=args.chunk_bytes,
         export_runs=args.export_runs,
     )
-    stop = threading.Event()
-
-    def on_signal(number: int, frame: FrameType | None) -> None:
-        log.info("%s: stopping", signal.Signals(number).name)
-        stop.set()
-
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, on_signal)
-    run(settings, stop)
+    with stop_on_signals(logger=log) as stop:
+        run(settings, stop)
     return 0
 
 

@@ -29,19 +29,13 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
+from contracts.daemon import free_port
 from contracts.errors import ConfigError
 from contracts.settings import from_dict, to_toml
 
 if TYPE_CHECKING:
     from sim.config import WorldConfig
     from sim.evaluate import Agent
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A loopback port nothing listens on now."""
-    with socket.socket(socket.AF_INET, kind) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 @dataclass(frozen=True)
@@ -276,8 +270,8 @@ def run_stack(
 
     from contracts.policy_file import PolicyContract
     from controller.onnx_file import read_onnx
-    from sim.car import SimCarSettings
     from sim.config import scenario as load_scenario
+    from simcar.car import SimCarSettings
 
     contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
     world = load_scenario(scenario or contract.scenario)
@@ -385,7 +379,7 @@ def run_stack(
 
 
 def episode_health(episodes_log: Path) -> dict[str, int]:
-    """The sim-car's per-period health figures (`sim.car.EpisodeLog`) summed over its episode
+    """The sim-car's per-period health figures (`simcar.car.EpisodeLog`) summed over its episode
     log: steps, and the periods the controller had not decided on in time (undecided), decided
     on another pose than the scan's (stale_pose), stopped on (stops), or whose command reached
     the car too late for lockstep (late)."""
@@ -626,11 +620,11 @@ def episode_agreement(
 def sim_car_verb(args: argparse.Namespace) -> int:
     """`qnav sim-car`: the simulator as the car, until its episodes are done or SIGTERM."""
     import logging
-    import threading
 
+    from contracts.daemon import stop_on_signals
     from contracts.transport import ZenohSettings
-    from sim.car import SimCar, SimCarSettings, summary, write_log
     from sim.config import load_world
+    from simcar.car import SimCar, SimCarSettings, summary, write_log
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     world = load_world(args.scenario, args.world_config, args.assignments)
@@ -650,15 +644,13 @@ def sim_car_verb(args: argparse.Namespace) -> int:
         connect=tuple(args.connect or ()),
         namespace=args.namespace or "",
     )
-    stop = threading.Event()
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, lambda *_: stop.set())
     car = SimCar(world, settings, zenoh)
 
     def report(entry: Any) -> None:
         print(f"episode {entry.episode}: {entry.outcome}, {entry.steps} steps", flush=True)
 
-    episodes = car.run(stop, progress=report)
+    with stop_on_signals() as stop:
+        episodes = car.run(stop, progress=report)
     if args.log:
         write_log(episodes, args.log)
     print(json.dumps(summary(episodes)), flush=True)

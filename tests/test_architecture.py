@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-OURS = {"qnav", "sim", "training", "controller", "firmware_bridge"}
+OURS = {"qnav", "sim", "simcar", "training", "controller", "firmware_bridge"}
 ONBOARD = ["contracts", "controller", "firmware_bridge"]
 
 
@@ -24,6 +24,13 @@ def _imports(package: str) -> set[str]:
 
 def test_contracts_import_none_of_the_other_packages() -> None:
     assert not (_imports("contracts") & OURS)
+
+
+def test_the_simulator_is_numpy_alone_and_its_processes_live_in_simcar() -> None:
+    # sim/ is the pure world; the sim-in-the-loop processes (sockets, threads) are simcar/'s.
+    assert not (_imports("sim") & (OURS - {"sim"}))
+    assert not (_imports("sim") & {"zenoh", "pymavlink", "socket", "threading"})
+    assert _imports("simcar") & OURS <= {"sim", "simcar"}
 
 
 def test_onboard_packages_never_import_torch() -> None:

@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 
 from contracts import wire
+from contracts.daemon import free_port
 from contracts.errors import ConfigError
 from contracts.transport import (
     ZenohSettings,
@@ -30,10 +31,9 @@ from contracts.transport import (
     secure_hub_config,
     zenoh_config,
 )
-from firmware_bridge.bench import free_port
 from qnav.certs import IDENTITIES, make_certificates
 from qnav.cli import main
-from sim.mavlink_vehicle import MavlinkVehicle
+from simcar.mavlink_vehicle import MavlinkVehicle
 from tests.firmware_bridge.rig import vehicle_settings, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,8 +14,8 @@ from typing import Any
 import pytest
 
 from contracts import delivery, wire
+from contracts.daemon import free_port
 from contracts.transport import ZenohSettings, open_session
-from controller.bench_e2e import free_port
 from qnav.serve import PolicyServer, ServeSettings
 from tests.conftest import PolicyFactory, with_metadata
 

@@ -25,10 +25,10 @@ from contracts.motion import move_obstacles
 from controller.decision import Controller, Input
 from controller.policy import PolicyRuntime
 from qnav.stack import episode_health
-from sim.car import EpisodeLog, decision_of, note_decision, scan_message, write_log
 from sim.config import scenario
 from sim.evaluate import EvalResult, EvalSettings, StreamPolicyAgent, evaluate
 from sim.world import observe, reset
+from simcar.car import EpisodeLog, decision_of, note_decision, scan_message, write_log
 
 # A small recurrent policy (LSTM 64) that reaches every target of walls-increment in about 20
 # steps: `qnav train --scenario walls-increment --episodes 128 --seed 1 --train-set
@@ -215,7 +215,7 @@ def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None
         step_increment,
         step_velocity_lag,
     )
-    from sim.car import SimCarSettings, vehicle_dynamics
+    from simcar.car import SimCarSettings, vehicle_dynamics
 
     world = scenario("walls-increment")
     assert isinstance(world.dynamics, IncrementDynamics)

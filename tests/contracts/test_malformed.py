@@ -10,7 +10,7 @@ import pytest
 
 from contracts import wire
 from firmware_bridge import mapping
-from firmware_bridge.daemon import _parse_request
+from firmware_bridge.core import parse_request
 from firmware_bridge.settings import FailsafeSettings, OutputSettings
 from tests.contracts.malformed import CANONICAL_BOOLS, MESSAGES, malformed, well_formed
 
@@ -29,7 +29,7 @@ def request_refused(payload: bytes) -> bool:
     """A vehicle request as the bridge reads it (decode_json_msg, then its own parse): refused,
     or asking for nothing (`{"arm": null}` reads as no request: it arms nothing)."""
     try:
-        arm, mode = _parse_request(wire.decode_json_msg(payload))
+        arm, mode = parse_request(wire.decode_json_msg(payload))
     except (wire.WireError, ValueError):
         return True
     return arm is None and mode is None

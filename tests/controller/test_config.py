@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 import re
 from pathlib import Path
@@ -14,7 +13,7 @@ from contracts import wire
 from contracts.errors import ConfigError
 from contracts.settings import field_docs, from_dict, load_toml, to_markdown
 from controller.config import DaemonConfig, load_config
-from controller.daemon import BoundedLog, Daemon, Ratekeeper, example_config
+from controller.daemon import Daemon, Ratekeeper, example_config
 from controller.decision import Controller, Input
 from controller.policy import PolicyRuntime
 from qnav.cli import main
@@ -99,21 +98,6 @@ def test_ratekeeper_counts_and_skips_the_deadlines_an_overrun_missed() -> None:
     assert rate.advance(0.85) == 1  # the work of deadline 0.6 ran past 0.8
     assert rate.deadline == pytest.approx(1.0)
     assert rate.advance(1.1) == 0
-
-
-def test_malformed_input_warnings_are_logged_at_a_bounded_rate(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    bounded = BoundedLog(logging.getLogger("test.bounded"), interval_s=5.0)
-    with caplog.at_level(logging.WARNING, "test.bounded"):
-        logged = [bounded.warning("scan", "scan refused", t * 0.1) for t in range(100)]
-        bounded.warning("pose", "pose refused", 0.0)
-    assert logged.count(True) == 2  # at 0 s and 5 s
-    assert [r.message for r in caplog.records] == [
-        "scan refused",
-        "scan refused (49 more since the last warning)",
-        "pose refused",
-    ]
 
 
 def test_keys_follow_zenoh_bridge_ros2dds_with_the_namespace(make_policy: PolicyFactory) -> None:

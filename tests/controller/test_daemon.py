@@ -17,11 +17,11 @@ from typing import Any
 import pytest
 
 from contracts import wire
+from contracts.daemon import free_port
 from contracts.health import HEALTH_FILE_ENV
 from contracts.policy_file import PolicyContract
 from contracts.settings import to_toml
 from contracts.transport import ZenohSettings, open_session
-from controller.bench_e2e import free_port
 from controller.config import ControllerSettings, DaemonConfig, SafetySettings
 from controller.onnx_file import read_onnx
 from tests.conftest import PolicyFactory

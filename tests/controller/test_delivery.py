@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 from contracts import delivery, wire
+from contracts.daemon import free_port
 from contracts.policy_file import PolicyContract
 from contracts.transport import ZenohSettings, open_session
-from controller.bench_e2e import free_port
 from controller.config import (
     ControllerSettings,
     DaemonConfig,

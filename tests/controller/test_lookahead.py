@@ -16,11 +16,11 @@ from controller.decision import Controller, Input, Reason
 from controller.lookahead import Lookahead, LookaheadSettings, beam_angles
 from controller.perception import TrackerSettings
 from controller.policy import PolicyRuntime
-from sim.car import scan_message
 from sim.config import scenario
 from sim.evaluate import EvalSettings, StreamPolicyAgent
 from sim.oracle import lookahead_model
 from sim.world import observe, reset, step
+from simcar.car import scan_message
 
 DATA = Path(__file__).parents[1] / "data" / "stack"
 OBSTACLES_POLICY = DATA / "obstacles-inertia.onnx"

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -17,15 +16,10 @@ import pytest
 from mcap.reader import make_reader
 
 from contracts import wire
+from contracts.daemon import free_port
 from contracts.health import HEALTH_FILE_ENV, check_health
 from contracts.transport import ZenohSettings, open_session
 from controller.recording import McapWriter, Rotation, play, read_recording, read_recordings
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 def _scan(i: int) -> bytes:
@@ -95,7 +89,7 @@ def test_rotation_by_size_splits_into_files_that_are_each_complete(tmp_path: Pat
 
 
 def test_a_recorder_killed_with_sigkill_keeps_every_message_it_received(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     folder = tmp_path / "rec"
     health = tmp_path / "health.json"
     recorder = subprocess.Popen(
@@ -163,7 +157,7 @@ def test_playback_publishes_the_recorded_bytes_in_order_at_the_recorded_pace(
 ) -> None:
     writer = _write(tmp_path, 10)  # 0.45 s of recording
     messages = list(read_recordings(writer.files))
-    port = _free_port()
+    port = free_port()
     received: list[bytes] = []
     listen = ZenohSettings(listen=(f"tcp/127.0.0.1:{port}",), connect=())
     with open_session(listen) as session:

@@ -15,6 +15,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+from contracts.daemon import free_port
 from contracts.settings import with_overrides
 from contracts.transport import ZenohSettings, open_session
 from contracts.wire import (
@@ -30,10 +31,9 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.bench import free_port
 from firmware_bridge.daemon import Bridge
 from firmware_bridge.settings import BridgeSettings
-from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 T = TypeVar("T")
 
@@ -132,6 +132,16 @@ class Rig:
         """The in-process bridge's counters."""
         assert self.bridge is not None
         return dict(self.bridge.counters)
+
+    def send_garbage(self) -> None:
+        """Three datagrams of junk to the bridge's MAVLink port, from another sender: a
+        MAVLink 2 header with a bad CRC, text, and 0xFE bytes (MAVLink 1 starts announcing
+        254-byte payloads)."""
+        assert self.bridge is not None
+        bridge_address = self.bridge.link.connection.port.getsockname()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
+            for junk in (b"\xfd\x09\x00\x00\x00\x01\x01" + b"\x00" * 14, b"hello", b"\xfe" * 40):
+                rogue.sendto(junk, bridge_address)
 
     def ready(self) -> None:
         """Wait until the bridge reports the link up and the vehicle armed."""

@@ -27,9 +27,9 @@ import numpy as np
 import pytest
 
 from contracts import delivery, wire
+from contracts.daemon import free_port
 from contracts.transport import ZenohSettings, open_session
-from firmware_bridge.bench import free_port
-from sim.mavlink_vehicle import MavlinkVehicle
+from simcar.mavlink_vehicle import MavlinkVehicle
 from tests.contracts.malformed import enables_motion, payloads
 from tests.firmware_bridge.rig import vehicle_settings, wait_until
 

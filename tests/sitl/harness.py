@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from contracts.daemon import free_port
 from contracts.mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     drain,
@@ -44,7 +45,6 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.bench import free_port
 from qnav.sitl import HOME, SITL_ENV, SitlProcess
 
 T = TypeVar("T")

@@ -24,6 +24,7 @@ ray = pytest.importorskip(
     "ray", reason="Ray is not installed: `make test-cluster` installs the [cluster] extra"
 )
 
+from contracts.daemon import free_port  # noqa: E402
 from training.cluster import ClusterSettings, RayEngine  # noqa: E402
 from training.study import RunSpec, StudySettings, run_progress, run_study  # noqa: E402
 
@@ -215,19 +216,13 @@ def test_a_run_whose_worker_is_killed_mid_run_is_retried_and_resumes(
     assert rows[: len(killed["rows"]) - 1] == killed["rows"][:-1]
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 @pytest.fixture
 def two_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
     """A head and a second node on this machine (1 CPU each, resources node_a and node_b),
     each `ray start --block` in a process group of its own, ended by that group's id. The
     cluster's token is this test's own (in the environment of the nodes and the driver), not
     whatever ~/.ray/auth_token holds."""
-    port = _free_port()
+    port = free_port()
     common = ["--num-cpus=1", "--object-store-memory=100000000", "--block", "--disable-usage-stats"]
     token = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
     for name, value in token.items():

@@ -1,10 +1,10 @@
 """A real autopilot as the simulated robot: its own pose estimate moves the robot.
 
-`FirmwareVehicle` stands where `sim.mavlink_vehicle.MavlinkVehicle` stands in `sim.car.SimCar`,
-for a run of the full stack on firmware (ArduPilot Rover SITL, `qnav stack --vehicle sitl`):
-the bridge drives the autopilot, and the robot's pose in the simulated world is the autopilot's
-LOCAL_POSITION_NED and ATTITUDE, as motion capture would give it. Lidar and walls are simulated
-around that pose by the sim-car.
+`FirmwareVehicle` stands where `simcar.mavlink_vehicle.MavlinkVehicle` stands in
+`simcar.car.SimCar`, for a run of the full stack on firmware (ArduPilot Rover SITL, `qnav stack
+--vehicle sitl`): the bridge drives the autopilot, and the robot's pose in the simulated world is
+the autopilot's LOCAL_POSITION_NED and ATTITUDE, as motion capture would give it. Lidar and walls
+are simulated around that pose by the sim-car.
 
 The autopilot cannot be put somewhere, so each episode's start is a frame change instead:
 `set_pose(x, y, yaw)` makes the vehicle's pose at that moment read as (x, y, yaw), and later
@@ -21,9 +21,9 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any
 
+from contracts.daemon import Service
 from contracts.mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     drain,
@@ -33,7 +33,7 @@ from contracts.mavlink import (
     wrap_pi,
 )
 
-log = logging.getLogger("sim.firmware_vehicle")
+log = logging.getLogger("simcar.firmware_vehicle")
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MESSAGE_IDS = {"LOCAL_POSITION_NED": 32, "ATTITUDE": 30}
@@ -76,7 +76,7 @@ def apply_frame(
     return c * x - s * y + tx, s * x + c * y + ty, wrap_pi(yaw + math.atan2(s, c))
 
 
-class FirmwareVehicle:
+class FirmwareVehicle(Service):
     """The autopilot's pose, armed flag and mode, read on a MAVLink link of its own."""
 
     def __init__(self, settings: FirmwareVehicleSettings) -> None:
@@ -93,18 +93,6 @@ class FirmwareVehicle:
         """LOCAL_POSITION_NED messages received."""
         self._conn: Any = None
         self._thread: threading.Thread | None = None
-
-    def __enter__(self) -> FirmwareVehicle:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def start(self, timeout_s: float = 30.0) -> None:
         """Connect (retrying while the autopilot's port is not open yet) and start reading."""

@@ -5,7 +5,7 @@ the car's drivers would: the lidar as a `sensor_msgs/LaserScan` (the world's bea
 [0, 2 pi) counter-clockwise from the heading) and the motion-capture pose as a
 `geometry_msgs/PoseStamped`; at the start of each episode it publishes the target as a
 `PoseStamped` on `goal_pose`. The robot moves only as the MAVLink test vehicle
-(`sim.mavlink_vehicle`) moves, driven by whatever reaches it over MAVLink (the firmware
+(`simcar.mavlink_vehicle`) moves, driven by whatever reaches it over MAVLink (the firmware
 bridge); the obstacles move as in the simulator. The episode's outcome is judged by the
 simulator's own rules (`sim.task.outcome`), and the next episode starts at once.
 
@@ -17,7 +17,7 @@ whatever the latency. Either way the episode log counts, per period, the decisio
 too late, on another pose, or as stops (`EpisodeLog`).
 
 With `firmware_connection` (`qnav sim-car --firmware`), a real autopilot moves the robot
-instead: its own pose estimate is the robot's pose (`sim.firmware_vehicle`), as in
+instead: its own pose estimate is the robot's pose (`simcar.firmware_vehicle`), as in
 `qnav stack --vehicle sitl`.
 
 Episode g has the layout of the test protocol's episode g (seed and episode index as in
@@ -55,13 +55,13 @@ from contracts.settings import check_range
 from contracts.transport import ZenohSettings, open_session
 from sim.config import WorldConfig
 from sim.evaluate import EvalSettings
-from sim.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
-from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from sim.render import EpisodeRecord
 from sim.task import reward
 from sim.world import WorldState, observe, reset
+from simcar.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
+from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
-log = logging.getLogger("sim.car")
+log = logging.getLogger("simcar.car")
 
 
 @dataclass(frozen=True)
@@ -101,7 +101,7 @@ class SimCarSettings:
     delivered policy is swapped in, docs/serve.md). 0: the next target at once."""
     firmware_connection: str = ""
     """A real autopilot's MAVLink port (e.g. SITL's SERIAL0, tcp:127.0.0.1:5760): its own pose
-    estimate moves the robot (`sim.firmware_vehicle`) instead of the test vehicle; empty: the
+    estimate moves the robot (`simcar.firmware_vehicle`) instead of the test vehicle; empty: the
     test vehicle on `vehicle_connection`."""
     rest_speed_mps: float = 0.05
     """With a firmware vehicle: an episode starts only once the vehicle is slower than this."""

@@ -29,7 +29,7 @@ from contracts.mavlink import (
 )
 from contracts.motion import step_velocity_lag
 from contracts.settings import with_overrides
-from sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 IGNORE = 65535
 

@@ -32,18 +32,17 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType, TracebackType
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from contracts.daemon import Service, stop_on_signals
 from contracts.errors import ConfigError
 from contracts.mavlink import (
     GCS_SYSTEM_ID,
@@ -73,7 +72,7 @@ from contracts.mavlink import (
 from contracts.motion import InertiaDynamics, step_velocity_lag
 from contracts.settings import check_range, from_dict, load_toml, parse_assignments, with_overrides
 
-log = logging.getLogger("sim.mavlink_vehicle")
+log = logging.getLogger("simcar.mavlink_vehicle")
 
 POS_IGNORE = 0x7
 VEL_IGNORE = 0x38
@@ -198,7 +197,7 @@ def pwm_to_fraction(
     return max(-1.0, (pwm_us - trim_us) / (trim_us - low_us))
 
 
-class MavlinkVehicle:
+class MavlinkVehicle(Service):
     """The car: `start()` runs its loop in a thread, `stop()` ends it; `pose()` reads it."""
 
     def __init__(
@@ -249,8 +248,8 @@ class MavlinkVehicle:
         self._thread = threading.Thread(target=self._loop, name="mavlink-vehicle", daemon=True)
         self._thread.start()
 
-    def stop(self) -> None:
-        """Stop the thread and close the connection."""
+    def close(self) -> None:
+        """Stop the thread and close the connection (also `stop()`)."""
         self._stopping.set()
         if self._thread is not None:
             self._thread.join()
@@ -259,17 +258,7 @@ class MavlinkVehicle:
             self._conn.close()
             self._conn = None
 
-    def __enter__(self) -> MavlinkVehicle:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        trace: TracebackType | None,
-    ) -> None:
-        self.stop()
+    stop = close
 
     # -- what tests and other processes read --------------------------------------------------
 
@@ -612,14 +601,7 @@ def run(args: argparse.Namespace) -> int:
         level=getattr(logging, args.log_level.upper()),
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
-    stop = threading.Event()
-
-    def on_signal(number: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
-    with MavlinkVehicle(settings) as vehicle:
+    with stop_on_signals() as stop, MavlinkVehicle(settings) as vehicle:
         log.info("vehicle %d serving %s", settings.system_id, settings.connection)
         period = args.pose_period_s if args.pose_period_s > 0 else 3600.0
         while not stop.wait(period):

@@ -1,0 +1,79 @@
+"""The daemons' shared parts: the rate-limited log, stopping on signals, a free port."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import threading
+
+import pytest
+
+from contracts.daemon import RateLimitedLog, Service, free_port, stop_on_signals
+
+
+def test_malformed_input_warnings_are_logged_at_a_bounded_rate(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    bounded = RateLimitedLog(logging.getLogger("test.bounded"), interval_s=5.0)
+    with caplog.at_level(logging.WARNING, "test.bounded"):
+        logged = [bounded.warning("scan", "scan refused", t * 0.1) for t in range(100)]
+        bounded.warning("pose", "pose refused", 0.0)
+    assert logged.count(True) == 2  # at 0 s and 5 s
+    assert [r.message for r in caplog.records] == [
+        "scan refused",
+        "scan refused (49 more since the last warning)",
+        "pose refused",
+    ]
+
+
+def test_without_a_time_the_log_reads_its_clock(caplog: pytest.LogCaptureFixture) -> None:
+    now = [0.0]
+    bounded = RateLimitedLog(logging.getLogger("test.clock"), interval_s=1.0, clock=lambda: now[0])
+    with caplog.at_level(logging.WARNING, "test.clock"):
+        assert bounded.warning("x", "first")
+        now[0] = 0.5
+        assert not bounded.warning("x", "held")
+        now[0] = 1.0
+        assert bounded.warning("x", "again")
+    assert [r.message for r in caplog.records] == ["first", "again (1 more since the last warning)"]
+
+
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_sets_the_stop_event_and_the_old_handler_comes_back(
+    number: signal.Signals, caplog: pytest.LogCaptureFixture
+) -> None:
+    before = signal.getsignal(number)
+    given = threading.Event()
+    logger = logging.getLogger("test.signals")
+    with caplog.at_level(logging.INFO, "test.signals"), stop_on_signals(given, logger) as stop:
+        assert stop is given and not stop.is_set()
+        os.kill(os.getpid(), number)  # handled in this (main) thread
+        assert stop.wait(5.0)
+    assert signal.getsignal(number) is before
+    assert caplog.records[-1].message == f"{number.name}: stopping"
+
+
+def test_a_free_port_can_be_bound_for_tcp_and_udp() -> None:
+    for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+        port = free_port(kind)
+        with socket.socket(socket.AF_INET, kind) as sock:
+            sock.bind(("127.0.0.1", port))
+            assert sock.getsockname()[1] == port
+
+
+def test_a_service_in_a_with_block_is_started_and_closed_even_on_an_error() -> None:
+    calls: list[str] = []
+
+    class Thing(Service):
+        def start(self) -> None:
+            calls.append("start")
+
+        def close(self) -> None:
+            calls.append("close")
+
+    with pytest.raises(RuntimeError), Thing() as thing:
+        assert isinstance(thing, Thing) and calls == ["start"]
+        raise RuntimeError("inside")
+    assert calls == ["start", "close"]
