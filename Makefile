@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-stack test-sitl stack-sitl test-cluster bench-cluster fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
+.PHONY: install demo test test-slow same-results test-stack test-sitl stack-sitl test-cluster bench-cluster fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 # constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
 $(STAMP): pyproject.toml constraints.txt
@@ -80,6 +80,10 @@ stack-sitl: $(STAMP)
 # Regenerate the playback tests' reference decisions on purpose, and show what changed
 # (tests/data/make_playback_data.py --refs, docs/recordings.md; the bridge's:
 # tests/data/make_bridge_playback.py --refs, docs/bridge.md). Commit the new references.
+# Does the working tree train and evaluate bit for bit as commit REF does? (refactors: IDENTICAL)
+same-results: $(STAMP)
+	bash tests/same_results/run.sh $(or $(REF),HEAD)
+
 playback-refs: $(STAMP)
 	$(BIN)/python tests/data/make_playback_data.py --refs
 	$(BIN)/python tests/data/make_bridge_playback.py --refs
