@@ -1,7 +1,7 @@
 """Settings of the controller daemon (`qnav controller --config FILE`).
 
 A settings file has one table per section below; every key is optional except
-`controller.policy`. `qnav controller --example-config` prints them all with their meanings, and
+`controller.policy`. `qnav controller --print-config` prints them all with their meanings, and
 `config/controller.toml` is that output, commented.
 """
 

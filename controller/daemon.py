@@ -371,8 +371,8 @@ def serve(daemon: Daemon) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Handler of `qnav controller`."""
-    if args.example_config:
-        sys.stdout.write(example_config())
+    if args.print_config:
+        sys.stdout.write(commented_config())
         return 0
     config = load_config(args.config, args.assignments)
     if args.policy is not None:
@@ -386,12 +386,12 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def example_config() -> str:
+def commented_config() -> str:
     """Every setting with its meaning, as a TOML file (`config/controller.toml`)."""
     header = (
         "# Settings of `qnav controller --config FILE` (docs/controller.md).\n"
         "# Every key is optional except controller.policy; the values shown are the defaults.\n"
-        "# Written by `qnav controller --example-config`.\n\n"
+        "# Written by `qnav controller --print-config`.\n\n"
     )
     lines = []
     for line in to_toml(DaemonConfig()).splitlines():
@@ -407,5 +407,5 @@ if __name__ == "__main__":  # pragma: no cover - `qnav controller` is the entry 
     parser.add_argument("--config", type=Path)
     parser.add_argument("--policy", type=Path)
     parser.add_argument("--set", dest="assignments", action="append", default=[])
-    parser.add_argument("--example-config", action="store_true")
+    parser.add_argument("--print-config", action="store_true")
     sys.exit(main(parser.parse_args()))

@@ -451,7 +451,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="change one setting, e.g. --set controller.trigger=scan (repeatable)",
     )
     controller.add_argument(
-        "--example-config",
+        "--print-config",
         action="store_true",
         help="print every setting with its meaning as a TOML file, and exit",
     )
@@ -936,6 +936,9 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     vehicle.add_argument(
         "--pose-period-s", type=float, default=1.0, help="log the pose this often (0: never)"
+    )
+    vehicle.add_argument(
+        "--print-config", action="store_true", help="print every setting as TOML and exit"
     )
     vehicle.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"

@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import sys
 import threading
 import time
 from collections import Counter, deque
@@ -70,7 +71,14 @@ from contracts.mavlink import (
     wrap_pi,
 )
 from contracts.motion import InertiaDynamics, step_velocity_lag
-from contracts.settings import check_range, from_dict, load_toml, parse_assignments, with_overrides
+from contracts.settings import (
+    check_range,
+    from_dict,
+    load_toml,
+    parse_assignments,
+    to_toml,
+    with_overrides,
+)
 
 log = logging.getLogger("simcar.mavlink_vehicle")
 
@@ -597,6 +605,9 @@ def run(args: argparse.Namespace) -> int:
     if args.signing_key_file:
         assignments.append(f'signing_key_file="{args.signing_key_file}"')
     settings = load_vehicle_settings(args.config, assignments)
+    if args.print_config:
+        sys.stdout.write(to_toml(settings))
+        return 0
     logging.basicConfig(
         level=getattr(logging, args.log_level.upper()),
         format="%(asctime)s %(name)s %(levelname)s %(message)s",

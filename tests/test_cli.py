@@ -119,3 +119,16 @@ def test_a_verb_whose_extra_is_not_installed_names_the_extra(
     assert done.returncode == 2, done.stderr[-2000:]
     assert f"pip install 'qnav[{extra}]'" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("verb", ["controller", "bridge", "fake-vehicle"])
+def test_every_daemon_prints_its_settings_with_one_spelling_and_reads_them_back(
+    verb: str, tmp_path: Path
+) -> None:
+    printed = _qnav(verb, "--print-config")
+    assert printed.returncode == 0, printed.stderr
+    path = tmp_path / "settings.toml"
+    path.write_text(printed.stdout)
+    again = _qnav(verb, "--config", str(path), "--print-config")
+    assert again.returncode == 0, again.stderr
+    assert again.stdout == printed.stdout

@@ -13,7 +13,7 @@ from contracts import wire
 from contracts.errors import ConfigError
 from contracts.settings import field_docs, from_dict, load_toml, to_markdown
 from controller.config import DaemonConfig, load_config
-from controller.daemon import Daemon, Ratekeeper, example_config
+from controller.daemon import Daemon, Ratekeeper, commented_config
 from controller.decision import Controller, Input
 from controller.policy import PolicyRuntime
 from qnav.cli import main
@@ -22,9 +22,9 @@ from tests.conftest import PolicyFactory
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_the_example_config_in_the_repo_is_what_the_daemon_prints_and_holds_the_defaults() -> None:
+def test_the_config_file_in_the_repo_is_what_the_daemon_prints_and_holds_the_defaults() -> None:
     text = (ROOT / "config" / "controller.toml").read_text()
-    assert text == example_config()
+    assert text == commented_config()
     assert from_dict(DaemonConfig, load_toml(ROOT / "config" / "controller.toml")) == DaemonConfig()
 
 

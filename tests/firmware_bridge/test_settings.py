@@ -15,7 +15,7 @@ from firmware_bridge.settings import BridgeSettings, load_settings
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_example_config_sets_every_setting_to_its_default() -> None:
+def test_print_config_sets_every_setting_to_its_default() -> None:
     settings = load_settings(ROOT / "config" / "bridge.toml")
     assert settings == BridgeSettings()
     # Every field appears in the example file, so it documents them all.
