@@ -272,6 +272,17 @@ def to_markdown(settings: object) -> str:
     return "\n".join(rows) + "\n"
 
 
+def to_listing(settings: object, width: int = 100) -> str:
+    """Settings as plain text for a `--help`: each dotted name with its value, then its
+    documentation indented below it."""
+    lines = []
+    for name, value, doc in _flatten(settings, ""):
+        shown = "(section)" if value is _SECTION else _toml_value(value)
+        lines.append(f"  {name} = {shown}")
+        lines += textwrap.wrap(doc, width, initial_indent=" " * 6, subsequent_indent=" " * 6)
+    return "\n".join(lines) + "\n"
+
+
 _SECTION = object()
 
 

@@ -92,13 +92,35 @@ def _zenoh_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--namespace", help="key prefix (as zenoh-bridge-ros2dds's namespace)")
 
 
+class _Parser(argparse.ArgumentParser):
+    """A verb's parser whose help may end with a listing built only when help is asked for
+    (`listing`: the settings, read from their dataclasses' docstrings)."""
+
+    listing: Callable[[], str] | None = None
+
+    def format_help(self) -> str:
+        if self.listing is not None and self.epilog is None:
+            self.epilog = self.listing()
+        return super().format_help()
+
+
+def _train_listing() -> str:
+    from contracts.settings import to_listing
+    from training.config import TrainSettings
+
+    return (
+        "learner settings (--train-set train.FIELD=VALUE, or a [train] table in --train-config; "
+        "the defaults below, before the preset's own):\n" + to_listing(TrainSettings())
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every verb."""
     parser = argparse.ArgumentParser(
         prog="qnav", description="Learn robot navigation in a fast simulator and run it on a car."
     )
     parser.add_argument("--version", action="version", version=f"qnav {__version__}")
-    verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
+    verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
     scenarios = verbs.add_parser("scenarios", help="list the built-in scenarios")
     scenarios.set_defaults(handler=_lazy("sim.cli:scenarios"))
@@ -182,7 +204,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(handler=_lazy("qnav.commands:evaluate"))
 
-    train = verbs.add_parser("train", help="train a Q-network (resumes a killed run)")
+    train = verbs.add_parser(
+        "train",
+        help="train a Q-network (resumes a killed run)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    train.listing = _train_listing
     _world_options(train)
     train.add_argument("--model", choices=["recurrent", "feedforward"], help="Q-network kind")
     train.add_argument("--seed", type=int, help="run seed")
@@ -864,7 +891,7 @@ def _bench_policy_file(bench: argparse.ArgumentParser) -> None:
     )
 
 
-def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     """`qnav bridge` (zenoh to MAVLink) and `qnav fake-vehicle` (a MAVLink car for tests)."""
     bridge = verbs.add_parser(
         "bridge", help="the firmware bridge: commands from zenoh to the car over MAVLink"
@@ -946,7 +973,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     vehicle.set_defaults(handler=_lazy("simcar.mavlink_vehicle:run"))
 
 
-def _bench_bridge(benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
     bench = benches.add_parser(
         "bridge", help="command on zenoh to MAVLink on the wire, and the failsafe stop's delay"
     )

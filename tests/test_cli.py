@@ -132,3 +132,14 @@ def test_every_daemon_prints_its_settings_with_one_spelling_and_reads_them_back(
     again = _qnav(verb, "--config", str(path), "--print-config")
     assert again.returncode == 0, again.stderr
     assert again.stdout == printed.stdout
+
+
+def test_train_help_lists_every_learner_setting_with_its_documentation() -> None:
+    from contracts.settings import field_docs
+    from training.config import TrainSettings
+
+    shown = _qnav("train", "--help")
+    assert shown.returncode == 0, shown.stderr
+    for name, doc in field_docs(TrainSettings).items():
+        assert f"  {name} = " in shown.stdout, name
+        assert doc.split()[0] in shown.stdout, name

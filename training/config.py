@@ -9,7 +9,9 @@ from contracts.errors import ConfigError
 from contracts.observation import WINDOW_LENGTH
 from contracts.settings import check_range
 from sim.config import WorldConfig
-from training.networks import ModelKind
+
+ModelKind = Literal["recurrent", "feedforward"]
+"""The Q-network's kind: the paper's LSTM over the window, or feedforward on the last frame."""
 
 Relabel = Literal["paper", "local", "hindsight", "none"]
 """How a sampled transition gets its target (`training.sampling.draw_targets`): a fresh uniform

@@ -40,8 +40,9 @@ from sim.oracle import OracleDriver
 from training.agent import policy_agent
 from training.algorithm import cpu_has_bf16
 from training.collect import collect_round
+from training.config import ModelKind
 from training.episode_log import Episode
-from training.networks import ModelKind, QNetwork
+from training.networks import QNetwork
 from training.replay import EpisodeReplay
 
 DEMONSTRATION_LAYOUT_SEED = 555_555

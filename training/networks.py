@@ -11,7 +11,7 @@ the frame completes and the next partial windows out. The arithmetic is the wind
 
 from __future__ import annotations
 
-from typing import Literal, cast
+from typing import cast
 
 import torch
 from torch import Tensor, nn
@@ -20,8 +20,7 @@ from torch.nn import functional
 from contracts.actions import NUM_ACTIONS
 from contracts.observation import TARGET_FEATURES
 from contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
-
-ModelKind = Literal["recurrent", "feedforward"]
+from training.config import ModelKind
 
 
 def conv_output_length(num_beams: int) -> int:
