@@ -104,14 +104,23 @@ class _Parser(argparse.ArgumentParser):
         return super().format_help()
 
 
-def _train_listing() -> str:
-    from contracts.settings import to_listing
-    from training.config import TrainSettings
+def _listing(target: str, intro: str) -> Callable[[], str]:
+    """The help listing of the settings dataclass `module:Class` (its defaults), after `intro`;
+    imported only when help is asked for."""
 
-    return (
-        "learner settings (--train-set train.FIELD=VALUE, or a [train] table in --train-config; "
-        "the defaults below, before the preset's own):\n" + to_listing(TrainSettings())
-    )
+    def build() -> str:
+        from contracts.settings import to_listing
+
+        module, name = target.split(":")
+        settings = getattr(importlib.import_module(module), name)()
+        return f"{intro}:\n{to_listing(settings)}"
+
+    return build
+
+
+def _with_listing(parser: _Parser, target: str, intro: str) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.listing = _listing(target, intro)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -204,12 +213,13 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(handler=_lazy("qnav.commands:evaluate"))
 
-    train = verbs.add_parser(
-        "train",
-        help="train a Q-network (resumes a killed run)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    train = verbs.add_parser("train", help="train a Q-network (resumes a killed run)")
+    _with_listing(
+        train,
+        "training.config:TrainSettings",
+        "learner settings (--train-set train.FIELD=VALUE, or a [train] table in --train-config; "
+        "the defaults below, before the preset's own)",
     )
-    train.listing = _train_listing
     _world_options(train)
     train.add_argument("--model", choices=["recurrent", "feedforward"], help="Q-network kind")
     train.add_argument("--seed", type=int, help="run seed")
@@ -462,6 +472,11 @@ def build_parser() -> argparse.ArgumentParser:
     controller = verbs.add_parser(
         "controller",
         help="the onboard daemon: scans, poses, targets in over zenoh, motor commands out",
+    )
+    _with_listing(
+        controller,
+        "controller.config:DaemonConfig",
+        "settings (--set SECTION.FIELD=VALUE, or in the --config file; defaults below)",
     )
     controller.add_argument(
         "--config", type=Path, metavar="FILE", help="TOML settings (config/controller.toml)"
@@ -896,6 +911,11 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     bridge = verbs.add_parser(
         "bridge", help="the firmware bridge: commands from zenoh to the car over MAVLink"
     )
+    _with_listing(
+        bridge,
+        "firmware_bridge.settings:BridgeSettings",
+        "settings (--set SECTION.FIELD=VALUE, or in the --config file; defaults below)",
+    )
     bridge.add_argument(
         "--config", type=Path, metavar="FILE", help="TOML settings (see config/bridge.toml)"
     )
@@ -942,6 +962,11 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
 
     vehicle = verbs.add_parser(
         "fake-vehicle", help="a small MAVLink car that behaves like ArduPilot Rover"
+    )
+    _with_listing(
+        vehicle,
+        "simcar.mavlink_vehicle:MavlinkVehicleSettings",
+        "settings (--set FIELD=VALUE, or in the --config file; defaults below)",
     )
     vehicle.add_argument(
         "--config", type=Path, metavar="FILE", help="TOML file of vehicle settings"

@@ -134,12 +134,26 @@ def test_every_daemon_prints_its_settings_with_one_spelling_and_reads_them_back(
     assert again.stdout == printed.stdout
 
 
-def test_train_help_lists_every_learner_setting_with_its_documentation() -> None:
-    from contracts.settings import field_docs
-    from training.config import TrainSettings
+@pytest.mark.parametrize(
+    ("verb", "target"),
+    [
+        ("train", "training.config:TrainSettings"),
+        ("controller", "controller.config:DaemonConfig"),
+        ("bridge", "firmware_bridge.settings:BridgeSettings"),
+        ("fake-vehicle", "simcar.mavlink_vehicle:MavlinkVehicleSettings"),
+    ],
+)
+def test_help_lists_every_setting_with_its_value_and_documentation(verb: str, target: str) -> None:
+    import importlib
 
-    shown = _qnav("train", "--help")
+    from contracts.settings import to_listing
+
+    module, name = target.split(":")
+    settings = getattr(importlib.import_module(module), name)()
+    shown = _qnav(verb, "--help")
     assert shown.returncode == 0, shown.stderr
-    for name, doc in field_docs(TrainSettings).items():
-        assert f"  {name} = " in shown.stdout, name
-        assert doc.split()[0] in shown.stdout, name
+    listing = to_listing(settings)
+    assert listing.count(" = ") >= 10
+    for line in listing.splitlines():
+        if " = " in line:
+            assert line.split(" = ")[0] + " = " in shown.stdout, line
