@@ -139,6 +139,8 @@ class BridgeCore:
         # What the bridge asks of the vehicle (arm, mode), again until the heartbeat shows it.
         self._braking = False
         """True from a stop that switched to `failsafe.brake_mode` until the next command."""
+        self._moving_command = False
+        """Whether the last command forwarded asked for motion (a zero one after it brakes)."""
         self._want_mode: int | None = None
         self._want_armed: bool | None = None
         self._request_attempts = 0
@@ -194,7 +196,13 @@ class BridgeCore:
             self.counters["dropped"] += 1
             return []
         actions: list[Action] = []
-        if self._braking:
+        moving = twist.linear_mps != 0.0 or twist.angular_radps != 0.0
+        if not moving and self._moving_command:
+            # The controller stopped a car it was driving (an emergency stop, a stale input, a
+            # reached target): brake as for silence. Its stops keep coming every period, so
+            # silence never would, and on neutral sticks Rover coasts.
+            self._brake(now_s)
+        elif moving and self._braking:
             # Back to the output's mode at once: the command below takes effect with it.
             self._braking = False
             self._want_mode = self.settings.rover_mode
@@ -202,6 +210,7 @@ class BridgeCore:
             self._request_attempts = 0
             self._next_request_s = now_s + self.settings.vehicle.request_retry_s
             actions.append(self._set_mode(self._want_mode))
+        self._moving_command = moving
         actions.append(Send(message, self._as_gcs, "commands"))
         return actions
 
@@ -391,6 +400,7 @@ class BridgeCore:
 
     def _stop(self, now_s: float) -> Send:
         self.gate.stop_sent(now_s)
+        self._moving_command = False
         return Send(self._stop_message, self._as_gcs, "stops")
 
     def _brake(self, now_s: float) -> None:
