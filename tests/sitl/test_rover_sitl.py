@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import signal
 import statistics
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -155,6 +156,19 @@ def test_drive_and_every_stop(
         assert silence.stop_time_s <= STOP_GOAL_S + 0.5  # + the 0.5 s command timeout
     if exit_goal:
         assert silence.true_stop_time_s <= STOP_GOAL_S + 0.5
+
+    # 1b. The controller's own stop (an emergency stop, a stale input): zero Twists every period,
+    # so the commands never fall silent. The bridge brakes on the first one after motion.
+    _drive_and_check_motion(zenoh, observer)
+    zeros = threading.Thread(target=zenoh.drive, args=(0.0, 0.0, 8.0))
+    first_zero_s = time.monotonic()
+    zeros.start()
+    held = measure_stop(observer, first_zero_s, timeout_s=30.0)
+    zeros.join()
+    _report(f"{case}, the controller's zero Twists", held)
+    assert held.rested
+    if goal:
+        assert held.true_stop_time_s <= STOP_GOAL_S
 
     # 2. SIGTERM while driving: stop, brake, disarm only once at rest.
     _drive_and_check_motion(zenoh, observer)
