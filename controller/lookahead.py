@@ -197,18 +197,21 @@ def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
     models must be alike): each draws its own continuations, as it would alone."""
     if not lookaheads:
         return np.zeros((0, NUM_ACTIONS))
-    beliefs = [car.belief(target) for car, target in zip(lookaheads, targets_xy, strict=True)]
     tails = np.concatenate([car.continuations() for car in lookaheads])
-    return collision_shares(lookaheads[0].model, stacked(beliefs), tails)
+    return collision_shares(lookaheads[0].model, beliefs_of(lookaheads, targets_xy), tails)
 
 
 def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:
     """(N,) `Lookahead.plan` of several cars at once (their models must be alike)."""
     if not lookaheads:
         return np.zeros(0, dtype=np.int64)
-    beliefs = [car.belief(target) for car, target in zip(lookaheads, targets_xy, strict=True)]
     sequences = np.concatenate([car.candidates() for car in lookaheads])
-    return best_first_actions(lookaheads[0].model, stacked(beliefs), sequences)
+    return best_first_actions(lookaheads[0].model, beliefs_of(lookaheads, targets_xy), sequences)
+
+
+def beliefs_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> Belief:
+    """Each car's belief, stacked as one state of N worlds."""
+    return stacked([car.belief(t) for car, t in zip(lookaheads, targets_xy, strict=True)])
 
 
 def stacked(beliefs: list[Belief]) -> Belief:

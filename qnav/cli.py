@@ -123,6 +123,17 @@ def _with_listing(parser: _Parser, target: str, intro: str) -> None:
     parser.listing = _listing(target, intro)
 
 
+def _lookahead_option(parser: argparse.ArgumentParser, where: str) -> None:
+    parser.add_argument(
+        "--lookahead",
+        choices=["off", "shield", "plan"],
+        default="off",
+        help=f"{where}the controller's look ahead (lookahead.mode): the obstacle tracker feeds "
+        "a forecast; shield takes the policy's best-valued action among the least likely to "
+        "collide within 4 s, plan takes the planner's (10 s ahead)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every verb."""
     parser = argparse.ArgumentParser(
@@ -168,15 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --agent oracle: plan on the onboard obstacle tracker's estimate "
         "(controller.perception: lidar plus pose, the room's walls known) instead of the truth",
     )
-    evaluate.add_argument(
-        "--lookahead",
-        choices=["off", "shield", "plan"],
-        default="off",
-        help="with --policy: the controller's look ahead beside it, as the daemon's "
-        "lookahead.mode: shield (the tracker feeds a 4 s forecast that overrules the policy's "
-        "action with its best-valued one among the least likely to collide) or plan (the "
-        "planner on the tracker's state decides)",
-    )
+    _lookahead_option(evaluate, "with --policy: ")
     evaluate.add_argument(
         "--range-noise-m",
         type=float,
@@ -681,14 +684,7 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument("--policy", type=Path, required=True, help="policy file (.onnx)")
     stack.add_argument("--scenario", help="world (default: the policy's training scenario)")
     stack.add_argument("--episodes", type=int, default=20, help="episodes (20)")
-    stack.add_argument(
-        "--lookahead",
-        choices=["off", "shield", "plan"],
-        default="off",
-        help="the controller's lookahead.mode (obstacle tracker and 4 s forecast): shield "
-        "overrules the policy where another action is less likely to collide, plan decides; "
-        "the in-process comparison runs the same look ahead",
-    )
+    _lookahead_option(stack, "in the controller, and alike in the in-process comparison: ")
     stack.add_argument("--out", type=Path, default=Path("out/stack"), help="output folder")
     stack.add_argument("--no-record", action="store_true", help="do not record to MCAP")
     stack.add_argument("--json", action="store_true", help="print one JSON object")

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from contracts.errors import ConfigError
 from contracts.lookahead import shielded_actions
 from contracts.motion import InertiaDynamics
+from contracts.observation import LidarSpec
 from controller.lookahead import Lookahead, LookaheadSettings, plans_of, risks_of
 from controller.perception import ObstacleTracker, TrackerSettings, Tracks, box_walls, own_velocity
 from sim.config import WorldConfig
@@ -32,12 +33,33 @@ FAR_AWAY_M = 1e4
 """Where a missing obstacle is put in the planner's state: out of every rollout's reach."""
 
 
+def lidar_of(world: WorldConfig) -> LidarSpec:
+    """`world`'s lidar; ConfigError naming the scenario when it has none to track with."""
+    if world.lidar is None:
+        raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
+    return world.lidar
+
+
 def new_tracker(world: WorldConfig, settings: TrackerSettings) -> ObstacleTracker:
     """A tracker for `world`'s room: its walls are known, as a car's room is (an opening in
     them returns nothing, so the whole box serves)."""
-    if world.lidar is None:
-        raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
-    return ObstacleTracker(settings, box_walls(world.arena.size_m), world.lidar.beam_angles_rad())
+    beams = lidar_of(world).beam_angles_rad()
+    return ObstacleTracker(settings, box_walls(world.arena.size_m), beams)
+
+
+def world_lookahead(
+    world: WorldConfig, settings: LookaheadSettings, tracker: TrackerSettings
+) -> Lookahead:
+    """The controller's look ahead as a car in `world` runs it: its room, motion model and
+    lidar (what the policy file and the car's settings give the daemon)."""
+    return Lookahead(
+        replace(settings, room_size_m=world.arena.size_m),
+        tracker,
+        dynamics=world.dynamics,
+        robot_radius_m=world.robot_radius_m,
+        control_period_s=world.control_period_s,
+        beam_angles_rad=lidar_of(world).beam_angles_rad(),
+    )
 
 
 class WorldTrackers:
@@ -283,24 +305,12 @@ class LookaheadAgent:
         range_noise_m: float = 0.0,
         seed: int = 0,
     ) -> None:
-        if world.lidar is None:
-            raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
         self.inner = inner
         self.world = world
         self.settings = replace(lookahead, room_size_m=world.arena.size_m)
         if self.settings.mode == "off":
             raise ConfigError("lookahead.mode = 'off': nothing to run beside the policy")
-        self.cars = [
-            Lookahead(
-                self.settings,
-                tracker,
-                dynamics=world.dynamics,
-                robot_radius_m=world.robot_radius_m,
-                control_period_s=world.control_period_s,
-                beam_angles_rad=world.lidar.beam_angles_rad(),
-            )
-            for _ in range(num_worlds)
-        ]
+        self.cars = [world_lookahead(world, lookahead, tracker) for _ in range(num_worlds)]
         self.range_noise_m = range_noise_m
         self._noise = np.random.default_rng([seed, 31])
         self.steps = np.zeros(num_worlds, dtype=np.int64)
@@ -345,19 +355,10 @@ def time_lookahead(
     """Wall time of the controller's look ahead per decision, one car at a time as the daemon
     runs it: the tracker's update, the shield's forecast and the plan, on the perception probe's
     drive (go-to-target with held random actions); median and 99th percentile, milliseconds."""
-    if world.lidar is None:
-        raise ConfigError(f"scenario {world.name!r} has no lidar to track obstacles with")
-    lidar = world.lidar
+    tracker = TrackerSettings(obstacle_radius_m=world.obstacles.radius_m)
 
     def car(mode: Literal["shield", "plan"]) -> Lookahead:
-        return Lookahead(
-            LookaheadSettings(mode=mode, room_size_m=world.arena.size_m),
-            TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
-            dynamics=world.dynamics,
-            robot_radius_m=world.robot_radius_m,
-            control_period_s=world.control_period_s,
-            beam_angles_rad=lidar.beam_angles_rad(),
-        )
+        return world_lookahead(world, LookaheadSettings(mode=mode), tracker)
 
     pairs = [(car("shield"), car("plan")) for _ in range(worlds)]
     batched = BatchedWorld(world, worlds, seed=seed)

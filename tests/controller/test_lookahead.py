@@ -3,7 +3,6 @@ controller runs it on every decision as the in-process shield does."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +12,10 @@ from contracts import wire
 from contracts.errors import PolicyFileError
 from contracts.lookahead import collision_shares
 from controller.decision import Controller, Input, Reason
-from controller.lookahead import Lookahead, LookaheadSettings, beam_angles
+from controller.lookahead import Lookahead, LookaheadSettings
 from controller.perception import TrackerSettings
 from controller.policy import PolicyRuntime
+from qnav.tracking import world_lookahead
 from sim.config import scenario
 from sim.evaluate import EvalSettings, StreamPolicyAgent
 from sim.oracle import lookahead_model
@@ -29,14 +29,10 @@ WALLS_POLICY = DATA / "policy.onnx"
 
 def _car(world_name: str) -> Lookahead:
     world = scenario(world_name)
-    assert world.lidar is not None
-    return Lookahead(
-        replace(LookaheadSettings(), mode="shield", room_size_m=world.arena.size_m),
+    return world_lookahead(
+        world,
+        LookaheadSettings(mode="shield"),
         TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
-        dynamics=world.dynamics,
-        robot_radius_m=world.robot_radius_m,
-        control_period_s=world.control_period_s,
-        beam_angles_rad=beam_angles(world.lidar.num_beams),
     )
 
 
