@@ -26,7 +26,7 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check .
 
 typecheck: $(STAMP)
-	$(BIN)/mypy .
+	$(BIN)/mypy qnav tests
 
 docker-lint: $(STAMP)
 	$(BIN)/hadolint --failure-threshold info Dockerfile

@@ -29,9 +29,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from contracts import wire
-from contracts.errors import ConfigError, PolicyFileError
-from contracts.policy_file import METADATA_PREFIX, PolicyContract
+from qnav.contracts import wire
+from qnav.contracts.errors import ConfigError, PolicyFileError
+from qnav.contracts.policy_file import METADATA_PREFIX, PolicyContract
 
 POLICY_ANNOUNCEMENT = wire.POLICY_ANNOUNCEMENT
 """Where the server announces the policy it recommends (JSON, `Announcement`)."""

@@ -14,8 +14,8 @@ from typing import NamedTuple, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.actions import NUM_ACTIONS
-from contracts.motion import Dynamics, Outcome, clearance, move_obstacles, outcome, step_robot
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.motion import Dynamics, Outcome, clearance, move_obstacles, outcome, step_robot
 
 F64 = NDArray[np.float64]
 

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from contracts.errors import ConfigError
+from qnav.contracts.errors import ConfigError
 
 ROVER_MODES: dict[str, int] = {
     "MANUAL": 0,

@@ -16,8 +16,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.actions import NUM_ACTIONS, forward_command, turn_command
-from contracts.settings import check_range
+from qnav.contracts.actions import NUM_ACTIONS, forward_command, turn_command
+from qnav.contracts.settings import check_range
 
 F64 = NDArray[np.float64]
 

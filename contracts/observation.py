@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.settings import check_range
+from qnav.contracts.settings import check_range
 
 WINDOW_LENGTH = 5
 """Observations per network input (the paper's k): the current one and the four before it."""

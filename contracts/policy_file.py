@@ -20,10 +20,10 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-from contracts.actions import NUM_ACTIONS, Action
-from contracts.errors import ConfigError, PolicyFileError
-from contracts.motion import Dynamics, IncrementDynamics, InertiaDynamics
-from contracts.observation import TARGET_FEATURES
+from qnav.contracts.actions import NUM_ACTIONS, Action
+from qnav.contracts.errors import ConfigError, PolicyFileError
+from qnav.contracts.motion import Dynamics, IncrementDynamics, InertiaDynamics
+from qnav.contracts.observation import TARGET_FEATURES
 
 POLICY_FORMAT = "qnav-policy/2"
 """Value of the `qnav.format` metadata key; a new major number means an incompatible layout.

@@ -17,7 +17,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from contracts.errors import ConfigError
+from qnav.contracts.errors import ConfigError
 
 T = TypeVar("T")
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from contracts.errors import ConfigError
+from qnav.contracts.errors import ConfigError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 """Where the first daemon listens and the others connect, unless configured otherwise."""

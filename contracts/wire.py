@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts import cdr
+from qnav.contracts import cdr
 
 WireError = cdr.WireError
 """A payload is not a well-formed message (raised by the reader; imported from here)."""

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from contracts.errors import ConfigError
+from qnav.contracts.errors import ConfigError
 
 _ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
@@ -33,7 +33,7 @@ def time_decisions(
     timed one after a sleep of `gap_s`."""
     import numpy as np
 
-    from controller.policy import PolicyRuntime
+    from qnav.controller.policy import PolicyRuntime
 
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
@@ -74,7 +74,7 @@ def run(
         command = [
             sys.executable,
             "-m",
-            "controller.bench",
+            "qnav.controller.bench",
             str(policy),
             backend,
             str(decisions),

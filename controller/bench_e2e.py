@@ -35,11 +35,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from contracts import wire
-from contracts.daemon import free_port
-from contracts.settings import to_toml
-from contracts.transport import ZenohSettings, open_session
-from controller.config import ControllerSettings, DaemonConfig, SafetySettings
+from qnav.contracts import wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.settings import to_toml
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.controller.config import ControllerSettings, DaemonConfig, SafetySettings
 
 _ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 WARMUP_S = 1.0
@@ -172,7 +172,7 @@ def latencies(events: list[tuple[str, float, bytes]], since: float) -> Latencies
 
 def run(policy: Path, rates: list[float], seconds: float) -> dict[str, Any]:
     """Start the daemon, time each rate, stop the daemon; the report as a dict."""
-    from controller.policy import PolicyRuntime
+    from qnav.controller.policy import PolicyRuntime
 
     beams = PolicyRuntime(policy, backend="numpy").contract.num_beams
     if not beams:
@@ -196,7 +196,7 @@ def run(policy: Path, rates: list[float], seconds: float) -> dict[str, Any]:
                     [
                         sys.executable,
                         "-m",
-                        "controller.bench_e2e",
+                        "qnav.controller.bench_e2e",
                         endpoint,
                         str(rate),
                         str(count),

@@ -12,13 +12,19 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from contracts import wire
-from contracts.errors import ConfigError
-from contracts.settings import check_range, from_dict, load_toml, parse_assignments, with_overrides
-from contracts.transport import ZenohSettings
-from controller.lookahead import LookaheadSettings
-from controller.perception import TrackerSettings
-from controller.scan import BelowRangeMin
+from qnav.contracts import wire
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import (
+    check_range,
+    from_dict,
+    load_toml,
+    parse_assignments,
+    with_overrides,
+)
+from qnav.contracts.transport import ZenohSettings
+from qnav.controller.lookahead import LookaheadSettings
+from qnav.controller.perception import TrackerSettings
+from qnav.controller.scan import BelowRangeMin
 
 Trigger = Literal["period", "scan"]
 TargetKind = Literal["pose", "point"]

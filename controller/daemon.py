@@ -32,18 +32,18 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from contracts import delivery, wire
-from contracts.daemon import RateLimitedLog, stop_on_signals
-from contracts.errors import PolicyFileError
-from contracts.health import Heartbeat
-from contracts.policy_file import PolicyContract
-from contracts.settings import to_toml
-from contracts.transport import StoppedError, open_session
-from contracts.wire import Twist2D
-from controller.config import DaemonConfig, load_config
-from controller.decision import Controller, Input, Output, Reason
-from controller.delivery import Candidate, PolicyFetcher
-from controller.policy import PolicyRuntime
+from qnav.contracts import delivery, wire
+from qnav.contracts.daemon import RateLimitedLog, stop_on_signals
+from qnav.contracts.errors import PolicyFileError
+from qnav.contracts.health import Heartbeat
+from qnav.contracts.policy_file import PolicyContract
+from qnav.contracts.settings import to_toml
+from qnav.contracts.transport import StoppedError, open_session
+from qnav.contracts.wire import Twist2D
+from qnav.controller.config import DaemonConfig, load_config
+from qnav.controller.decision import Controller, Input, Output, Reason
+from qnav.controller.delivery import Candidate, PolicyFetcher
+from qnav.controller.policy import PolicyRuntime
 
 log = logging.getLogger("qnav.controller")
 

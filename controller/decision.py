@@ -52,17 +52,17 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts import delivery, wire
-from contracts.actions import Action
-from contracts.errors import PolicyFileError, PolicyInputError
-from contracts.lookahead import shielded_actions
-from contracts.observation import target_features_of
-from contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
-from controller.config import LidarSettings, SafetySettings
-from controller.lookahead import Lookahead, LookaheadSettings, beam_angles
-from controller.perception import TrackerSettings
-from controller.policy import PolicyRuntime
-from controller.scan import ScanRules, resample_scan
+from qnav.contracts import delivery, wire
+from qnav.contracts.actions import Action
+from qnav.contracts.errors import PolicyFileError, PolicyInputError
+from qnav.contracts.lookahead import shielded_actions
+from qnav.contracts.observation import target_features_of
+from qnav.contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
+from qnav.controller.config import LidarSettings, SafetySettings
+from qnav.controller.lookahead import Lookahead, LookaheadSettings, beam_angles
+from qnav.controller.perception import TrackerSettings
+from qnav.controller.policy import PolicyRuntime
+from qnav.controller.scan import ScanRules, resample_scan
 
 MAX_SCAN_READINGS = 100_000
 """Scans with more readings are refused (no planar lidar has as many)."""

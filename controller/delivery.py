@@ -27,12 +27,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from contracts import delivery
-from contracts.errors import PolicyFileError
-from contracts.policy_file import PolicyContract
-from contracts.wire import WireError
-from controller.config import PolicySourceSettings
-from controller.policy import Backend, PolicyRuntime
+from qnav.contracts import delivery
+from qnav.contracts.errors import PolicyFileError
+from qnav.contracts.policy_file import PolicyContract
+from qnav.contracts.wire import WireError
+from qnav.controller.config import PolicySourceSettings
+from qnav.controller.policy import Backend, PolicyRuntime
 
 log = logging.getLogger("qnav.controller.delivery")
 

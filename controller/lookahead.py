@@ -29,18 +29,18 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.actions import NUM_ACTIONS
-from contracts.errors import ConfigError
-from contracts.lookahead import (
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.lookahead import (
     LookaheadModel,
     best_first_actions,
     candidate_sequences,
     collision_shares,
     random_blocks_needed,
 )
-from contracts.motion import Dynamics, InertiaDynamics
-from contracts.settings import check_range
-from controller.perception import ObstacleTracker, TrackerSettings, box_walls, own_velocity
+from qnav.contracts.motion import Dynamics, InertiaDynamics
+from qnav.contracts.settings import check_range
+from qnav.controller.perception import ObstacleTracker, TrackerSettings, box_walls, own_velocity
 
 F64 = NDArray[np.float64]
 

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.errors import PolicyFileError
-from contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
+from qnav.contracts.errors import PolicyFileError
+from qnav.contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
 
 # Field numbers from onnx.proto3.
 _MODEL_GRAPH = 7

@@ -27,8 +27,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.motion import distance_to_segments
-from contracts.settings import check_range
+from qnav.contracts.motion import distance_to_segments
+from qnav.contracts.settings import check_range
 
 F64 = NDArray[np.float64]
 

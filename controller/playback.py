@@ -45,12 +45,12 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Literal
 
-from contracts import wire
-from contracts.errors import ConfigError
-from controller.config import LidarSettings, SafetySettings, TopicSettings
-from controller.decision import Controller, Input, Output, Reason
-from controller.policy import PolicyRuntime
-from controller.recording import RecordedMessage
+from qnav.contracts import wire
+from qnav.contracts.errors import ConfigError
+from qnav.controller.config import LidarSettings, SafetySettings, TopicSettings
+from qnav.controller.decision import Controller, Input, Output, Reason
+from qnav.controller.policy import PolicyRuntime
+from qnav.controller.recording import RecordedMessage
 
 Row = dict[str, Any]
 """One output of the controller, as plain JSON values (module docstring: the fields)."""

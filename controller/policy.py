@@ -32,10 +32,10 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
-from contracts.actions import Action
-from contracts.errors import PolicyFileError, PolicyInputError
-from contracts.observation import TARGET_FEATURES, encode_frame
-from contracts.policy_file import (
+from qnav.contracts.actions import Action
+from qnav.contracts.errors import PolicyFileError, PolicyInputError
+from qnav.contracts.observation import TARGET_FEATURES, encode_frame
+from qnav.contracts.policy_file import (
     CONV_LAYERS,
     CONV_STRIDE,
     FRAME_INPUT,
@@ -44,7 +44,7 @@ from contracts.policy_file import (
     STATE_OUTPUTS,
     PolicyContract,
 )
-from controller.onnx_file import float_weights, read_onnx
+from qnav.controller.onnx_file import float_weights, read_onnx
 
 Backend = Literal["onnxruntime", "numpy"]
 BACKENDS: tuple[Backend, ...] = ("onnxruntime", "numpy")

@@ -31,10 +31,10 @@ from functools import cache
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
-from contracts.errors import ConfigError
-from contracts.health import Heartbeat
-from contracts.transport import StoppedError, ZenohSettings, open_session
-from contracts.wire import TOPICS, Topic, key
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.health import Heartbeat
+from qnav.contracts.transport import StoppedError, ZenohSettings, open_session
+from qnav.contracts.wire import TOPICS, Topic, key
 
 log = logging.getLogger(__name__)
 

@@ -35,7 +35,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.wire import Scan
+from qnav.contracts.wire import Scan
 
 BelowRangeMin = Literal["invalid", "no_return", "obstacle"]
 

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from contracts.daemon import free_port, stop_on_signals
-from contracts.errors import ConfigError
-from contracts.mavlink import (
+from qnav.contracts.daemon import free_port, stop_on_signals
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
@@ -39,11 +39,11 @@ from contracts.mavlink import (
     ROVER_MODES,
     mavutil,
 )
-from contracts.settings import to_toml
-from contracts.transport import ZenohSettings, open_session
-from contracts.wire import COMMAND, STOP, VEHICLE_STATE, Twist2D, encode_twist_msg, key
-from firmware_bridge import mapping
-from firmware_bridge.settings import (
+from qnav.contracts.settings import to_toml
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.contracts.wire import COMMAND, STOP, VEHICLE_STATE, Twist2D, encode_twist_msg, key
+from qnav.firmware_bridge import mapping
+from qnav.firmware_bridge.settings import (
     BridgeSettings,
     FailsafeSettings,
     MavlinkSettings,
@@ -166,7 +166,7 @@ def bench(args: argparse.Namespace) -> int:
             states.undeclare()
         floor_ms: list[float] = []
         if args.baseline:
-            echo = _spawn("firmware_bridge.bench", "echo", str(zenoh_port), str(mavlink_port))
+            echo = _spawn("qnav.firmware_bridge.bench", "echo", str(zenoh_port), str(mavlink_port))
             try:
                 floor_ms = _measure_echo(args.commands, vehicle, zenoh.declare_publisher(ECHO_KEY))
             finally:

@@ -27,9 +27,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from contracts.settings import parse_assignments, with_overrides
-from contracts.transport import open_session
-from contracts.wire import (
+from qnav.contracts.settings import parse_assignments, with_overrides
+from qnav.contracts.transport import open_session
+from qnav.contracts.wire import (
     COMMAND,
     VEHICLE_STATE,
     Twist2D,
@@ -37,7 +37,7 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.settings import BridgeSettings, load_settings
+from qnav.firmware_bridge.settings import BridgeSettings, load_settings
 
 COMMAND_PERIOD_S = 0.1
 """Commands go out at 10 Hz, as a controller's would."""

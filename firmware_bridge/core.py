@@ -24,8 +24,8 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
-from contracts.daemon import RateLimitedLog
-from contracts.mavlink import (
+from qnav.contracts.daemon import RateLimitedLog
+from qnav.contracts.mavlink import (
     MAV_AUTOPILOT_INVALID,
     MAV_CMD_COMPONENT_ARM_DISARM,
     MAV_CMD_DO_SET_MODE,
@@ -43,7 +43,7 @@ from contracts.mavlink import (
     mode_number,
     ned_to_enu,
 )
-from contracts.wire import (
+from qnav.contracts.wire import (
     STOP,
     Twist2D,
     WireError,
@@ -51,11 +51,11 @@ from contracts.wire import (
     decode_pose_msg,
     decode_twist_msg,
 )
-from firmware_bridge import mapping
-from firmware_bridge.failsafe import CommandGate
-from firmware_bridge.settings import BridgeSettings
+from qnav.firmware_bridge import mapping
+from qnav.firmware_bridge.failsafe import CommandGate
+from qnav.firmware_bridge.settings import BridgeSettings
 
-log = logging.getLogger("firmware_bridge")
+log = logging.getLogger("qnav.firmware_bridge")
 
 MODE_SETTLE_S = 1.5
 """A requested mode counts as taken once the heartbeats showed it this long: Rover may undo a

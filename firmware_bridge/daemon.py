@@ -28,13 +28,13 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-from contracts.daemon import RateLimitedLog, Service, stop_on_signals
-from contracts.errors import ConfigError
-from contracts.health import Heartbeat
-from contracts.mavlink import key_file_is_private, load_signing_key
-from contracts.settings import parse_assignments, to_toml, with_overrides
-from contracts.transport import StoppedError, open_session
-from contracts.wire import (
+from qnav.contracts.daemon import RateLimitedLog, Service, stop_on_signals
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.health import Heartbeat
+from qnav.contracts.mavlink import key_file_is_private, load_signing_key
+from qnav.contracts.settings import parse_assignments, to_toml, with_overrides
+from qnav.contracts.transport import StoppedError, open_session
+from qnav.contracts.wire import (
     COMMAND,
     POSE,
     STOP,
@@ -49,11 +49,11 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.core import Action, BridgeCore, Publish, Reopen, Send
-from firmware_bridge.link import MavlinkLink, serial0_warning
-from firmware_bridge.settings import BridgeSettings, load_settings
+from qnav.firmware_bridge.core import Action, BridgeCore, Publish, Reopen, Send
+from qnav.firmware_bridge.link import MavlinkLink, serial0_warning
+from qnav.firmware_bridge.settings import BridgeSettings, load_settings
 
-log = logging.getLogger("firmware_bridge")
+log = logging.getLogger("qnav.firmware_bridge")
 
 Journal = Callable[[str, tuple[Any, ...], list[Action], list[bool]], None]
 """Told each call into the core: its name, inputs, the actions, whether each send went out."""

@@ -16,8 +16,8 @@ import time
 from collections import Counter
 from typing import Any
 
-from contracts.mavlink import drain, mavutil, open_connection
-from firmware_bridge.settings import MavlinkSettings
+from qnav.contracts.mavlink import drain, mavutil, open_connection
+from qnav.firmware_bridge.settings import MavlinkSettings
 
 log = logging.getLogger(__name__)
 

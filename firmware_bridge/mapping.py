@@ -10,9 +10,9 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-from contracts.mavlink import enu_to_ned
-from contracts.wire import Pose2D, Twist2D
-from firmware_bridge.settings import OutputSettings
+from qnav.contracts.mavlink import enu_to_ned
+from qnav.contracts.wire import Pose2D, Twist2D
+from qnav.firmware_bridge.settings import OutputSettings
 
 
 class Sticks(NamedTuple):

@@ -34,10 +34,10 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
-from contracts.mavlink import mavutil
-from contracts.settings import from_dict
-from firmware_bridge.core import Action, BridgeCore, Publish, Reopen, Send
-from firmware_bridge.settings import BridgeSettings
+from qnav.contracts.mavlink import mavutil
+from qnav.contracts.settings import from_dict
+from qnav.firmware_bridge.core import Action, BridgeCore, Publish, Reopen, Send
+from qnav.firmware_bridge.settings import BridgeSettings
 
 Row = dict[str, Any]
 """One action, or one call of a recording or a reference, as plain JSON values."""

@@ -10,16 +10,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from contracts.errors import ConfigError
-from contracts.mavlink import (
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.mavlink import (
     AUTOPILOT_COMPONENT_ID,
     COMPANION_COMPONENT_ID,
     GCS_SYSTEM_ID,
     ROVER_MODES,
     mode_number,
 )
-from contracts.settings import check_range, from_dict, load_toml
-from contracts.transport import ZenohSettings
+from qnav.contracts.settings import check_range, from_dict, load_toml
+from qnav.contracts.transport import ZenohSettings
 
 CONNECTION_PREFIXES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcp:", "tcpin:", "/dev/", "COM")
 

@@ -16,9 +16,9 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from contracts.errors import ConfigError
-from contracts.transport import secure_client_config, secure_hub_config
-from contracts.wire import PUBLISHERS
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.transport import secure_client_config, secure_hub_config
+from qnav.contracts.wire import PUBLISHERS
 
 IDENTITIES = ("hub", "controller", "bridge", "recorder", "sensors", "operator", "server")
 """The identities of config/zenoh-secure.json5: the listening hub, each daemon, the sensors

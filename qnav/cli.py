@@ -14,11 +14,11 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from contracts.errors import ConfigError, PolicyFileError, PolicyInputError
-from contracts.health import DEFAULT_MAX_AGE_S
-from contracts.observation import WINDOW_LENGTH
-from contracts.policy_file import WEIGHT_TYPES
 from qnav import __version__
+from qnav.contracts.errors import ConfigError, PolicyFileError, PolicyInputError
+from qnav.contracts.health import DEFAULT_MAX_AGE_S
+from qnav.contracts.observation import WINDOW_LENGTH
+from qnav.contracts.policy_file import WEIGHT_TYPES
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -109,7 +109,7 @@ def _listing(target: str, intro: str) -> Callable[[], str]:
     imported only when help is asked for."""
 
     def build() -> str:
-        from contracts.settings import to_listing
+        from qnav.contracts.settings import to_listing
 
         module, name = target.split(":")
         settings = getattr(importlib.import_module(module), name)()
@@ -143,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
     scenarios = verbs.add_parser("scenarios", help="list the built-in scenarios")
-    scenarios.set_defaults(handler=_lazy("sim.cli:scenarios"))
+    scenarios.set_defaults(handler=_lazy("qnav.sim.cli:scenarios"))
 
     settings = verbs.add_parser(
         "settings", help="print a scenario's world settings as a commented TOML file"
@@ -153,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     settings.add_argument(
         "--reference", action="store_true", help="print the settings reference (docs/settings.md)"
     )
-    settings.set_defaults(handler=_lazy("sim.cli:settings"))
+    settings.set_defaults(handler=_lazy("qnav.sim.cli:settings"))
 
     evaluate = verbs.add_parser(
         "eval", help="run the paper's test protocol and print success, collision, unfinished"
@@ -219,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     train = verbs.add_parser("train", help="train a Q-network (resumes a killed run)")
     _with_listing(
         train,
-        "training.config:TrainSettings",
+        "qnav.training.config:TrainSettings",
         "learner settings (--train-set train.FIELD=VALUE, or a [train] table in --train-config; "
         "the defaults below, before the preset's own)",
     )
@@ -297,7 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
     calibrate.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate.set_defaults(handler=_lazy("sim.cli:calibrate"))
+    calibrate.set_defaults(handler=_lazy("qnav.sim.cli:calibrate"))
 
     render = verbs.add_parser("render", help="draw an episode to PNG and animated GIF")
     _world_options(render, "obstacles-inertia")
@@ -307,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--max-steps", type=int, default=None, help="cut the episode short")
     render.add_argument("--rays", action="store_true", help="draw the lidar rays")
     render.add_argument("--out", type=Path, default=Path("out/render"), help="output folder")
-    render.set_defaults(handler=_lazy("sim.cli:render"))
+    render.set_defaults(handler=_lazy("qnav.sim.cli:render"))
 
     figures = verbs.add_parser(
         "figures", help="action maps (paper figure 3) and trajectories (figure 10) of a run"
@@ -478,7 +478,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _with_listing(
         controller,
-        "controller.config:DaemonConfig",
+        "qnav.controller.config:DaemonConfig",
         "settings (--set SECTION.FIELD=VALUE, or in the --config file; defaults below)",
     )
     controller.add_argument(
@@ -500,7 +500,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="print every setting with its meaning as a TOML file, and exit",
     )
-    controller.set_defaults(handler=_lazy("controller.daemon:main"))
+    controller.set_defaults(handler=_lazy("qnav.controller.daemon:main"))
 
     record = verbs.add_parser(
         "record", help="record the project's zenoh topics to MCAP (ROS 2 profile, CDR)"
@@ -749,7 +749,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench_sim.add_argument("--no-scaling", action="store_true", help="skip beam/obstacle scaling")
     bench_sim.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_sim.set_defaults(handler=_lazy("sim.cli:bench"))
+    bench_sim.set_defaults(handler=_lazy("qnav.sim.cli:bench"))
     bench_learner = benches.add_parser(
         "learner", help="one training iteration's GFLOP/s against the machine's matmul rate"
     )
@@ -808,7 +808,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench_cluster.add_argument("--repeats", type=int, default=3, help="timed pairs (3)")
     bench_cluster.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_cluster.set_defaults(handler=_lazy("training.bench_cluster:bench"))
+    bench_cluster.set_defaults(handler=_lazy("qnav.training.bench_cluster:bench"))
     _bench_bridge(benches)
     return parser
 
@@ -909,7 +909,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     )
     _with_listing(
         bridge,
-        "firmware_bridge.settings:BridgeSettings",
+        "qnav.firmware_bridge.settings:BridgeSettings",
         "settings (--set SECTION.FIELD=VALUE, or in the --config file; defaults below)",
     )
     bridge.add_argument(
@@ -929,7 +929,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     bridge.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
-    bridge.set_defaults(handler=_lazy("firmware_bridge.daemon:run"))
+    bridge.set_defaults(handler=_lazy("qnav.firmware_bridge.daemon:run"))
 
     calibrate_car = verbs.add_parser(
         "calibrate-car",
@@ -954,14 +954,14 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
         "--wait-s", type=float, default=60.0, help="wait this long for an armed car (60 s)"
     )
     calibrate_car.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate_car.set_defaults(handler=_lazy("firmware_bridge.calibrate:run"))
+    calibrate_car.set_defaults(handler=_lazy("qnav.firmware_bridge.calibrate:run"))
 
     vehicle = verbs.add_parser(
         "fake-vehicle", help="a small MAVLink car that behaves like ArduPilot Rover"
     )
     _with_listing(
         vehicle,
-        "simcar.mavlink_vehicle:MavlinkVehicleSettings",
+        "qnav.simcar.mavlink_vehicle:MavlinkVehicleSettings",
         "settings (--set FIELD=VALUE, or in the --config file; defaults below)",
     )
     vehicle.add_argument(
@@ -991,7 +991,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     vehicle.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
-    vehicle.set_defaults(handler=_lazy("simcar.mavlink_vehicle:run"))
+    vehicle.set_defaults(handler=_lazy("qnav.simcar.mavlink_vehicle:run"))
 
 
 def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
@@ -1012,7 +1012,7 @@ def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
         help="also time a bare zenoh-to-UDP echo process: the floor this machine sets",
     )
     bench.add_argument("--json", action="store_true", help="print one JSON object")
-    bench.set_defaults(handler=_lazy("firmware_bridge.bench:bench"))
+    bench.set_defaults(handler=_lazy("qnav.firmware_bridge.bench:bench"))
 
 
 ZENOH_DAEMONS = frozenset({"bridge", "controller", "record", "serve", "sim-car"})

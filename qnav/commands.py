@@ -9,16 +9,16 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
-from contracts.errors import ConfigError
-from contracts.settings import load_toml, parse_assignments, with_overrides
-from sim.config import WorldConfig, load_world
-from sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
-from sim.evaluate import evaluate as run_evaluation
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import load_toml, parse_assignments, with_overrides
+from qnav.sim.config import WorldConfig, load_world
+from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
+from qnav.sim.evaluate import evaluate as run_evaluation
 
 if TYPE_CHECKING:
-    from training.imitate import ImitationResult, ImitationSettings
-    from training.probe import PerceptionSettings
-    from training.study import Engine, RunSpec, StudySettings
+    from qnav.training.imitate import ImitationResult, ImitationSettings
+    from qnav.training.probe import PerceptionSettings
+    from qnav.training.study import Engine, RunSpec, StudySettings
 
 
 def evaluate(args: argparse.Namespace) -> int:
@@ -32,7 +32,7 @@ def evaluate(args: argparse.Namespace) -> int:
     worlds = min(args.num_worlds, args.episodes)
     agent: Agent
     if args.policy is not None and args.policy.suffix == ".onnx":
-        from controller.policy import Expectation, PolicyRuntime
+        from qnav.controller.policy import Expectation, PolicyRuntime
 
         probe = PolicyRuntime(args.policy, backend=args.backend)
         world = load_world(
@@ -57,8 +57,8 @@ def evaluate(args: argparse.Namespace) -> int:
             else (RandomAgent(worlds, seed=args.seed), "oracle planner (knows the future)")
         )
     else:
-        from training.agent import policy_agent
-        from training.policy import load_network
+        from qnav.training.agent import policy_agent
+        from qnav.training.policy import load_network
 
         network, run = load_network(args.policy)
         world = (
@@ -98,8 +98,8 @@ def evaluate(args: argparse.Namespace) -> int:
         )
     shield = None
     if looking:
-        from controller.lookahead import LookaheadSettings
-        from controller.perception import TrackerSettings
+        from qnav.controller.lookahead import LookaheadSettings
+        from qnav.controller.perception import TrackerSettings
         from qnav.tracking import LookaheadAgent, QAgent
 
         shield = agent = LookaheadAgent(
@@ -115,7 +115,7 @@ def evaluate(args: argparse.Namespace) -> int:
     if args.random_action_prob:
         label += f" with {args.random_action_prob:.0%} random actions"
     if planner and args.tracker:
-        from controller.perception import TrackerSettings
+        from qnav.controller.perception import TrackerSettings
         from qnav.tracking import run_perceiving_oracle
 
         label += ", planning on the onboard tracker's estimate"
@@ -127,7 +127,7 @@ def evaluate(args: argparse.Namespace) -> int:
             progress=not args.json,
         )
     elif planner:
-        from sim.oracle import PERCEPTION_LEVELS, run_oracle
+        from qnav.sim.oracle import PERCEPTION_LEVELS, run_oracle
 
         error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
         if error is not None:
@@ -150,8 +150,8 @@ def evaluate(args: argparse.Namespace) -> int:
 
 def train(args: argparse.Namespace) -> int:
     """Train (or resume) one run."""
-    from training.config import preset
-    from training.run import train as run_training
+    from qnav.training.config import preset
+    from qnav.training.run import train as run_training
 
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
     settings = preset(args.preset, world)
@@ -184,7 +184,7 @@ def train(args: argparse.Namespace) -> int:
 
 def bench_learner(args: argparse.Namespace) -> int:
     """Training iteration cost against the machine's own matrix-product rate."""
-    from training.bench import format_report, run
+    from qnav.training.bench import format_report, run
 
     report = run(
         model=args.model, batch_size=args.batch, repeats=args.repeats, threads=args.threads
@@ -195,9 +195,9 @@ def bench_learner(args: argparse.Namespace) -> int:
 
 def reproduce(args: argparse.Namespace) -> int:
     """Run the study's missing runs, then write docs/results.md."""
-    from sim import paper
-    from sim.config import scenario
-    from training.study import (
+    from qnav.sim import paper
+    from qnav.sim.config import scenario
+    from qnav.training.study import (
         MODELS,
         SCENARIOS,
         ablation_plan,
@@ -236,7 +236,7 @@ def _run_study(
 ) -> None:
     """Train the study's missing runs with the engine, threads, jobs and budget its options ask
     for (`qnav reproduce` and `qnav sweep` alike)."""
-    from training.study import run_study
+    from qnav.training.study import run_study
 
     budget = None if args.time_budget_min is None else args.time_budget_min * 60
     run_study(
@@ -269,7 +269,7 @@ def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | Non
         if args.artifacts:
             raise ConfigError("--artifacts needs --engine ray")
         return None
-    from training.cluster import ClusterSettings, RayEngine, parse_address
+    from qnav.training.cluster import ClusterSettings, RayEngine, parse_address
 
     if args.address is not None:
         parse_address(args.address)  # a malformed one is named before anything else
@@ -286,7 +286,7 @@ def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | Non
 
 def sweep(args: argparse.Namespace) -> int:
     """Train every point of a settings grid, then print each run's test figures."""
-    from training.study import (
+    from qnav.training.study import (
         MODELS,
         SCENARIOS,
         parse_choices,
@@ -308,7 +308,7 @@ def sweep(args: argparse.Namespace) -> int:
 
 def figures(args: argparse.Namespace) -> int:
     """Action maps and trajectories of a training run, as PNG."""
-    from training.figures import write_figures
+    from qnav.training.figures import write_figures
 
     for path in write_figures(args.run, args.out):
         print(f"wrote {path}")
@@ -317,7 +317,7 @@ def figures(args: argparse.Namespace) -> int:
 
 def diagnose(args: argparse.Namespace) -> int:
     """Generalisation gap, target sensitivity and action mix of a training run."""
-    from training.diagnose import diagnose as measure
+    from qnav.training.diagnose import diagnose as measure
 
     print(measure(args.run, fresh_episodes=args.fresh_episodes).render())
     return 0
@@ -326,8 +326,8 @@ def diagnose(args: argparse.Namespace) -> int:
 def gauge(args: argparse.Namespace) -> int:
     """The decisive states of a world with the baselines' scores, or each run's score on its
     own world's states beside its test success."""
-    from contracts.actions import Action
-    from sim.decisive import (
+    from qnav.contracts.actions import Action
+    from qnav.sim.decisive import (
         GaugeResult,
         GaugeSettings,
         cached,
@@ -336,8 +336,8 @@ def gauge(args: argparse.Namespace) -> int:
         perception_ceiling,
         random_expectation,
     )
-    from sim.decisive import score as judge
-    from sim.oracle import PERCEPTION_LEVELS
+    from qnav.sim.decisive import score as judge
+    from qnav.sim.oracle import PERCEPTION_LEVELS
 
     rows: list[dict[str, object]] = []
     if not args.runs:
@@ -374,9 +374,9 @@ def gauge(args: argparse.Namespace) -> int:
             f"(planner {visited['planner']}, go-to-target {visited['go-to-target']})"
         )
     for run in args.runs:
-        from training.diagnose import decisive_report
-        from training.policy import load_network
-        from training.validation import decisive_states
+        from qnav.training.diagnose import decisive_report
+        from qnav.training.policy import load_network
+        from qnav.training.validation import decisive_states
 
         network, settings = load_network(run)
         train = replace(settings.train, gauge_episodes=args.episodes)
@@ -407,9 +407,9 @@ def gauge(args: argparse.Namespace) -> int:
 def probe(args: argparse.Namespace) -> int:
     """Fit the paper's network to the planner's doom labels and print the gauge after each pass,
     or (--perception) fit it to locate the nearest obstacle and print the median errors."""
-    from contracts.settings import to_toml
-    from training.probe import PerceptionSettings, ProbeSettings
-    from training.probe import probe as fit
+    from qnav.contracts.settings import to_toml
+    from qnav.training.probe import PerceptionSettings, ProbeSettings
+    from qnav.training.probe import probe as fit
 
     if args.tracker:
         return _track(args)
@@ -456,8 +456,8 @@ def _probe_set(assignments: list[str], *defaults: Any) -> list[Any]:
 
 def _track(args: argparse.Namespace) -> int:
     """The onboard tracker's errors on the perception probe's drive."""
-    from contracts.settings import to_toml
-    from controller.perception import TrackerSettings
+    from qnav.contracts.settings import to_toml
+    from qnav.controller.perception import TrackerSettings
     from qnav.tracking import TrackerCheckSettings, measure_tracker
 
     tracker: TrackerSettings
@@ -488,7 +488,7 @@ def _track(args: argparse.Namespace) -> int:
 
 
 def _perceive(world: WorldConfig, settings: PerceptionSettings, as_json: bool) -> int:
-    from training.probe import perceive
+    from qnav.training.probe import perceive
 
     for epoch in perceive(world, settings, progress=not as_json):
         if as_json:
@@ -502,8 +502,8 @@ def _perceive(world: WorldConfig, settings: PerceptionSettings, as_json: bool) -
 
 def imitate(args: argparse.Namespace) -> int:
     """Copy the oracle planner with the learner's network; test the copy."""
-    from training.imitate import ImitationSettings
-    from training.imitate import imitate as measure
+    from qnav.training.imitate import ImitationSettings
+    from qnav.training.imitate import imitate as measure
 
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
     settings = ImitationSettings(
@@ -519,7 +519,7 @@ def imitate(args: argparse.Namespace) -> int:
         threads=args.threads,
     )
     if args.privileged:
-        from training.privileged import imitate_privileged
+        from qnav.training.privileged import imitate_privileged
 
         result = imitate_privileged(world, settings)
     else:
@@ -564,7 +564,7 @@ def _imitation_report(
 
 def export(args: argparse.Namespace) -> int:
     """A run's network as one ONNX policy file, tested and stamped with its results."""
-    from training.export import AGREEMENT_KEY, export_run, reexport_file
+    from qnav.training.export import AGREEMENT_KEY, export_run, reexport_file
 
     default_episodes = 200 if args.run.suffix != ".onnx" or args.weights else 0
     episodes = default_episodes if args.eval_episodes is None else args.eval_episodes
@@ -628,7 +628,7 @@ def bench_policy(args: argparse.Namespace) -> int:
     """Per-decision latency of each runtime backend."""
     import tempfile
 
-    from controller.bench import format_report, run
+    from qnav.controller.bench import format_report, run
 
     with tempfile.TemporaryDirectory() as scratch:
         policy = args.policy or _paper_sized_policy(Path(scratch), args.weights)
@@ -644,9 +644,9 @@ PAPER_SIZED = "untrained paper-sized recurrent (720 beams, LSTM 512, k = 5)"
 
 def _paper_sized_policy(folder: Path, weight_type: str = "float32") -> Path:
     """An untrained policy file of the paper's size (the benches time its arithmetic)."""
-    from sim.config import scenario
-    from training.export import export_onnx, policy_contract
-    from training.networks import QNetwork
+    from qnav.sim.config import scenario
+    from qnav.training.export import export_onnx, policy_contract
+    from qnav.training.networks import QNetwork
 
     world = scenario("obstacles-inertia")
     network = QNetwork("recurrent", 720)
@@ -660,7 +660,7 @@ def bench_controller(args: argparse.Namespace) -> int:
     """End-to-end latency of the controller daemon: scan published -> command received."""
     import tempfile
 
-    from controller.bench_e2e import format_report, run
+    from qnav.controller.bench_e2e import format_report, run
 
     rates = [float(r) for r in args.rates.split(",")]
     with tempfile.TemporaryDirectory() as scratch:
@@ -676,7 +676,7 @@ def health(args: argparse.Namespace) -> int:
     """`qnav health`: 0 while the daemon's loop beats (a container HEALTHCHECK), 1 otherwise."""
     import sys
 
-    from contracts.health import HEALTH_FILE_ENV, check_health, health_path
+    from qnav.contracts.health import HEALTH_FILE_ENV, check_health, health_path
 
     path = args.file or health_path()
     if path is None:

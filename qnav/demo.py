@@ -18,8 +18,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from sim import paper
-from sim.config import scenario
+from qnav.sim import paper
+from qnav.sim.config import scenario
 
 OUT = Path("out/demo")
 SCENARIO = "walls-increment"
@@ -33,13 +33,13 @@ def _step(number: int, text: str) -> None:
 
 def main() -> int:
     """Run the demo."""
-    from controller.policy import PolicyRuntime
+    from qnav.controller.policy import PolicyRuntime
+    from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+    from qnav.simcar.car import EpisodeLog, episode_record
     from qnav.stack import run_stack
-    from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
-    from simcar.car import EpisodeLog, episode_record
-    from training.config import preset
-    from training.export import export_run
-    from training.run import train
+    from qnav.training.config import preset
+    from qnav.training.export import export_run
+    from qnav.training.run import train
 
     started = time.perf_counter()
     world = scenario(SCENARIO)
@@ -95,7 +95,7 @@ def main() -> int:
     logs = [json.loads(line) for line in (OUT / "stack" / "episodes.jsonl").read_text().split("\n")
             if line]  # fmt: skip
     try:
-        from sim.render import draw_gif, draw_png
+        from qnav.sim.render import draw_gif, draw_png
 
         record = episode_record(world, EpisodeLog(**logs[0]))
         png = draw_png(record, OUT / "stack-episode-0.png")

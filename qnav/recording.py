@@ -9,11 +9,17 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from contracts.daemon import stop_on_signals
-from contracts.errors import ConfigError
-from contracts.settings import from_dict, load_toml, with_overrides
-from contracts.transport import ZenohSettings
-from controller.recording import RecordedMessage, RecorderSettings, play, read_recordings, record
+from qnav.contracts.daemon import stop_on_signals
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import from_dict, load_toml, with_overrides
+from qnav.contracts.transport import ZenohSettings
+from qnav.controller.recording import (
+    RecordedMessage,
+    RecorderSettings,
+    play,
+    read_recordings,
+    record,
+)
 
 
 def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -48,7 +54,7 @@ def record_verb(args: argparse.Namespace) -> int:
 def recover_verb(args: argparse.Namespace) -> int:
     """Rewrite every cut MCAP file of the given folders (or files) as a complete one, and write
     each folder's rosbag2 metadata.yaml."""
-    from controller.recording import is_complete, recover, write_rosbag_metadata
+    from qnav.controller.recording import is_complete, recover, write_rosbag_metadata
 
     folders: dict[Path, None] = {}
     for path in args.paths:
@@ -91,14 +97,14 @@ def _into_controller(args: argparse.Namespace, messages: list[RecordedMessage], 
     """`qnav playback --into-controller`: the controller's rows, as a summary or JSON lines."""
     import json
 
-    from controller.config import load_config
-    from controller.playback import (
+    from qnav.controller.config import load_config
+    from qnav.controller.playback import (
         agreement_with_recorded,
         play_into_controller,
         recorded_statuses,
         summary,
     )
-    from controller.policy import PolicyRuntime
+    from qnav.controller.policy import PolicyRuntime
 
     config = load_config(args.config, args.assignments)
     policy = args.policy or (config.policy_path() if config.controller.policy else None)

@@ -27,12 +27,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from contracts import delivery, wire
-from contracts.daemon import stop_on_signals
-from contracts.errors import ConfigError, PolicyFileError
-from contracts.policy_file import PolicyContract
-from contracts.transport import ZenohSettings, open_session
-from controller.onnx_file import parse_onnx
+from qnav.contracts import delivery, wire
+from qnav.contracts.daemon import stop_on_signals
+from qnav.contracts.errors import ConfigError, PolicyFileError
+from qnav.contracts.policy_file import PolicyContract
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.controller.onnx_file import parse_onnx
 
 log = logging.getLogger("qnav.serve")
 
@@ -152,9 +152,9 @@ def export_best(run: Path, episodes: int) -> Path:
     of the test protocol); the file appears only once whole and tested (needs torch)."""
     import torch
 
-    from training.export import evaluate_file, export_onnx, policy_contract
-    from training.policy import make_network
-    from training.run_folder import read_settings, source_commit
+    from qnav.training.export import evaluate_file, export_onnx, policy_contract
+    from qnav.training.policy import make_network
+    from qnav.training.run_folder import read_settings, source_commit
 
     settings = read_settings(run)
     weights = best_weights(run)

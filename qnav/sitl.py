@@ -16,7 +16,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from contracts.errors import ConfigError
+from qnav.contracts.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 SITL_PARAMS = ROOT / "config" / "ardupilot-sitl.parm"

@@ -29,13 +29,13 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
-from contracts.daemon import free_port
-from contracts.errors import ConfigError
-from contracts.settings import from_dict, to_toml
+from qnav.contracts.daemon import free_port
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import from_dict, to_toml
 
 if TYPE_CHECKING:
-    from sim.config import WorldConfig
-    from sim.evaluate import Agent
+    from qnav.sim.config import WorldConfig
+    from qnav.sim.evaluate import Agent
 
 
 @dataclass(frozen=True)
@@ -90,14 +90,14 @@ class StackServe:
     @property
     def private_key(self) -> Path:
         """The server's signing key."""
-        from contracts.delivery import PRIVATE_KEY_FILE
+        from qnav.contracts.delivery import PRIVATE_KEY_FILE
 
         return self.keys / PRIVATE_KEY_FILE
 
     @property
     def public_key(self) -> Path:
         """The key the controller trusts."""
-        from contracts.delivery import PUBLIC_KEY_FILE
+        from qnav.contracts.delivery import PUBLIC_KEY_FILE
 
         return self.keys / PUBLIC_KEY_FILE
 
@@ -140,8 +140,8 @@ def write_configs(
     controller takes policies from a server signed with its private key, `policy` first;
     `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default;
     `lookahead`: the controller's `lookahead.mode`, in a room of `room_size_m`)."""
-    from controller.config import DaemonConfig
-    from firmware_bridge.settings import BridgeSettings
+    from qnav.controller.config import DaemonConfig
+    from qnav.firmware_bridge.settings import BridgeSettings
 
     zenoh = {"connect": [zenoh_endpoint], "listen": []}
     controller = from_dict(
@@ -268,10 +268,10 @@ def run_stack(
     """
     from tqdm import tqdm
 
-    from contracts.policy_file import PolicyContract
-    from controller.onnx_file import read_onnx
-    from sim.config import scenario as load_scenario
-    from simcar.car import SimCarSettings
+    from qnav.contracts.policy_file import PolicyContract
+    from qnav.controller.onnx_file import read_onnx
+    from qnav.sim.config import scenario as load_scenario
+    from qnav.simcar.car import SimCarSettings
 
     contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
     world = load_scenario(scenario or contract.scenario)
@@ -490,8 +490,8 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     publication to the command after it (the controller and zenoh), as the sim-car logged it."""
     import math
 
-    from contracts.motion import action_velocities
-    from sim.config import scenario as load_scenario
+    from qnav.contracts.motion import action_velocities
+    from qnav.sim.config import scenario as load_scenario
 
     world = load_scenario(scenario_name)
     period = world.control_period_s
@@ -545,8 +545,8 @@ def in_process_outcomes(
 ) -> dict[str, Any]:
     """`qnav eval --lookahead MODE` of the policy file on the stack's episodes (the test
     protocol's first ones)."""
-    from sim.config import scenario as load_scenario
-    from sim.evaluate import EvalSettings, evaluate
+    from qnav.sim.config import scenario as load_scenario
+    from qnav.sim.evaluate import EvalSettings, evaluate
 
     world = load_scenario(scenario_name)
     result = evaluate(
@@ -565,11 +565,11 @@ def in_process_outcomes(
 def file_agent(policy: Path, world: WorldConfig, worlds: int, *, lookahead: str) -> Agent:
     """The policy file on one stream per world, as the controller runs it, with its look ahead
     in `lookahead` mode."""
-    from controller.lookahead import LookaheadSettings
-    from controller.perception import TrackerSettings
-    from controller.policy import PolicyRuntime
+    from qnav.controller.lookahead import LookaheadSettings
+    from qnav.controller.perception import TrackerSettings
+    from qnav.controller.policy import PolicyRuntime
+    from qnav.sim.evaluate import StreamPolicyAgent
     from qnav.tracking import LookaheadAgent
-    from sim.evaluate import StreamPolicyAgent
 
     agent = StreamPolicyAgent(PolicyRuntime(policy, num_streams=worlds), worlds)
     if lookahead == "off":
@@ -588,10 +588,10 @@ def episode_agreement(
     activations over the whole batch."""
     import numpy as np
 
-    from contracts.motion import Outcome
-    from sim.config import scenario as load_scenario
-    from sim.evaluate import EvalSettings
-    from sim.world import observe, reset, step
+    from qnav.contracts.motion import Outcome
+    from qnav.sim.config import scenario as load_scenario
+    from qnav.sim.evaluate import EvalSettings
+    from qnav.sim.world import observe, reset, step
 
     test = EvalSettings()
     world = replace(load_scenario(scenario_name), max_episode_steps=test.max_episode_steps)
@@ -621,10 +621,10 @@ def sim_car_verb(args: argparse.Namespace) -> int:
     """`qnav sim-car`: the simulator as the car, until its episodes are done or SIGTERM."""
     import logging
 
-    from contracts.daemon import stop_on_signals
-    from contracts.transport import ZenohSettings
-    from sim.config import load_world
-    from simcar.car import SimCar, SimCarSettings, summary, write_log
+    from qnav.contracts.daemon import stop_on_signals
+    from qnav.contracts.transport import ZenohSettings
+    from qnav.sim.config import load_world
+    from qnav.simcar.car import SimCar, SimCarSettings, summary, write_log
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     world = load_world(args.scenario, args.world_config, args.assignments)

@@ -16,16 +16,22 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from contracts.errors import ConfigError
-from contracts.lookahead import shielded_actions
-from contracts.motion import InertiaDynamics
-from contracts.observation import LidarSpec
-from controller.lookahead import Lookahead, LookaheadSettings, plans_of, risks_of
-from controller.perception import ObstacleTracker, TrackerSettings, Tracks, box_walls, own_velocity
-from sim.config import WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget
-from sim.oracle import PERCEIVED, run_oracle
-from sim.world import BatchedWorld, Observation, WorldState
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.lookahead import shielded_actions
+from qnav.contracts.motion import InertiaDynamics
+from qnav.contracts.observation import LidarSpec
+from qnav.controller.lookahead import Lookahead, LookaheadSettings, plans_of, risks_of
+from qnav.controller.perception import (
+    ObstacleTracker,
+    TrackerSettings,
+    Tracks,
+    box_walls,
+    own_velocity,
+)
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget
+from qnav.sim.oracle import PERCEIVED, run_oracle
+from qnav.sim.world import BatchedWorld, Observation, WorldState
 
 F64 = NDArray[np.float64]
 

@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from contracts.actions import NUM_ACTIONS
-from contracts.observation import LidarSpec
-from sim.config import WorldConfig
-from sim.world import BatchedWorld
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.observation import LidarSpec
+from qnav.sim.config import WorldConfig
+from qnav.sim.world import BatchedWorld
 
 
 def pin_to_one_core() -> str:

@@ -18,11 +18,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from tqdm import tqdm
 
-from sim import paper
-from sim.config import WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, GoToTargetAgent, RandomAgent, evaluate
-from sim.oracle import doomed_actions, run_oracle
-from sim.world import reset
+from qnav.sim import paper
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, EvalSettings, GoToTargetAgent, RandomAgent, evaluate
+from qnav.sim.oracle import doomed_actions, run_oracle
+from qnav.sim.world import reset
 
 PAPER_EPISODES = 200
 """Test episodes behind each of the paper's figures."""

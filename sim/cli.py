@@ -7,13 +7,13 @@ import json
 import sys
 from dataclasses import asdict
 
-from contracts.errors import ConfigError
-from contracts.motion import IncrementDynamics
-from contracts.settings import to_markdown, to_toml
-from sim import paper
-from sim.calibrate import Calibration
-from sim.config import SCENARIOS, WorldConfig, load_world, scenario
-from sim.evaluate import EvalResult, RandomAgent
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import IncrementDynamics
+from qnav.contracts.settings import to_markdown, to_toml
+from qnav.sim import paper
+from qnav.sim.calibrate import Calibration
+from qnav.sim.config import SCENARIOS, WorldConfig, load_world, scenario
+from qnav.sim.evaluate import EvalResult, RandomAgent
 
 
 def _world(args: argparse.Namespace) -> WorldConfig:
@@ -69,8 +69,8 @@ def settings_reference() -> str:
 
 def calibrate(args: argparse.Namespace) -> int:
     """Random, go-to-target and oracle agents in each paper scenario, beside the paper's rows."""
-    from sim.calibrate import calibrate as measure
-    from sim.calibrate import table
+    from qnav.sim.calibrate import calibrate as measure
+    from qnav.sim.calibrate import table
 
     worlds = {name: scenario(name) for name in paper.RANDOM}
     rows = measure(
@@ -110,7 +110,7 @@ def _calibration_dict(row: Calibration) -> dict[str, object]:
 
 def render(args: argparse.Namespace) -> int:
     """Draw one episode to PNG and GIF."""
-    from sim.render import render_episode
+    from qnav.sim.render import render_episode
 
     config = _world(args)
     png, gif = render_episode(
@@ -128,7 +128,7 @@ def render(args: argparse.Namespace) -> int:
 
 def bench(args: argparse.Namespace) -> int:
     """Simulator throughput on one core."""
-    from sim.bench import format_table, run
+    from qnav.sim.bench import format_table, run
 
     try:
         batches = tuple(int(b) for b in args.batches.split(","))

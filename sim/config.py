@@ -12,10 +12,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from contracts.errors import ConfigError
-from contracts.motion import Dynamics, IncrementDynamics, InertiaDynamics
-from contracts.observation import LidarSpec
-from contracts.settings import check_range, load_toml, parse_assignments, with_overrides
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import Dynamics, IncrementDynamics, InertiaDynamics
+from qnav.contracts.observation import LidarSpec
+from qnav.contracts.settings import check_range, load_toml, parse_assignments, with_overrides
 
 Wall = Literal["south", "east", "north", "west"]
 WALLS: tuple[Wall, ...] = ("south", "east", "north", "west")

@@ -28,12 +28,12 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from contracts.observation import FrameWindow, distance_scale_m, encode_frame
-from contracts.settings import check_range, to_toml
-from sim.config import WorldConfig
-from sim.evaluate import go_to_target
-from sim.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
-from sim.world import Observation, WorldState, observe, reset, step, take_rows
+from qnav.contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from qnav.contracts.settings import check_range, to_toml
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import go_to_target
+from qnav.sim.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
+from qnav.sim.world import Observation, WorldState, observe, reset, step, take_rows
 
 StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]
 

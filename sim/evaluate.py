@@ -15,12 +15,12 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from contracts.actions import NUM_ACTIONS, Action
-from contracts.motion import Outcome
-from contracts.settings import check_range
-from sim import rng
-from sim.config import WorldConfig
-from sim.world import Observation, WorldState, observe, reset, scatter, step, take_rows
+from qnav.contracts.actions import NUM_ACTIONS, Action
+from qnav.contracts.motion import Outcome
+from qnav.contracts.settings import check_range
+from qnav.sim import rng
+from qnav.sim.config import WorldConfig
+from qnav.sim.world import Observation, WorldState, observe, reset, scatter, step, take_rows
 
 TEST_EPISODE_STEPS = 500
 """Longest test episode of the paper's protocol."""

@@ -12,9 +12,9 @@ from functools import cache
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts import motion
-from contracts.observation import LidarSpec
-from sim.config import WALLS, ArenaConfig
+from qnav.contracts import motion
+from qnav.contracts.observation import LidarSpec
+from qnav.sim.config import WALLS, ArenaConfig
 
 F64 = NDArray[np.float64]
 

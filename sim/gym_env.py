@@ -9,7 +9,7 @@ is the same whichever of the two a driver reports. The pose, the exact clearance
 at an episode's end, `is_success` are in `info`.
 
 Importing this module registers one id per scenario: `gymnasium.make("qnav/WallsInertia-v0")`
-(or, without importing it first, `gymnasium.make("sim.gym_env:qnav/WallsInertia-v0")`).
+(or, without importing it first, `gymnasium.make("qnav.sim.gym_env:qnav/WallsInertia-v0")`).
 """
 
 from __future__ import annotations
@@ -26,19 +26,19 @@ from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 from numpy.typing import NDArray
 
-from contracts.actions import NUM_ACTIONS
-from contracts.errors import ConfigError
-from contracts.motion import IncrementDynamics, Outcome
-from contracts.observation import (
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import IncrementDynamics, Outcome
+from qnav.contracts.observation import (
     TARGET_FEATURES,
     WINDOW_LENGTH,
     FrameWindow,
     distance_scale_m,
     encode_frame,
 )
-from sim.config import SCENARIOS, WorldConfig, scenario
-from sim.render import EpisodeCanvas, EpisodeRecorder
-from sim.world import (
+from qnav.sim.config import SCENARIOS, WorldConfig, scenario
+from qnav.sim.render import EpisodeCanvas, EpisodeRecorder
+from qnav.sim.world import (
     BatchedWorld,
     Observation,
     Transition,

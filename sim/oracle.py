@@ -28,19 +28,19 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from contracts import lookahead
-from contracts.actions import NUM_ACTIONS
-from contracts.lookahead import (
+from qnav.contracts import lookahead
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.lookahead import (
     LookaheadModel,
     Rollouts,
     candidate_sequences,
     random_blocks_needed,
 )
-from sim import rng
-from sim.config import WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, drive
-from sim.geometry import wall_segments
-from sim.world import Observation, WorldState
+from qnav.sim import rng
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, EvalSettings, drive
+from qnav.sim.geometry import wall_segments
+from qnav.sim.world import Observation, WorldState
 
 F64 = NDArray[np.float64]
 

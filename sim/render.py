@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.motion import Outcome
-from sim.config import WorldConfig
-from sim.geometry import wall_segments
-from sim.world import Observation, Transition, WorldState, observe, reset, step
+from qnav.contracts.motion import Outcome
+from qnav.sim.config import WorldConfig
+from qnav.sim.geometry import wall_segments
+from qnav.sim.world import Observation, Transition, WorldState, observe, reset, step
 
 if TYPE_CHECKING:
     from matplotlib.artist import Artist
@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from matplotlib.text import Text
     from PIL.Image import Image
 
-    from sim.evaluate import Agent
+    from qnav.sim.evaluate import Agent
 
 F64 = NDArray[np.float64]
 

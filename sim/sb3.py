@@ -26,10 +26,10 @@ from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvStepReturn,
 )
 
-from contracts.errors import ConfigError
-from contracts.observation import WINDOW_LENGTH
-from sim.config import WorldConfig
-from sim.gym_env import EncodedWindowVector, NavVectorEnv
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.observation import WINDOW_LENGTH
+from qnav.sim.config import WorldConfig
+from qnav.sim.gym_env import EncodedWindowVector, NavVectorEnv
 
 
 def split_info(info: dict[str, Any], num_envs: int) -> list[dict[str, Any]]:

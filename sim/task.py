@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.motion import Outcome, outcome
-from sim.config import RewardConfig
+from qnav.contracts.motion import Outcome, outcome
+from qnav.sim.config import RewardConfig
 
 F64 = NDArray[np.float64]
 

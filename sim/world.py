@@ -13,13 +13,13 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.errors import ConfigError
-from contracts.motion import Outcome, move_obstacles, outcome, step_robot
-from contracts.observation import target_features
-from sim import rng
-from sim.config import WorldConfig
-from sim.geometry import cast_lidar, clearance
-from sim.task import reward
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import Outcome, move_obstacles, outcome, step_robot
+from qnav.contracts.observation import target_features
+from qnav.sim import rng
+from qnav.sim.config import WorldConfig
+from qnav.sim.geometry import cast_lidar, clearance
+from qnav.sim.task import reward
 
 F64 = NDArray[np.float64]
 

@@ -41,9 +41,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts import wire
-from contracts.errors import ConfigError
-from contracts.motion import (
+from qnav.contracts import wire
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import (
     IncrementDynamics,
     InertiaDynamics,
     Outcome,
@@ -51,17 +51,17 @@ from contracts.motion import (
     move_obstacles,
     outcome,
 )
-from contracts.settings import check_range
-from contracts.transport import ZenohSettings, open_session
-from sim.config import WorldConfig
-from sim.evaluate import EvalSettings
-from sim.render import EpisodeRecord
-from sim.task import reward
-from sim.world import WorldState, observe, reset
-from simcar.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
-from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from qnav.contracts.settings import check_range
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalSettings
+from qnav.sim.render import EpisodeRecord
+from qnav.sim.task import reward
+from qnav.sim.world import WorldState, observe, reset
+from qnav.simcar.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
-log = logging.getLogger("simcar.car")
+log = logging.getLogger("qnav.simcar.car")
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from contracts.daemon import Service
-from contracts.mavlink import (
+from qnav.contracts.daemon import Service
+from qnav.contracts.mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     drain,
     mode_name,
@@ -33,7 +33,7 @@ from contracts.mavlink import (
     wrap_pi,
 )
 
-log = logging.getLogger("simcar.firmware_vehicle")
+log = logging.getLogger("qnav.simcar.firmware_vehicle")
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MESSAGE_IDS = {"LOCAL_POSITION_NED": 32, "ATTITUDE": 30}

@@ -43,9 +43,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from contracts.daemon import Service, stop_on_signals
-from contracts.errors import ConfigError
-from contracts.mavlink import (
+from qnav.contracts.daemon import Service, stop_on_signals
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.mavlink import (
     GCS_SYSTEM_ID,
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_CMD_COMPONENT_ARM_DISARM,
@@ -70,8 +70,8 @@ from contracts.mavlink import (
     open_connection,
     wrap_pi,
 )
-from contracts.motion import InertiaDynamics, step_velocity_lag
-from contracts.settings import (
+from qnav.contracts.motion import InertiaDynamics, step_velocity_lag
+from qnav.contracts.settings import (
     check_range,
     from_dict,
     load_toml,
@@ -80,7 +80,7 @@ from contracts.settings import (
     with_overrides,
 )
 
-log = logging.getLogger("simcar.mavlink_vehicle")
+log = logging.getLogger("qnav.simcar.mavlink_vehicle")
 
 POS_IGNORE = 0x7
 VEL_IGNORE = 0x38

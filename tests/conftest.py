@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 import pytest
 
 if TYPE_CHECKING:
-    from sim.config import WorldConfig
-    from training.networks import QNetwork
+    from qnav.sim.config import WorldConfig
+    from qnav.training.networks import QNetwork
 
 PolicyFactory = Callable[..., Path]
 
@@ -41,7 +41,7 @@ def make_policy(tmp_path_factory: pytest.TempPathFactory) -> PolicyFactory:
     ) -> Path:
         spec = (scenario, kind, hidden_size, seed)
         if spec not in cache:
-            from training.export import export_onnx, policy_contract
+            from qnav.training.export import export_onnx, policy_contract
 
             world, network = policy_network(*spec)
             path = root / f"{scenario}-{kind}-h{hidden_size}-s{seed}.onnx"
@@ -72,8 +72,8 @@ def policy_network(
     """The world and the (untrained, seeded) torch network behind `make_policy`'s file."""
     import torch
 
-    from sim.config import scenario as load_scenario
-    from training.networks import QNetwork
+    from qnav.sim.config import scenario as load_scenario
+    from qnav.training.networks import QNetwork
 
     world = load_scenario(scenario)
     torch.manual_seed(seed)

@@ -90,7 +90,7 @@ def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: igno
 def test_settings_reference_in_docs_is_current() -> None:
     from pathlib import Path
 
-    from sim.cli import settings_reference
+    from qnav.sim.cli import settings_reference
 
     docs = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
     assert docs.read_text() == settings_reference(), "run `make docs` to regenerate"
@@ -137,16 +137,16 @@ def test_every_daemon_prints_its_settings_with_one_spelling_and_reads_them_back(
 @pytest.mark.parametrize(
     ("verb", "target"),
     [
-        ("train", "training.config:TrainSettings"),
-        ("controller", "controller.config:DaemonConfig"),
-        ("bridge", "firmware_bridge.settings:BridgeSettings"),
-        ("fake-vehicle", "simcar.mavlink_vehicle:MavlinkVehicleSettings"),
+        ("train", "qnav.training.config:TrainSettings"),
+        ("controller", "qnav.controller.config:DaemonConfig"),
+        ("bridge", "qnav.firmware_bridge.settings:BridgeSettings"),
+        ("fake-vehicle", "qnav.simcar.mavlink_vehicle:MavlinkVehicleSettings"),
     ],
 )
 def test_help_lists_every_setting_with_its_value_and_documentation(verb: str, target: str) -> None:
     import importlib
 
-    from contracts.settings import to_listing
+    from qnav.contracts.settings import to_listing
 
     module, name = target.split(":")
     settings = getattr(importlib.import_module(module), name)()

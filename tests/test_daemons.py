@@ -18,11 +18,11 @@ from typing import Any
 
 import pytest
 
-from contracts import wire
-from contracts.daemon import free_port
-from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
-from contracts.transport import ZenohSettings, open_session
-from simcar.mavlink_vehicle import MavlinkVehicle
+from qnav.contracts import wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle
 from tests.firmware_bridge.rig import vehicle_settings, wait_until
 
 POLICY = Path(__file__).parent / "data" / "playback" / "policy.onnx"

@@ -20,10 +20,12 @@ from typing import Any
 
 import pytest
 
-from contracts import wire
-from contracts.daemon import free_port
-from contracts.errors import ConfigError
-from contracts.transport import (
+from qnav.certs import IDENTITIES, make_certificates
+from qnav.cli import main
+from qnav.contracts import wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.transport import (
     ZenohSettings,
     exposed_endpoints,
     network_view,
@@ -31,9 +33,7 @@ from contracts.transport import (
     secure_hub_config,
     zenoh_config,
 )
-from qnav.certs import IDENTITIES, make_certificates
-from qnav.cli import main
-from simcar.mavlink_vehicle import MavlinkVehicle
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle
 from tests.firmware_bridge.rig import vehicle_settings, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -186,7 +186,7 @@ def test_a_daemon_warns_when_its_config_listens_beyond_loopback(
     path = tmp_path / "exposed.json5"
     path.write_text(json.dumps({"mode": "peer", "listen": {"endpoints": [f"tcp/0.0.0.0:{port}"]}}))
     with (
-        caplog.at_level(logging.INFO, logger="contracts.transport"),
+        caplog.at_level(logging.INFO, logger="qnav.contracts.transport"),
         open_session(ZenohSettings(config_file=str(path))),
     ):
         pass

@@ -13,9 +13,9 @@ from typing import Any
 
 import pytest
 
-from contracts import delivery, wire
-from contracts.daemon import free_port
-from contracts.transport import ZenohSettings, open_session
+from qnav.contracts import delivery, wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.serve import PolicyServer, ServeSettings
 from tests.conftest import PolicyFactory, with_metadata
 
@@ -158,10 +158,10 @@ def _run_folder(root: Path) -> Path:
     """A training run's folder as keep-best leaves it mid-training: settings and best.pt."""
     import torch
 
-    from contracts.settings import to_toml
+    from qnav.contracts.settings import to_toml
+    from qnav.training.config import TrainSettings
+    from qnav.training.run_folder import RunSettings
     from tests.conftest import policy_network
-    from training.config import TrainSettings
-    from training.run_folder import RunSettings
 
     run = root / "walls-inertia" / "recurrent-seed0"
     run.mkdir(parents=True)

@@ -20,15 +20,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from contracts import wire
-from contracts.motion import move_obstacles
-from controller.decision import Controller, Input
-from controller.policy import PolicyRuntime
+from qnav.contracts import wire
+from qnav.contracts.motion import move_obstacles
+from qnav.controller.decision import Controller, Input
+from qnav.controller.policy import PolicyRuntime
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import EvalResult, EvalSettings, StreamPolicyAgent, evaluate
+from qnav.sim.world import observe, reset
+from qnav.simcar.car import EpisodeLog, decision_of, note_decision, scan_message, write_log
 from qnav.stack import episode_health
-from sim.config import scenario
-from sim.evaluate import EvalResult, EvalSettings, StreamPolicyAgent, evaluate
-from sim.world import observe, reset
-from simcar.car import EpisodeLog, decision_of, note_decision, scan_message, write_log
 
 # A small recurrent policy (LSTM 64) that reaches every target of walls-increment in about 20
 # steps: `qnav train --scenario walls-increment --episodes 128 --seed 1 --train-set
@@ -209,13 +209,13 @@ def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None
     # A command held for one period moves the lockstep car by the increment itself, whatever
     # the action before (a lag of its own made each change of action fall 5-10 % short, and a
     # walls-increment episode flip-flop left and right to 500 steps).
-    from contracts.motion import (
+    from qnav.contracts.motion import (
         IncrementDynamics,
         action_velocities,
         step_increment,
         step_velocity_lag,
     )
-    from simcar.car import SimCarSettings, vehicle_dynamics
+    from qnav.simcar.car import SimCarSettings, vehicle_dynamics
 
     world = scenario("walls-increment")
     assert isinstance(world.dynamics, IncrementDynamics)

@@ -21,14 +21,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from contracts import delivery, wire
-from contracts.policy_file import PolicyContract
-from controller.config import load_config
-from controller.decision import Controller, Input
-from controller.onnx_file import float_weights, read_onnx
-from controller.playback import recorded_statuses
-from controller.policy import PolicyRuntime
-from controller.recording import RecordedMessage, read_recordings
+from qnav.contracts import delivery, wire
+from qnav.contracts.policy_file import PolicyContract
+from qnav.controller.config import load_config
+from qnav.controller.decision import Controller, Input
+from qnav.controller.onnx_file import float_weights, read_onnx
+from qnav.controller.playback import recorded_statuses
+from qnav.controller.policy import PolicyRuntime
+from qnav.controller.recording import RecordedMessage, read_recordings
 from qnav.stack import StackFiles, StackServe, run_stack
 from tests.controller.test_daemon import Listener
 
@@ -50,7 +50,7 @@ def shifted_policy(source: Path, output: Path) -> Path:
     amount, so it drives as the first one does and its episodes stay as short."""
     import torch
 
-    from training.export import export_onnx, network_from_weights
+    from qnav.training.export import export_onnx, network_from_weights
 
     contents = read_onnx(source)
     contract = PolicyContract.from_metadata(contents.metadata, str(source))

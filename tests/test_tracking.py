@@ -6,19 +6,19 @@ import sys
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.actions import NUM_ACTIONS
-from contracts.lookahead import shielded_actions
-from controller.lookahead import LookaheadSettings
-from controller.perception import TrackerSettings
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.lookahead import shielded_actions
+from qnav.controller.lookahead import LookaheadSettings
+from qnav.controller.perception import TrackerSettings
+from qnav.sim.config import SCENARIOS
+from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, evaluate, go_to_target
+from qnav.sim.world import Observation
 from qnav.tracking import (
     LookaheadAgent,
     TrackerCheckSettings,
     measure_tracker,
     run_perceiving_oracle,
 )
-from sim.config import SCENARIOS
-from sim.evaluate import EvalSettings, GoToTargetAgent, evaluate, go_to_target
-from sim.world import Observation
 
 INERTIA = SCENARIOS["obstacles-inertia"]
 

@@ -6,12 +6,12 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from contracts.actions import NUM_ACTIONS
-from contracts.observation import FrameWindow, distance_scale_m, encode_frame
-from sim.config import WorldConfig
-from sim.evaluate import ExplorationHold
-from sim.world import Observation
-from training.networks import QNetwork
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import ExplorationHold
+from qnav.sim.world import Observation
+from qnav.training.networks import QNetwork
 
 
 def observation_frames(observation: Observation, max_range_m: float) -> NDArray[np.float32]:

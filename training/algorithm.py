@@ -16,9 +16,9 @@ from numpy.typing import NDArray
 from torch import Tensor
 from torch.nn import functional
 
-from training.config import TrainSettings
-from training.networks import QNetwork
-from training.replay import Batch
+from qnav.training.config import TrainSettings
+from qnav.training.networks import QNetwork
+from qnav.training.replay import Batch
 
 
 class DoubleDQN:

@@ -16,10 +16,10 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from sim.config import scenario
-from training.algorithm import td_update
-from training.networks import QNetwork
-from training.replay import Batch
+from qnav.sim.config import scenario
+from qnav.training.algorithm import td_update
+from qnav.training.networks import QNetwork
+from qnav.training.replay import Batch
 
 
 def matmul_gflops(size: int = 2048, repeats: int = 20, dtype: torch.dtype = torch.float32) -> float:

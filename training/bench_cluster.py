@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from training.cluster import ClusterSettings, RayEngine, import_ray
-from training.study import RunSpec, StudySettings, run_study
+from qnav.training.cluster import ClusterSettings, RayEngine, import_ray
+from qnav.training.study import RunSpec, StudySettings, run_study
 
 BENCH_SPECS = [RunSpec("walls-inertia", "recurrent", seed) for seed in range(4)]
 """The fixed study: four runs, one torch thread each."""
@@ -41,7 +41,7 @@ BENCH_SETTINGS = (
 def warm_worker() -> int:
     """Import the training code in a Ray worker (held 1 s, so that each of a batch of these
     lands on a worker of its own); returns the worker's pid."""
-    import training.run  # noqa: F401
+    import qnav.training.run  # noqa: F401
 
     time.sleep(1.0)
     return os.getpid()
@@ -135,7 +135,7 @@ def format_report(report: dict[str, Any]) -> str:
 def bench(args: argparse.Namespace) -> int:
     """`qnav bench cluster`."""
     if args.repeats < 1:
-        from contracts.errors import ConfigError
+        from qnav.contracts.errors import ConfigError
 
         raise ConfigError(f"--repeats = {args.repeats}: give at least 1")
     report = run(args.repeats)

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from contracts.errors import ConfigError
-from training.study import Outcome, RunSpec, StudySettings, execute
+from qnav.contracts.errors import ConfigError
+from qnav.training.study import Outcome, RunSpec, StudySettings, execute
 
 RAY_MISSING = (
     "--engine ray needs Ray, an optional extra: pip install '.[cluster]' "

@@ -7,11 +7,11 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.motion import Outcome
-from sim.config import WorldConfig
-from sim.evaluate import Agent
-from sim.world import WorldState, observe, reset, step
-from training.episode_log import Episode
+from qnav.contracts.motion import Outcome
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import Agent
+from qnav.sim.world import WorldState, observe, reset, step
+from qnav.training.episode_log import Episode
 
 
 def collect_round(

@@ -5,10 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Literal
 
-from contracts.errors import ConfigError
-from contracts.observation import WINDOW_LENGTH
-from contracts.settings import check_range
-from sim.config import WorldConfig
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.observation import WINDOW_LENGTH
+from qnav.contracts.settings import check_range
+from qnav.sim.config import WorldConfig
 
 ModelKind = Literal["recurrent", "feedforward"]
 """The Q-network's kind: the paper's LSTM over the window, or feedforward on the last frame."""

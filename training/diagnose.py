@@ -27,29 +27,29 @@ import torch
 from numpy.typing import NDArray
 from torch.nn import functional
 
-from contracts.actions import NUM_ACTIONS, Action
-from contracts.observation import distance_scale_m, encode_frame, encode_scan
-from contracts.policy_file import CONV_CHANNELS
-from sim.config import WorldConfig
-from sim.decisive import (
+from qnav.contracts.actions import NUM_ACTIONS, Action
+from qnav.contracts.observation import distance_scale_m, encode_frame, encode_scan
+from qnav.contracts.policy_file import CONV_CHANNELS
+from qnav.sim.config import WorldConfig
+from qnav.sim.decisive import (
     DecisiveStates,
     constant_choice,
     go_to_target_choices,
     random_expectation,
     score,
 )
-from sim.evaluate import EvalSettings, evaluate
-from sim.world import Observation, observe, reset
-from training.agent import TorchAgent, greedy_actions, policy_agent
-from training.algorithm import bootstrap_windows, double_dqn_target
-from training.collect import collect_round
-from training.episode_log import read_rounds
-from training.networks import QNetwork, channel_activity
-from training.policy import load_network
-from training.replay import Batch, EpisodeReplay
-from training.run_folder import RunSettings
-from training.sampling import sample
-from training.validation import decisive_states
+from qnav.sim.evaluate import EvalSettings, evaluate
+from qnav.sim.world import Observation, observe, reset
+from qnav.training.agent import TorchAgent, greedy_actions, policy_agent
+from qnav.training.algorithm import bootstrap_windows, double_dqn_target
+from qnav.training.collect import collect_round
+from qnav.training.episode_log import read_rounds
+from qnav.training.networks import QNetwork, channel_activity
+from qnav.training.policy import load_network
+from qnav.training.replay import Batch, EpisodeReplay
+from qnav.training.run_folder import RunSettings
+from qnav.training.sampling import sample
+from qnav.training.validation import decisive_states
 
 _FRESH_LAYOUT_SEED = 777_777
 """Layouts of the fresh episodes (neither training, validation nor test use it)."""

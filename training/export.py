@@ -32,10 +32,10 @@ import onnx
 import torch
 from numpy.typing import NDArray
 
-from contracts.errors import PolicyFileError
-from contracts.motion import action_velocities
-from contracts.observation import distance_scale_m
-from contracts.policy_file import (
+from qnav.contracts.errors import PolicyFileError
+from qnav.contracts.motion import action_velocities
+from qnav.contracts.observation import distance_scale_m
+from qnav.contracts.policy_file import (
     FRAME_INPUT,
     METADATA_PREFIX,
     OUTPUT_NAME,
@@ -46,10 +46,10 @@ from contracts.policy_file import (
     ActionVelocity,
     PolicyContract,
 )
-from sim.config import WorldConfig
-from sim.evaluate import EvalResult, StreamPolicy
-from training.networks import QNetwork, StreamingQNetwork
-from training.quantize import quantize_int8
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, StreamPolicy
+from qnav.training.networks import QNetwork, StreamingQNetwork
+from qnav.training.quantize import quantize_int8
 
 REEXPORT_KEY = METADATA_PREFIX + "reexported_from"
 """Metadata entry (not part of the contract) that `reexport_file` leaves: what the weights were
@@ -204,7 +204,7 @@ def write_metadata(model: onnx.ModelProto, contract: PolicyContract) -> None:
 
 def set_evaluation(path: Path, evaluation: dict[str, float]) -> PolicyContract:
     """Record test-protocol results in the file's metadata (the weights stay as they are)."""
-    from controller.onnx_file import read_onnx
+    from qnav.controller.onnx_file import read_onnx
 
     contract = PolicyContract.from_metadata(read_onnx(path).metadata, str(path))
     contract = replace(contract, evaluation=evaluation)
@@ -240,8 +240,8 @@ def export_run(
 ) -> PolicyContract:
     """Export a training run's network to `output` (weights in `weight_type`), then test the
     file itself and record it."""
-    from training.policy import load_network
-    from training.run_folder import source_commit
+    from qnav.training.policy import load_network
+    from qnav.training.run_folder import source_commit
 
     network, run = load_network(run_dir)
     results_path = run_dir / "results.json"
@@ -303,8 +303,8 @@ def evaluate_file(
     """Run the test protocol on the policy file itself (through the onboard runtime) in
     `world` and record the results in its metadata; with a `reference` policy file, also the
     share of the file's decisions that the reference takes too (`agreement_with_float32`)."""
-    from controller.policy import PolicyRuntime
-    from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+    from qnav.controller.policy import PolicyRuntime
+    from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 
     settings = EvalSettings(episodes=episodes)
     worlds = min(settings.num_worlds, episodes)
@@ -371,8 +371,8 @@ def reexport_file(
     `eval_episodes` > 0 the new file is evaluated under the test protocol in its scenario's
     default world and the results replace the old ones.
     """
-    from controller.onnx_file import float_weights, read_onnx
-    from sim.config import scenario
+    from qnav.controller.onnx_file import float_weights, read_onnx
+    from qnav.sim.config import scenario
 
     contents = read_onnx(source)
     metadata = dict(contents.metadata)

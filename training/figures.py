@@ -11,13 +11,13 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from contracts.actions import Action
-from contracts.motion import Outcome
-from contracts.observation import distance_scale_m
-from sim.config import WorldConfig
-from sim.world import observe, reset, step
-from training.agent import observation_frames, policy_agent
-from training.networks import QNetwork
+from qnav.contracts.actions import Action
+from qnav.contracts.motion import Outcome
+from qnav.contracts.observation import distance_scale_m
+from qnav.sim.config import WorldConfig
+from qnav.sim.world import observe, reset, step
+from qnav.training.agent import observation_frames, policy_agent
+from qnav.training.networks import QNetwork
 
 _ARROWS = {
     Action.FORWARD: ("^", "tab:blue", "forward"),
@@ -158,7 +158,7 @@ def ring_of_starts(
 
 def write_figures(run_dir: Path, out_dir: Path) -> list[Path]:
     """The action maps (earliest snapshot and final network) and trajectories of a run."""
-    from training.policy import load_network
+    from qnav.training.policy import load_network
 
     network, run = load_network(run_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

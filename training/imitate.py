@@ -31,19 +31,19 @@ from torch import nn
 from torch.nn import functional
 from tqdm import tqdm
 
-from contracts.motion import Outcome
-from contracts.observation import TARGET_FEATURES
-from contracts.settings import check_range
-from sim.config import WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
-from sim.oracle import OracleDriver
-from training.agent import policy_agent
-from training.algorithm import cpu_has_bf16
-from training.collect import collect_round
-from training.config import ModelKind
-from training.episode_log import Episode
-from training.networks import QNetwork
-from training.replay import EpisodeReplay
+from qnav.contracts.motion import Outcome
+from qnav.contracts.observation import TARGET_FEATURES
+from qnav.contracts.settings import check_range
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
+from qnav.sim.oracle import OracleDriver
+from qnav.training.agent import policy_agent
+from qnav.training.algorithm import cpu_has_bf16
+from qnav.training.collect import collect_round
+from qnav.training.config import ModelKind
+from qnav.training.episode_log import Episode
+from qnav.training.networks import QNetwork
+from qnav.training.replay import EpisodeReplay
 
 DEMONSTRATION_LAYOUT_SEED = 555_555
 """Layouts of the demonstrations: neither the training runs', the validation's nor the test's."""

@@ -17,10 +17,10 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional
 
-from contracts.actions import NUM_ACTIONS
-from contracts.observation import TARGET_FEATURES
-from contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
-from training.config import ModelKind
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.observation import TARGET_FEATURES
+from qnav.contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
+from qnav.training.config import ModelKind
 
 
 def conv_output_length(num_beams: int) -> int:

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import torch
 
-from contracts.errors import ConfigError
-from sim.config import WorldConfig
-from training.config import TrainSettings
-from training.networks import QNetwork
-from training.run_folder import RunSettings, read_settings
+from qnav.contracts.errors import ConfigError
+from qnav.sim.config import WorldConfig
+from qnav.training.config import TrainSettings
+from qnav.training.networks import QNetwork
+from qnav.training.run_folder import RunSettings, read_settings
 
 
 def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:

@@ -25,14 +25,14 @@ from numpy.typing import NDArray
 from torch import nn
 from tqdm import tqdm
 
-from contracts.actions import NUM_ACTIONS
-from contracts.motion import Outcome
-from contracts.observation import TARGET_FEATURES
-from sim.config import WorldConfig
-from sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
-from sim.oracle import OracleDriver
-from sim.world import Observation, WorldState
-from training.imitate import (
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.motion import Outcome
+from qnav.contracts.observation import TARGET_FEATURES
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
+from qnav.sim.oracle import OracleDriver
+from qnav.sim.world import Observation, WorldState
+from qnav.training.imitate import (
     AGREEMENT_PROBE,
     DEMONSTRATION_LAYOUT_SEED,
     ImitationResult,

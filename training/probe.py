@@ -22,18 +22,18 @@ import torch
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from contracts.actions import NUM_ACTIONS
-from contracts.errors import ConfigError
-from contracts.observation import TARGET_FEATURES, FrameWindow, distance_scale_m, encode_frame
-from contracts.policy_file import CONV_CHANNELS
-from contracts.settings import check_range
-from sim.config import WorldConfig
-from sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
-from sim.evaluate import WanderingGoToTarget
-from sim.oracle import PERCEIVED
-from sim.world import BatchedWorld, WorldState, observe
-from training.agent import greedy_actions
-from training.networks import QNetwork, conv_layers, conv_output_length, lstm_last_output
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.observation import TARGET_FEATURES, FrameWindow, distance_scale_m, encode_frame
+from qnav.contracts.policy_file import CONV_CHANNELS
+from qnav.contracts.settings import check_range
+from qnav.sim.config import WorldConfig
+from qnav.sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
+from qnav.sim.evaluate import WanderingGoToTarget
+from qnav.sim.oracle import PERCEIVED
+from qnav.sim.world import BatchedWorld, WorldState, observe
+from qnav.training.agent import greedy_actions
+from qnav.training.networks import QNetwork, conv_layers, conv_output_length, lstm_last_output
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from pathlib import Path
 import onnx
 from onnx import numpy_helper
 
-from contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
+from qnav.contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
 
 INT8_PARAMETERS = ("lstm.weight_ih_l0", "lstm.weight_hh_l0", "head.0.weight")
 """The training parameters stored in int8: every large product but the output layer."""

@@ -18,12 +18,12 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.motion import Outcome, outcome
-from contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
-from sim.config import WorldConfig
-from sim.geometry import cast_lidar, clearance
-from sim.task import reward
-from training.episode_log import Episode
+from qnav.contracts.motion import Outcome, outcome
+from qnav.contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
+from qnav.sim.config import WorldConfig
+from qnav.sim.geometry import cast_lidar, clearance
+from qnav.sim.task import reward
+from qnav.training.episode_log import Episode
 
 
 class Batch(NamedTuple):

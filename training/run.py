@@ -25,21 +25,21 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from contracts.errors import ConfigError
-from contracts.motion import Outcome
-from sim.config import WorldConfig
-from sim.evaluate import EvalSettings
-from training.agent import policy_agent
-from training.algorithm import DoubleDQN
-from training.collect import collect_round
-from training.config import TrainSettings
-from training.episode_log import Episode
-from training.networks import QNetwork
-from training.policy import make_network
-from training.replay import EpisodeReplay
-from training.run_folder import Progress, RunFolder, RunSettings, source_commit
-from training.sampling import sample
-from training.validation import Validation, evaluate_network
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import Outcome
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalSettings
+from qnav.training.agent import policy_agent
+from qnav.training.algorithm import DoubleDQN
+from qnav.training.collect import collect_round
+from qnav.training.config import TrainSettings
+from qnav.training.episode_log import Episode
+from qnav.training.networks import QNetwork
+from qnav.training.policy import make_network
+from qnav.training.replay import EpisodeReplay
+from qnav.training.run_folder import Progress, RunFolder, RunSettings, source_commit
+from qnav.training.sampling import sample
+from qnav.training.validation import Validation, evaluate_network
 
 REACHED_LEVELS = (0.5, 0.9, 0.99)
 """Validation success levels whose first crossing results.json records."""

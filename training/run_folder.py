@@ -26,12 +26,12 @@ from typing import Any
 
 import torch
 
-from contracts.errors import ConfigError
-from contracts.settings import from_dict, to_dict, to_toml
-from sim.config import WorldConfig
-from training.config import TrainSettings
-from training.episode_log import Episode, read_rounds, write_round
-from training.networks import QNetwork
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import from_dict, to_dict, to_toml
+from qnav.sim.config import WorldConfig
+from qnav.training.config import TrainSettings
+from qnav.training.episode_log import Episode, read_rounds, write_round
+from qnav.training.networks import QNetwork
 
 LAST_COMMIT_WITH_EXPERIMENTS = "b8dfe92"
 """The last commit with the learner experiments that changed nothing (`REMOVED_SETTINGS`)."""
@@ -175,7 +175,7 @@ class RunFolder:
             writer.writerows(history)
         partial.replace(self.path / "progress.csv")
         if "eval_success" in history[-1]:  # the picture changes only with a new evaluation
-            from training.plots import plot_training
+            from qnav.training.plots import plot_training
 
             plot_training(history, self.path / "success.png", title)
 

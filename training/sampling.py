@@ -20,12 +20,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from contracts.motion import move_obstacles
-from sim.config import WorldConfig
-from sim.geometry import add_circles_to_scan
-from sim.world import obstacle_speeds, targets_around
-from training.config import Relabel
-from training.replay import Batch, EpisodeReplay
+from qnav.contracts.motion import move_obstacles
+from qnav.sim.config import WorldConfig
+from qnav.sim.geometry import add_circles_to_scan
+from qnav.sim.world import obstacle_speeds, targets_around
+from qnav.training.config import Relabel
+from qnav.training.replay import Batch, EpisodeReplay
 
 _LOCAL_CANDIDATES = 64
 """Candidates per local target (as in the simulator's spawn)."""

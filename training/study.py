@@ -29,9 +29,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from contracts.errors import ConfigError
-from contracts.settings import parse_assignments, with_overrides
-from sim import paper
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import parse_assignments, with_overrides
+from qnav.sim import paper
 
 SCENARIOS = ("obstacles-inertia", "walls-inertia", "walls-increment", "obstacles-increment")
 MODELS = ("recurrent", "feedforward")
@@ -187,8 +187,8 @@ overridden by them, silently)."""
 def check_assignments(assignments: tuple[str, ...], option: str) -> None:
     """Refuse, by name, a setting that no run could take (an unknown field, a bad value), before
     any run starts: train.* against the learner's settings, anything else the world's."""
-    from sim.config import load_world
-    from training.config import TrainSettings
+    from qnav.sim.config import load_world
+    from qnav.training.config import TrainSettings
 
     for assignment in assignments:
         key = assignment.partition("=")[0].strip()

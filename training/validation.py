@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from sim.config import WorldConfig
-from sim.decisive import DecisiveStates, GaugeSettings, cached, score
-from sim.evaluate import EvalResult, EvalSettings, evaluate
-from training.agent import greedy_actions, policy_agent
-from training.config import TrainSettings
-from training.networks import QNetwork
+from qnav.sim.config import WorldConfig
+from qnav.sim.decisive import DecisiveStates, GaugeSettings, cached, score
+from qnav.sim.evaluate import EvalResult, EvalSettings, evaluate
+from qnav.training.agent import greedy_actions, policy_agent
+from qnav.training.config import TrainSettings
+from qnav.training.networks import QNetwork
 
 VALIDATION_SEED = 999
 """Layouts of the evaluations during training (the final test uses EvalSettings' own seed)."""

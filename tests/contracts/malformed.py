@@ -23,7 +23,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from contracts import cdr, wire
+from qnav.contracts import cdr, wire
 
 KINDS = ("scan", "pose", "bool", "twist", "json")
 """The message kinds on the daemons' subscribed keys."""

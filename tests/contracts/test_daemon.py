@@ -10,7 +10,7 @@ import threading
 
 import pytest
 
-from contracts.daemon import RateLimitedLog, Service, free_port, stop_on_signals
+from qnav.contracts.daemon import RateLimitedLog, Service, free_port, stop_on_signals
 
 
 def test_malformed_input_warnings_are_logged_at_a_bounded_rate(

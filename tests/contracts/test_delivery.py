@@ -9,10 +9,10 @@ from typing import Any
 
 import pytest
 
-from contracts import delivery, wire
-from contracts.errors import ConfigError
-from contracts.policy_file import ActionVelocity, PolicyContract
-from controller.onnx_file import read_onnx
+from qnav.contracts import delivery, wire
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.policy_file import ActionVelocity, PolicyContract
+from qnav.controller.onnx_file import read_onnx
 from tests.conftest import PolicyFactory
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from contracts.health import HEALTH_FILE_ENV, Heartbeat, check_health, health_path
+from qnav.contracts.health import HEALTH_FILE_ENV, Heartbeat, check_health, health_path
 
 
 def test_a_fresh_beat_is_healthy_and_shows_its_daemon_and_detail(tmp_path: Path) -> None:

@@ -8,10 +8,10 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from contracts import wire
-from firmware_bridge import mapping
-from firmware_bridge.core import parse_request
-from firmware_bridge.settings import FailsafeSettings, OutputSettings
+from qnav.contracts import wire
+from qnav.firmware_bridge import mapping
+from qnav.firmware_bridge.core import parse_request
+from qnav.firmware_bridge.settings import FailsafeSettings, OutputSettings
 from tests.contracts.malformed import CANONICAL_BOOLS, MESSAGES, malformed, well_formed
 
 

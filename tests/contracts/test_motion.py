@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from contracts.actions import Action
-from contracts.motion import (
+from qnav.contracts.actions import Action
+from qnav.contracts.motion import (
     IncrementDynamics,
     InertiaDynamics,
     move_obstacles,

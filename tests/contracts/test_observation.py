@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from contracts.observation import (
+from qnav.contracts.observation import (
     FrameWindow,
     LidarSpec,
     encode_scan,

@@ -3,11 +3,11 @@ from pathlib import Path
 
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.motion import IncrementDynamics, InertiaDynamics
-from contracts.observation import LidarSpec
-from contracts.settings import field_docs, parse_assignments, to_toml, with_overrides
-from sim.config import (
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import IncrementDynamics, InertiaDynamics
+from qnav.contracts.observation import LidarSpec
+from qnav.contracts.settings import field_docs, parse_assignments, to_toml, with_overrides
+from qnav.sim.config import (
     SCENARIOS,
     ArenaConfig,
     ObstacleConfig,

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.settings import to_markdown
-from contracts.transport import (
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import to_markdown
+from qnav.contracts.transport import (
     ZenohSettings,
     exposed_endpoints,
     is_loopback,
@@ -62,7 +62,7 @@ def _settings(tmp_path: Path, text: str) -> ZenohSettings:
 def test_a_minimal_user_file_listens_nowhere_without_multicast_and_says_so(
     tmp_path: Path, caplog: pytest.LogCaptureFixture, mode: str
 ) -> None:
-    caplog.set_level("INFO", logger="contracts.transport")
+    caplog.set_level("INFO", logger="qnav.contracts.transport")
     config = zenoh_config(_settings(tmp_path, f'{{ mode: "{mode}" }}'))
     assert network_view(config) == ([], False)
     assert "leaves unset what would expose it" in caplog.text
@@ -77,7 +77,7 @@ def test_a_minimal_user_file_listens_nowhere_without_multicast_and_says_so(
 def test_what_the_file_sets_is_kept_and_exposure_is_warned(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level("INFO", logger="contracts.transport")
+    caplog.set_level("INFO", logger="qnav.contracts.transport")
     text = (
         '{ mode: "peer", listen: { endpoints: ["tcp/0.0.0.0:7447", "tcp/127.0.0.1:7448"] },'
         " scouting: { multicast: { enabled: true } } }"

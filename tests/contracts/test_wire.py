@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from contracts import cdr, wire
+from qnav.contracts import cdr, wire
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"

@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from contracts import wire
-from contracts.transport import ZenohSettings, open_session
+from qnav.contracts import wire
+from qnav.contracts.transport import ZenohSettings, open_session
 
 
 def main() -> None:

@@ -61,8 +61,8 @@ def test_bench_policy_times_each_backend_after_the_given_gap_and_prints_json(
 
 
 def test_bench_policy_refuses_a_negative_gap_naming_the_option() -> None:
-    from contracts.errors import ConfigError
-    from controller.bench import run
+    from qnav.contracts.errors import ConfigError
+    from qnav.controller.bench import run
 
     with pytest.raises(ConfigError, match="--gap-ms"):
         run(Path("unused.onnx"), ["numpy"], 10, gap_s=-0.001)

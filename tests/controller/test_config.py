@@ -9,14 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from contracts import wire
-from contracts.errors import ConfigError
-from contracts.settings import field_docs, from_dict, load_toml, to_markdown
-from controller.config import DaemonConfig, load_config
-from controller.daemon import Daemon, Ratekeeper, commented_config
-from controller.decision import Controller, Input
-from controller.policy import PolicyRuntime
 from qnav.cli import main
+from qnav.contracts import wire
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import field_docs, from_dict, load_toml, to_markdown
+from qnav.controller.config import DaemonConfig, load_config
+from qnav.controller.daemon import Daemon, Ratekeeper, commented_config
+from qnav.controller.decision import Controller, Input
+from qnav.controller.policy import PolicyRuntime
 from tests.conftest import PolicyFactory
 
 ROOT = Path(__file__).resolve().parents[2]

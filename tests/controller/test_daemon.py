@@ -16,14 +16,14 @@ from typing import Any
 
 import pytest
 
-from contracts import wire
-from contracts.daemon import free_port
-from contracts.health import HEALTH_FILE_ENV
-from contracts.policy_file import PolicyContract
-from contracts.settings import to_toml
-from contracts.transport import ZenohSettings, open_session
-from controller.config import ControllerSettings, DaemonConfig, SafetySettings
-from controller.onnx_file import read_onnx
+from qnav.contracts import wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.health import HEALTH_FILE_ENV
+from qnav.contracts.policy_file import PolicyContract
+from qnav.contracts.settings import to_toml
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.controller.config import ControllerSettings, DaemonConfig, SafetySettings
+from qnav.controller.onnx_file import read_onnx
 from tests.conftest import PolicyFactory
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts import cdr, delivery, wire
-from contracts.errors import PolicyFileError
-from contracts.wire import STOP, Pose2D, Scan, Twist2D
-from controller.config import LidarSettings, SafetySettings
-from controller.decision import Controller, Input, Output, Reason
-from controller.policy import PolicyRuntime
+from qnav.contracts import cdr, delivery, wire
+from qnav.contracts.errors import PolicyFileError
+from qnav.contracts.wire import STOP, Pose2D, Scan, Twist2D
+from qnav.controller.config import LidarSettings, SafetySettings
+from qnav.controller.decision import Controller, Input, Output, Reason
+from qnav.controller.policy import PolicyRuntime
 from tests.conftest import PolicyFactory
 from tests.contracts.malformed import CANONICAL_TRUE
 
@@ -94,8 +94,8 @@ def test_fresh_inputs_let_the_policy_command_its_actions_velocity(policy: Path) 
 
 
 def test_the_policy_sees_what_a_runtime_fed_the_same_observation_sees(policy: Path) -> None:
-    from contracts.observation import target_features
-    from controller.scan import ScanRules, resample_scan
+    from qnav.contracts.observation import target_features
+    from qnav.controller.scan import ScanRules, resample_scan
 
     c = ready(policy)
     q = c.decide(0.05).status.q_values

@@ -20,21 +20,21 @@ from typing import Any
 import numpy as np
 import pytest
 
-from contracts import delivery, wire
-from contracts.daemon import free_port
-from contracts.policy_file import PolicyContract
-from contracts.transport import ZenohSettings, open_session
-from controller.config import (
+from qnav.contracts import delivery, wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.policy_file import PolicyContract
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.controller.config import (
     ControllerSettings,
     DaemonConfig,
     PolicySourceSettings,
     SafetySettings,
 )
-from controller.daemon import Daemon, build
-from controller.decision import Controller, Input
-from controller.onnx_file import read_onnx
-from controller.policy import PolicyRuntime
-from controller.recording import RecorderSettings, read_recordings, record
+from qnav.controller.daemon import Daemon, build
+from qnav.controller.decision import Controller, Input
+from qnav.controller.onnx_file import read_onnx
+from qnav.controller.policy import PolicyRuntime
+from qnav.controller.recording import RecorderSettings, read_recordings, record
 from qnav.serve import ServeSettings
 from qnav.serve import run as run_server
 from tests.conftest import PolicyFactory

@@ -8,19 +8,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts import wire
-from contracts.errors import PolicyFileError
-from contracts.lookahead import collision_shares
-from controller.decision import Controller, Input, Reason
-from controller.lookahead import Lookahead, LookaheadSettings
-from controller.perception import TrackerSettings
-from controller.policy import PolicyRuntime
+from qnav.contracts import wire
+from qnav.contracts.errors import PolicyFileError
+from qnav.contracts.lookahead import collision_shares
+from qnav.controller.decision import Controller, Input, Reason
+from qnav.controller.lookahead import Lookahead, LookaheadSettings
+from qnav.controller.perception import TrackerSettings
+from qnav.controller.policy import PolicyRuntime
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent
+from qnav.sim.oracle import lookahead_model
+from qnav.sim.world import observe, reset, step
+from qnav.simcar.car import scan_message
 from qnav.tracking import world_lookahead
-from sim.config import scenario
-from sim.evaluate import EvalSettings, StreamPolicyAgent
-from sim.oracle import lookahead_model
-from sim.world import observe, reset, step
-from simcar.car import scan_message
 
 DATA = Path(__file__).parents[1] / "data" / "stack"
 OBSTACLES_POLICY = DATA / "obstacles-inertia.onnx"

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts import wire
-from contracts.wire import STOP, Pose2D
-from controller.config import SafetySettings
-from controller.decision import Controller, Input, Reason
-from controller.policy import PolicyRuntime
+from qnav.contracts import wire
+from qnav.contracts.wire import STOP, Pose2D
+from qnav.controller.config import SafetySettings
+from qnav.controller.decision import Controller, Input, Reason
+from qnav.controller.policy import PolicyRuntime
 from tests.conftest import PolicyFactory
 from tests.contracts.malformed import malformed
 from tests.controller.test_decision import pose_payload, scan_payload, target_payload

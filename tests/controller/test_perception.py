@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.observation import LidarSpec
-from controller.perception import (
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.observation import LidarSpec
+from qnav.controller.perception import (
     ObstacleTracker,
     TrackerSettings,
     bounce_mirrors,

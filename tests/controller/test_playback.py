@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts import wire
-from contracts.actions import Action
-from controller.decision import Reason
-from controller.playback import (
+from qnav.cli import main as qnav
+from qnav.contracts import wire
+from qnav.contracts.actions import Action
+from qnav.controller.decision import Reason
+from qnav.controller.playback import (
     Row,
     agreement_with_recorded,
     differences,
@@ -28,9 +29,8 @@ from controller.playback import (
     read_rows,
     recorded_statuses,
 )
-from controller.policy import PolicyRuntime
-from controller.recording import RecordedMessage, read_recording
-from qnav.cli import main as qnav
+from qnav.controller.policy import PolicyRuntime
+from qnav.controller.recording import RecordedMessage, read_recording
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "playback"
 POLICY = DATA / "policy.onnx"

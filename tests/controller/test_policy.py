@@ -10,9 +10,9 @@ import numpy as np
 import onnx
 import pytest
 
-from contracts.errors import PolicyFileError, PolicyInputError
-from contracts.observation import FrameWindow
-from controller.policy import BACKENDS, Expectation, PolicyRuntime
+from qnav.contracts.errors import PolicyFileError, PolicyInputError
+from qnav.contracts.observation import FrameWindow
+from qnav.controller.policy import BACKENDS, Expectation, PolicyRuntime
 from tests.conftest import PolicyFactory, policy_network, with_metadata
 from tests.near_ties import assert_actions_match_but_near_ties
 

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from contracts import wire
-from contracts.daemon import free_port
-from contracts.health import HEALTH_FILE_ENV, check_health
-from contracts.transport import ZenohSettings, open_session
-from controller.recording import McapWriter, Rotation, play, read_recording, read_recordings
+from qnav.contracts import wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.health import HEALTH_FILE_ENV, check_health
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.controller.recording import McapWriter, Rotation, play, read_recording, read_recordings
 
 
 def _scan(i: int) -> bytes:

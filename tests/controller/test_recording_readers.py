@@ -13,8 +13,8 @@ from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader as Rosbag2Reader
 
-from contracts import wire
-from controller.recording import (
+from qnav.contracts import wire
+from qnav.controller.recording import (
     McapWriter,
     is_complete,
     read_recording,

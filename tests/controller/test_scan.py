@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from contracts.wire import Scan
-from controller.scan import ScanRules, beam_index, resample_scan
+from qnav.contracts.wire import Scan
+from qnav.controller.scan import ScanRules, beam_index, resample_scan
 
 TWO_PI = 2 * math.pi
 POLICY_BEAMS = 720

@@ -2,8 +2,8 @@
 
 from pathlib import Path
 
-from contracts.settings import to_markdown
-from controller.config import DaemonConfig
+from qnav.contracts.settings import to_markdown
+from qnav.controller.config import DaemonConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 

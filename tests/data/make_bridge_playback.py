@@ -50,12 +50,12 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from contracts.daemon import free_port  # noqa: E402
-from contracts.wire import COMMAND, POSE, Pose2D, Twist2D, encode_pose_msg, encode_twist_msg  # noqa: E402
-from contracts.wire import key as wire_key  # noqa: E402
-from firmware_bridge import playback  # noqa: E402
-from firmware_bridge.daemon import Bridge  # noqa: E402
-from simcar.mavlink_vehicle import MavlinkVehicle  # noqa: E402
+from qnav.contracts.daemon import free_port  # noqa: E402
+from qnav.contracts.wire import COMMAND, POSE, Pose2D, Twist2D, encode_pose_msg, encode_twist_msg  # noqa: E402
+from qnav.contracts.wire import key as wire_key  # noqa: E402
+from qnav.firmware_bridge import playback  # noqa: E402
+from qnav.firmware_bridge.daemon import Bridge  # noqa: E402
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle  # noqa: E402
 from tests.firmware_bridge import rig as wiring  # noqa: E402
 from tests.firmware_bridge.rig import wait_until  # noqa: E402
 
@@ -228,7 +228,7 @@ def write_references() -> None:
 
 
 def main() -> None:
-    logging.getLogger("firmware_bridge").setLevel(logging.ERROR)  # the faults are on purpose
+    logging.getLogger("qnav.firmware_bridge").setLevel(logging.ERROR)  # the faults are on purpose
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--refs", action="store_true", help="only regenerate the references")
     args = parser.parse_args()

@@ -55,15 +55,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from contracts import wire  # noqa: E402
-from controller.playback import (  # noqa: E402
+from qnav.contracts import wire  # noqa: E402
+from qnav.controller.playback import (  # noqa: E402
     differences,
     play_into_controller,
     read_rows,
     write_rows,
 )
-from controller.policy import PolicyRuntime  # noqa: E402
-from controller.recording import McapWriter, RecordedMessage, read_recording  # noqa: E402
+from qnav.controller.policy import PolicyRuntime  # noqa: E402
+from qnav.controller.recording import McapWriter, RecordedMessage, read_recording  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "playback"
 POLICY = DATA / "policy.onnx"

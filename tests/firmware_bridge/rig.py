@@ -15,10 +15,10 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from contracts.daemon import free_port
-from contracts.settings import with_overrides
-from contracts.transport import ZenohSettings, open_session
-from contracts.wire import (
+from qnav.contracts.daemon import free_port
+from qnav.contracts.settings import with_overrides
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.contracts.wire import (
     COMMAND,
     POSE,
     VEHICLE_REQUEST,
@@ -31,9 +31,9 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.daemon import Bridge
-from firmware_bridge.settings import BridgeSettings
-from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from qnav.firmware_bridge.daemon import Bridge
+from qnav.firmware_bridge.settings import BridgeSettings
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 T = TypeVar("T")
 

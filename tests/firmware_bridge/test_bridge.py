@@ -12,10 +12,10 @@ from typing import Any
 
 import pytest
 
-from contracts.daemon import free_port
-from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
-from contracts.settings import with_overrides
-from contracts.wire import (
+from qnav.contracts.daemon import free_port
+from qnav.contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE
+from qnav.contracts.settings import with_overrides
+from qnav.contracts.wire import (
     COMMAND,
     POSE,
     VEHICLE_REQUEST,
@@ -25,10 +25,10 @@ from contracts.wire import (
     encode_twist_msg,
     key,
 )
-from firmware_bridge.daemon import Bridge
-from firmware_bridge.mapping import vision_pose
-from firmware_bridge.settings import BridgeSettings
-from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from qnav.firmware_bridge.daemon import Bridge
+from qnav.firmware_bridge.mapping import vision_pose
+from qnav.firmware_bridge.settings import BridgeSettings
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 from tests.firmware_bridge.rig import (
     Rig,
     bridge_settings,

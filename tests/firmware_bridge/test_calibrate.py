@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import pytest
 
-from firmware_bridge.calibrate import (
+from qnav.firmware_bridge.calibrate import (
     CalibrationAbortedError,
     Calibrator,
     Pattern,

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from contracts.health import HEALTH_FILE_ENV
-from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
-from contracts.settings import to_toml
+from qnav.contracts.health import HEALTH_FILE_ENV
+from qnav.contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
+from qnav.contracts.settings import to_toml
 from tests.firmware_bridge.rig import bridge_settings, start_rig, wait_until
 
 

@@ -6,11 +6,11 @@ import ast
 from pathlib import Path
 from typing import Any
 
-from contracts.mavlink import MAV_MODE_FLAG_SAFETY_ARMED, mavutil
-from contracts.wire import STOP, Twist2D, encode_twist_msg
-from firmware_bridge import mapping
-from firmware_bridge.core import BridgeCore, Send
-from firmware_bridge.settings import BridgeSettings
+from qnav.contracts.mavlink import MAV_MODE_FLAG_SAFETY_ARMED, mavutil
+from qnav.contracts.wire import STOP, Twist2D, encode_twist_msg
+from qnav.firmware_bridge import mapping
+from qnav.firmware_bridge.core import BridgeCore, Send
+from qnav.firmware_bridge.settings import BridgeSettings
 
 CORE = Path(__file__).resolve().parents[2] / "firmware_bridge" / "core.py"
 
@@ -39,7 +39,14 @@ def test_the_core_imports_no_clock_socket_thread_or_transport() -> None:
             names |= {alias.name for alias in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module:
             names.add(node.module)
-    io = {"time", "socket", "threading", "zenoh", "contracts.transport", "firmware_bridge.link"}
+    io = {
+        "time",
+        "socket",
+        "threading",
+        "zenoh",
+        "qnav.contracts.transport",
+        "qnav.firmware_bridge.link",
+    }
     assert not names & io
 
 

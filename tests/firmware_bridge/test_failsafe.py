@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import itertools
 
-from firmware_bridge.failsafe import CommandGate
+from qnav.firmware_bridge.failsafe import CommandGate
 
 TIMEOUT_S, PERIOD_S = 0.5, 0.1
 

@@ -7,9 +7,9 @@ import select
 import time
 from typing import Any
 
-from contracts.mavlink import mavutil
-from firmware_bridge.link import MavlinkLink
-from firmware_bridge.settings import MavlinkSettings
+from qnav.contracts.mavlink import mavutil
+from qnav.firmware_bridge.link import MavlinkLink
+from qnav.firmware_bridge.settings import MavlinkSettings
 
 
 def test_serial_device_with_baud_rate_carries_mavlink_both_ways() -> None:

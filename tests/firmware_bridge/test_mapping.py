@@ -6,10 +6,10 @@ import math
 
 import pytest
 
-from contracts.mavlink import enu_to_ned, ned_to_enu
-from contracts.wire import STOP, Pose2D, Twist2D
-from firmware_bridge import mapping
-from firmware_bridge.settings import OutputSettings
+from qnav.contracts.mavlink import enu_to_ned, ned_to_enu
+from qnav.contracts.wire import STOP, Pose2D, Twist2D
+from qnav.firmware_bridge import mapping
+from qnav.firmware_bridge.settings import OutputSettings
 
 OUT = OutputSettings()
 

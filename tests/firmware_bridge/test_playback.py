@@ -19,10 +19,10 @@ from typing import Any
 
 import pytest
 
-from contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, mode_number
-from contracts.wire import STOP, WireError, decode_twist_msg
-from firmware_bridge import mapping
-from firmware_bridge.playback import (
+from qnav.contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, mode_number
+from qnav.contracts.wire import STOP, WireError, decode_twist_msg
+from qnav.firmware_bridge import mapping
+from qnav.firmware_bridge.playback import (
     Row,
     call_inputs,
     call_time,
@@ -32,7 +32,7 @@ from firmware_bridge.playback import (
     read_rows,
     replay,
 )
-from firmware_bridge.settings import BridgeSettings
+from qnav.firmware_bridge.settings import BridgeSettings
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "bridge_playback"
 SCENARIOS = ["drive_silence_exit", "malformed", "estop", "heartbeat_loss", "link_loss", "guided"]

@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.settings import from_dict, to_dict, to_markdown
-from firmware_bridge.settings import BridgeSettings, load_settings
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import from_dict, to_dict, to_markdown
+from qnav.firmware_bridge.settings import BridgeSettings, load_settings
 
 ROOT = Path(__file__).resolve().parents[2]
 

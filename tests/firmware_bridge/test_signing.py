@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.mavlink import load_signing_key
-from contracts.settings import from_dict, with_overrides
-from firmware_bridge.daemon import Bridge
-from firmware_bridge.link import serial0_warning
-from firmware_bridge.settings import BridgeSettings
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.mavlink import load_signing_key
+from qnav.contracts.settings import from_dict, with_overrides
+from qnav.firmware_bridge.daemon import Bridge
+from qnav.firmware_bridge.link import serial0_warning
+from qnav.firmware_bridge.settings import BridgeSettings
 from tests.firmware_bridge.rig import Rig, wait_until
 
 KEY = bytes(range(100, 132))
@@ -120,10 +120,10 @@ def test_a_signing_bridge_on_serial0_warns_loudly(
             "signing": {"enabled": True, "key_file": str(key_file)},
         },
     )
-    with caplog.at_level(logging.WARNING, logger="firmware_bridge"):
+    with caplog.at_level(logging.WARNING, logger="qnav.firmware_bridge"):
         Bridge(settings)
     assert any("SIGNING PROTECTS NOTHING" in r.getMessage() for r in caplog.records)
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="firmware_bridge"):
+    with caplog.at_level(logging.WARNING, logger="qnav.firmware_bridge"):
         Bridge(with_overrides(settings, {"mavlink": {"connection": "tcp:127.0.0.1:5762"}}))
     assert not any("SIGNING" in r.getMessage() for r in caplog.records)

@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from contracts import delivery, wire
-from contracts.daemon import free_port
-from contracts.transport import ZenohSettings, open_session
-from simcar.mavlink_vehicle import MavlinkVehicle
+from qnav.contracts import delivery, wire
+from qnav.contracts.daemon import free_port
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle
 from tests.contracts.malformed import enables_motion, payloads
 from tests.firmware_bridge.rig import vehicle_settings, wait_until
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sim.config import WorldConfig
-from sim.geometry import wall_segments
+from qnav.sim.config import WorldConfig
+from qnav.sim.geometry import wall_segments
 
 
 def reference_scan(

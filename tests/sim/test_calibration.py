@@ -4,9 +4,9 @@ import math
 
 import pytest
 
-from sim.config import scenario
-from sim.evaluate import EvalSettings, RandomAgent, evaluate
-from sim.paper import RANDOM
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import EvalSettings, RandomAgent, evaluate
+from qnav.sim.paper import RANDOM
 
 EPISODES = 1000
 TOLERANCE = 0.05

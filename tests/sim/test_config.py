@@ -1,7 +1,7 @@
 import pytest
 
-from contracts.errors import ConfigError
-from sim.config import load_world
+from qnav.contracts.errors import ConfigError
+from qnav.sim.config import load_world
 
 
 @pytest.mark.parametrize(

@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contracts.actions import NUM_ACTIONS
-from sim.config import scenario
-from sim.decisive import (
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.sim.config import scenario
+from qnav.sim.decisive import (
     DRIVERS,
     DecisiveStates,
     GaugeSettings,
@@ -20,8 +20,8 @@ from sim.decisive import (
     random_expectation,
     score,
 )
-from sim.oracle import StateError, doomed_actions
-from sim.world import reset
+from qnav.sim.oracle import StateError, doomed_actions
+from qnav.sim.world import reset
 from tests.test_cli import _qnav
 
 SMALL = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6, seed=3)

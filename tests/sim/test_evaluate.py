@@ -3,10 +3,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from contracts.actions import Action
-from contracts.motion import Outcome
-from sim.config import scenario
-from sim.evaluate import (
+from qnav.contracts.actions import Action
+from qnav.contracts.motion import Outcome
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import (
     EvalResult,
     EvalSettings,
     GoToTargetAgent,
@@ -15,7 +15,7 @@ from sim.evaluate import (
     evaluate,
     go_to_target,
 )
-from sim.world import WorldState
+from qnav.sim.world import WorldState
 
 
 def test_results_do_not_depend_on_the_batch_size() -> None:
@@ -37,7 +37,7 @@ def test_fractions_cover_every_episode() -> None:
 
 @pytest.mark.parametrize("name", ["walls-inertia", "walls-increment"])
 def test_turning_to_the_target_and_driving_always_succeeds_without_obstacles(name: str) -> None:
-    from sim.evaluate import GoToTargetAgent
+    from qnav.sim.evaluate import GoToTargetAgent
 
     result = evaluate(scenario(name), GoToTargetAgent(), EvalSettings(episodes=100))
     assert result.success == 1.0

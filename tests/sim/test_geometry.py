@@ -3,10 +3,10 @@ import math
 import numpy as np
 import pytest
 
-from contracts.observation import LidarSpec
-from sim.config import WorldConfig, scenario
-from sim.geometry import cast_lidar, clearance
-from sim.world import reset
+from qnav.contracts.observation import LidarSpec
+from qnav.sim.config import WorldConfig, scenario
+from qnav.sim.geometry import cast_lidar, clearance
+from qnav.sim.world import reset
 from tests.sim.reference_lidar import reference_scan
 
 

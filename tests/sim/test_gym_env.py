@@ -12,11 +12,11 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
-from contracts.actions import Action
-from contracts.errors import ConfigError
-from contracts.observation import FrameWindow, distance_scale_m, encode_frame
-from sim.config import SCENARIOS, scenario
-from sim.gym_env import (
+from qnav.contracts.actions import Action
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from qnav.sim.config import SCENARIOS, scenario
+from qnav.sim.gym_env import (
     EncodedWindow,
     EncodedWindowVector,
     NavEnv,
@@ -24,7 +24,7 @@ from sim.gym_env import (
     env_id,
     frame_size,
 )
-from sim.world import BatchedWorld
+from qnav.sim.world import BatchedWorld
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -49,7 +49,7 @@ def test_gymnasium_checker_renders_every_declared_mode(monkeypatch: pytest.Monke
 def test_ids_are_made_in_a_fresh_interpreter_by_naming_the_module() -> None:
     code = (
         "import gymnasium as gym\n"
-        "env = gym.make('sim.gym_env:qnav/ObstaclesInertia-v0')\n"
+        "env = gym.make('qnav.sim.gym_env:qnav/ObstaclesInertia-v0')\n"
         "vec = gym.make_vec('qnav/WallsIncrement-v0', 3, vectorization_mode='vector_entry_point')\n"
         "print(env.unwrapped.config.name, type(vec).__name__, vec.num_envs)"
     )

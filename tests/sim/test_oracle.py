@@ -3,10 +3,17 @@
 import numpy as np
 import pytest
 
-from sim.config import scenario
-from sim.evaluate import EvalSettings
-from sim.oracle import PERCEPTION_LEVELS, StateError, held_sequences, plan, run_oracle, with_error
-from sim.world import WorldState, reset
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import EvalSettings
+from qnav.sim.oracle import (
+    PERCEPTION_LEVELS,
+    StateError,
+    held_sequences,
+    plan,
+    run_oracle,
+    with_error,
+)
+from qnav.sim.world import WorldState, reset
 
 
 def test_the_oracle_reaches_every_target_in_a_walls_only_world() -> None:

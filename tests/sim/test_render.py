@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from contracts.motion import Outcome
-from sim.config import scenario
-from sim.evaluate import EvalSettings, RandomAgent, evaluate
-from sim.render import draw_gif, draw_png, record_episode, render_episode
-from sim.world import Observation
+from qnav.contracts.motion import Outcome
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import EvalSettings, RandomAgent, evaluate
+from qnav.sim.render import draw_gif, draw_png, record_episode, render_episode
+from qnav.sim.world import Observation
 
 pytest.importorskip("matplotlib")
 Image = pytest.importorskip("PIL.Image")

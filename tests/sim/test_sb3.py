@@ -10,11 +10,11 @@ from stable_baselines3 import DQN
 from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.vec_env import VecMonitor
 
-from contracts.actions import Action
-from contracts.errors import ConfigError
-from sim.config import scenario
-from sim.gym_env import EncodedWindow, EncodedWindowVector, NavVectorEnv, env_id
-from sim.sb3 import SB3VecEnv, sb3_vec_env
+from qnav.contracts.actions import Action
+from qnav.contracts.errors import ConfigError
+from qnav.sim.config import scenario
+from qnav.sim.gym_env import EncodedWindow, EncodedWindowVector, NavVectorEnv, env_id
+from qnav.sim.sb3 import SB3VecEnv, sb3_vec_env
 
 
 @pytest.mark.parametrize("name", ["obstacles-inertia", "toycar-increment"])

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from contracts.motion import Outcome, outcome
-from sim.config import RewardConfig
-from sim.task import reward
+from qnav.contracts.motion import Outcome, outcome
+from qnav.sim.config import RewardConfig
+from qnav.sim.task import reward
 
 L = 0.5
 

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from sim.config import scenario
-from sim.world import BatchedWorld, reset, step
+from qnav.sim.config import scenario
+from qnav.sim.world import BatchedWorld, reset, step
 
 STEPS = 300
 

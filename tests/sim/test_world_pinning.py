@@ -4,10 +4,10 @@ paper's best recurrent seed in both obstacle tables, so the paper's results are 
 
 import pytest
 
-from contracts.motion import IncrementDynamics, InertiaDynamics
-from sim import paper
-from sim.calibrate import calibrate
-from sim.config import scenario
+from qnav.contracts.motion import IncrementDynamics, InertiaDynamics
+from qnav.sim import paper
+from qnav.sim.calibrate import calibrate
+from qnav.sim.config import scenario
 
 
 @pytest.mark.slow

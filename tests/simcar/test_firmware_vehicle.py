@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simcar.firmware_vehicle import apply_frame, frame_change
+from qnav.simcar.firmware_vehicle import apply_frame, frame_change
 
 
 @pytest.mark.parametrize(

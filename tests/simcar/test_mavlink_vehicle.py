@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from contracts.mavlink import (
+from qnav.contracts.mavlink import (
     MAV_CMD_COMPONENT_ARM_DISARM,
     MAV_CMD_DO_SET_MODE,
     MAV_FRAME_BODY_NED,
@@ -27,9 +27,9 @@ from contracts.mavlink import (
     TYPE_MASK_VELOCITY_YAW_RATE,
     open_connection,
 )
-from contracts.motion import step_velocity_lag
-from contracts.settings import with_overrides
-from simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
+from qnav.contracts.motion import step_velocity_lag
+from qnav.contracts.settings import with_overrides
+from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 IGNORE = 65535
 

@@ -25,16 +25,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-from contracts.daemon import free_port
-from contracts.mavlink import (
+from qnav.contracts.daemon import free_port
+from qnav.contracts.mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     drain,
     mode_name,
     open_connection,
     wrap_pi,
 )
-from contracts.transport import ZenohSettings, open_session
-from contracts.wire import (
+from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.contracts.wire import (
     COMMAND,
     POSE,
     VEHICLE_STATE,

@@ -21,10 +21,10 @@ from pathlib import Path
 
 import pytest
 
-from contracts.mavlink import signing_timestamp_now, wrap_pi
-from contracts.settings import from_dict
-from firmware_bridge.calibrate import Calibrator, Pattern
-from firmware_bridge.settings import BridgeSettings
+from qnav.contracts.mavlink import signing_timestamp_now, wrap_pi
+from qnav.contracts.settings import from_dict
+from qnav.firmware_bridge.calibrate import Calibrator, Pattern
+from qnav.firmware_bridge.settings import BridgeSettings
 from qnav.sitl import HOME
 from tests.sitl.harness import (
     EKF_CONST_POS_MODE,

@@ -25,7 +25,7 @@ from typing import Any
 
 import pytest
 
-from contracts.mavlink import mavutil, wrap_pi
+from qnav.contracts.mavlink import mavutil, wrap_pi
 from tests.sitl.harness import (
     OBSERVED,
     BridgeProcess,

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from contracts.errors import ConfigError
-from training.cluster import (
+from qnav.contracts.errors import ConfigError
+from qnav.training.cluster import (
     ClusterSettings,
     RayEngine,
     changed_files,
@@ -19,7 +19,7 @@ from training.cluster import (
     parse_address,
     write_files,
 )
-from training.study import (
+from qnav.training.study import (
     RunSpec,
     StudySettings,
     check_assignments,
@@ -248,7 +248,7 @@ def test_the_study_and_the_ray_engine_module_import_without_ray() -> None:
 
 
 def test_every_new_setting_has_a_one_line_docstring() -> None:
-    from contracts.settings import field_docs
+    from qnav.contracts.settings import field_docs
 
     for cls in (StudySettings, ClusterSettings):
         docs = field_docs(cls)

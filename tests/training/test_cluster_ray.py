@@ -24,9 +24,9 @@ ray = pytest.importorskip(
     "ray", reason="Ray is not installed: `make test-cluster` installs the [cluster] extra"
 )
 
-from contracts.daemon import free_port  # noqa: E402
-from training.cluster import ClusterSettings, RayEngine  # noqa: E402
-from training.study import RunSpec, StudySettings, run_progress, run_study  # noqa: E402
+from qnav.contracts.daemon import free_port  # noqa: E402
+from qnav.training.cluster import ClusterSettings, RayEngine  # noqa: E402
+from qnav.training.study import RunSpec, StudySettings, run_progress, run_study  # noqa: E402
 
 pytestmark = pytest.mark.cluster
 
@@ -126,7 +126,7 @@ def test_a_local_ray_instance_with_two_workers_writes_the_local_runners_results(
 
 
 def test_runs_larger_than_any_node_are_refused_by_name_before_they_start(tmp_path: Path) -> None:
-    from contracts.errors import ConfigError
+    from qnav.contracts.errors import ConfigError
 
     with pytest.raises(ConfigError, match="--threads = 2: no node of the cluster has that many"):
         run_study(

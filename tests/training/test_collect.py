@@ -5,10 +5,10 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from sim.config import scenario
-from sim.evaluate import RandomAgent
-from sim.world import WorldState
-from training.collect import collect_round
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import RandomAgent
+from qnav.sim.world import WorldState
+from qnav.training.collect import collect_round
 
 WORLD = scenario("walls-increment")
 IDS = np.arange(4, dtype=np.int64)

@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from sim.config import scenario
-from training.config import FAST
-from training.diagnose import _turns_towards_target, diagnose
-from training.policy import load_network
+from qnav.sim.config import scenario
+from qnav.training.config import FAST
+from qnav.training.diagnose import _turns_towards_target, diagnose
+from qnav.training.policy import load_network
 
 TINY = replace(
     FAST,
@@ -31,7 +31,7 @@ TINY = replace(
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from training.run import train
+    from qnav.training.run import train
 
     run_dir = tmp_path_factory.mktemp("diagnose") / "run"
     train(scenario("obstacles-increment"), TINY, run_dir, progress=False)

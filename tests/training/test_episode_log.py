@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
-from training.episode_log import Episode, read_rounds, write_round
+from qnav.training.episode_log import Episode, read_rounds, write_round
 
 
 def _episode(steps: int) -> Episode:

@@ -12,8 +12,8 @@ import numpy as np
 import onnx
 import pytest
 
-from contracts.actions import Action
-from contracts.policy_file import (
+from qnav.contracts.actions import Action
+from qnav.contracts.policy_file import (
     FRAME_INPUT,
     OUTPUT_NAME,
     STATE_INPUTS,
@@ -21,20 +21,20 @@ from contracts.policy_file import (
     WINDOW_FORMAT,
     PolicyContract,
 )
-from controller.onnx_file import read_onnx
-from controller.policy import BACKENDS, PolicyRuntime, State
-from sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
-from sim.world import observe, reset, step
-from tests.conftest import PolicyFactory, policy_network
-from tests.near_ties import assert_actions_match_but_near_ties
-from training.agent import TorchAgent
-from training.export import (
+from qnav.controller.onnx_file import read_onnx
+from qnav.controller.policy import BACKENDS, PolicyRuntime, State
+from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+from qnav.sim.world import observe, reset, step
+from qnav.training.agent import TorchAgent
+from qnav.training.export import (
     REEXPORT_KEY,
     export_onnx,
     policy_contract,
     reexport_file,
     torch_q_values,
 )
+from tests.conftest import PolicyFactory, policy_network
+from tests.near_ties import assert_actions_match_but_near_ties
 
 
 def _random_windows(count: int, frame_size: int, seed: int = 0) -> np.ndarray:
@@ -211,7 +211,7 @@ def test_the_reader_returns_every_weight_as_onnx_does(make_policy: PolicyFactory
 def test_weights_in_a_separate_file_are_refused_by_the_numpy_reader(
     make_policy: PolicyFactory, tmp_path: Path
 ) -> None:
-    from contracts.errors import PolicyFileError
+    from qnav.contracts.errors import PolicyFileError
 
     model = onnx.load(str(make_policy("walls-inertia", "recurrent", 64)))
     split = tmp_path / "split.onnx"

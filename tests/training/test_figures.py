@@ -4,10 +4,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from contracts.actions import Action
-from sim.config import scenario
-from training.figures import action_grid, draw_action_maps, draw_trajectories, trajectories
-from training.networks import QNetwork
+from qnav.contracts.actions import Action
+from qnav.sim.config import scenario
+from qnav.training.figures import action_grid, draw_action_maps, draw_trajectories, trajectories
+from qnav.training.networks import QNetwork
 
 
 class _AlwaysForward(QNetwork):

@@ -5,9 +5,9 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
-from sim.config import scenario
-from training.config import FAST
-from training.run import train
+from qnav.sim.config import scenario
+from qnav.training.config import FAST
+from qnav.training.run import train
 
 TINY = replace(
     FAST,

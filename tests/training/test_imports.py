@@ -5,25 +5,27 @@ import subprocess
 import sys
 from pathlib import Path
 
-from sim.config import scenario
-from training.config import TrainSettings
-from training.policy import make_network
-from training.run_folder import RunFolder, RunSettings
+from qnav.sim.config import scenario
+from qnav.training.config import TrainSettings
+from qnav.training.policy import make_network
+from qnav.training.run_folder import RunFolder, RunSettings
 
 TRAINING_LOOP = {
-    "training.run",
-    "training.algorithm",
-    "training.collect",
-    "training.replay",
-    "training.sampling",
-    "training.validation",
+    "qnav.training.run",
+    "qnav.training.algorithm",
+    "qnav.training.collect",
+    "qnav.training.replay",
+    "qnav.training.sampling",
+    "qnav.training.validation",
 }
 """The loop and what only the loop uses."""
 
 
 def _training_modules_after(code: str) -> set[str]:
     """The training modules a fresh interpreter holds after running `code`."""
-    probe = code + "\nimport sys\nprint(sorted(m for m in sys.modules if m.startswith('training')))"
+    probe = code + (
+        "\nimport sys\nprint(sorted(m for m in sys.modules if m.startswith('qnav.training')))"
+    )
     done = subprocess.run(
         [sys.executable, "-c", probe], capture_output=True, text=True, timeout=300, check=False
     )
@@ -32,8 +34,8 @@ def _training_modules_after(code: str) -> set[str]:
 
 
 def test_the_loading_and_export_modules_import_no_training_loop() -> None:
-    loaded = _training_modules_after("import training.policy, training.export")
-    assert "training.policy" in loaded and "training.export" in loaded
+    loaded = _training_modules_after("import qnav.training.policy, qnav.training.export")
+    assert "qnav.training.policy" in loaded and "qnav.training.export" in loaded
     assert not loaded & TRAINING_LOOP, loaded & TRAINING_LOOP
 
 
@@ -47,5 +49,5 @@ def test_qnav_eval_of_a_run_folder_imports_no_training_loop(tmp_path: Path) -> N
         "from qnav.cli import main\n"
         f"assert main(['eval', '--policy', {str(folder.path)!r}, '--episodes', '2', '--json']) == 0"
     )
-    assert "training.policy" in loaded  # it did load the network
+    assert "qnav.training.policy" in loaded  # it did load the network
     assert not loaded & TRAINING_LOOP, loaded & TRAINING_LOOP

@@ -3,10 +3,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from training.algorithm import DoubleDQN, double_dqn_target, soft_update, td_update
-from training.config import PAPER
-from training.networks import QNetwork
-from training.replay import Batch
+from qnav.training.algorithm import DoubleDQN, double_dqn_target, soft_update, td_update
+from qnav.training.config import PAPER
+from qnav.training.networks import QNetwork
+from qnav.training.replay import Batch
 
 
 def test_double_dqn_evaluates_the_online_argmax_with_the_target_network() -> None:

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from training.networks import QNetwork, StreamingQNetwork, conv_output_length
+from qnav.training.networks import QNetwork, StreamingQNetwork, conv_output_length
 
 
 def test_paper_encoder_turns_720_beams_into_25_positions_of_8_channels() -> None:

@@ -6,11 +6,11 @@ import copy
 import numpy as np
 import torch
 
+from qnav.training.algorithm import td_update
+from qnav.training.networks import QNetwork
+from qnav.training.replay import EpisodeReplay
+from qnav.training.sampling import sample
 from tests.training.test_replay import _episode, _replay
-from training.algorithm import td_update
-from training.networks import QNetwork
-from training.replay import EpisodeReplay
-from training.sampling import sample
 
 
 def _two_episode_replay() -> EpisodeReplay:

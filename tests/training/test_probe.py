@@ -7,14 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.observation import distance_scale_m
-from sim.config import scenario
-from sim.decisive import GaugeSettings, collect
-from sim.oracle import PERCEIVED
-from sim.world import reset
-from tests.test_cli import _qnav
-from training.probe import (
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.observation import distance_scale_m
+from qnav.sim.config import scenario
+from qnav.sim.decisive import GaugeSettings, collect
+from qnav.sim.oracle import PERCEIVED
+from qnav.sim.world import reset
+from qnav.training.probe import (
     PerceptionSettings,
     ProbeSettings,
     decisive_only,
@@ -23,6 +22,7 @@ from training.probe import (
     probe,
     state_features,
 )
+from tests.test_cli import _qnav
 
 SMALL_GAUGE = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6)
 SMALL = ProbeSettings(episodes_per_driver=6, epochs=2, batch_size=32, threads=1)

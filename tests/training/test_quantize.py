@@ -11,13 +11,12 @@ import numpy as np
 import onnx
 import pytest
 
-from contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
-from controller.onnx_file import float_weights, read_onnx
-from controller.policy import PolicyRuntime
-from sim.config import scenario
-from sim.world import observe, reset, scatter, step
-from tests.conftest import PolicyFactory, policy_network
-from training.export import (
+from qnav.contracts.policy_file import QUANTIZED_SUFFIXES, TRANSPOSED_SUFFIX
+from qnav.controller.onnx_file import float_weights, read_onnx
+from qnav.controller.policy import PolicyRuntime
+from qnav.sim.config import scenario
+from qnav.sim.world import observe, reset, scatter, step
+from qnav.training.export import (
     AGREEMENT_KEY,
     REEXPORT_KEY,
     export_onnx,
@@ -25,7 +24,8 @@ from training.export import (
     reexport_file,
     torch_q_values,
 )
-from training.quantize import INT8_PARAMETERS
+from qnav.training.quantize import INT8_PARAMETERS
+from tests.conftest import PolicyFactory, policy_network
 
 TRAINED = Path(__file__).parents[1] / "data" / "playback" / "policy.onnx"
 """A trained policy (walls-increment, LSTM 64) in float32."""
@@ -105,7 +105,7 @@ def test_the_reader_returns_int8_weights_and_zero_points_as_onnx_does(trained_in
 
 
 def test_the_numpy_backend_computes_the_dequantised_network(trained_int8: Path) -> None:
-    from training.export import network_from_weights
+    from qnav.training.export import network_from_weights
 
     weights = float_weights(read_onnx(trained_int8).initializers)
     network = network_from_weights(weights, "recurrent", 720)

@@ -3,14 +3,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from contracts.observation import encode_scan
-from sim.config import scenario
-from sim.evaluate import RandomAgent
-from sim.geometry import cast_lidar, clearance
-from sim.world import observe, reset, step
-from training.episode_log import Episode
-from training.replay import EpisodeReplay
-from training.sampling import draw_obstacle_paths, draw_targets, sample, view_with_obstacles
+from qnav.contracts.observation import encode_scan
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import RandomAgent
+from qnav.sim.geometry import cast_lidar, clearance
+from qnav.sim.world import observe, reset, step
+from qnav.training.episode_log import Episode
+from qnav.training.replay import EpisodeReplay
+from qnav.training.sampling import draw_obstacle_paths, draw_targets, sample, view_with_obstacles
 
 CONFIG = scenario("walls-increment")
 

@@ -11,14 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.policy_file import PolicyContract
-from controller.onnx_file import read_onnx
-from sim.config import scenario
-from training.config import FAST
-from training.episode_log import read_rounds
-from training.run import train
-from training.run_folder import read_settings
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.policy_file import PolicyContract
+from qnav.controller.onnx_file import read_onnx
+from qnav.sim.config import scenario
+from qnav.training.config import FAST
+from qnav.training.episode_log import read_rounds
+from qnav.training.run import train
+from qnav.training.run_folder import read_settings
 
 TINY = [
     "--train-set", "train.hidden_size=16",

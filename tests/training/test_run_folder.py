@@ -4,11 +4,16 @@ from pathlib import Path
 
 import pytest
 
-from contracts.errors import ConfigError
-from contracts.settings import to_toml
-from sim.config import scenario
-from training.config import TrainSettings
-from training.run_folder import LAST_COMMIT_WITH_EXPERIMENTS, RunFolder, RunSettings, read_settings
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import to_toml
+from qnav.sim.config import scenario
+from qnav.training.config import TrainSettings
+from qnav.training.run_folder import (
+    LAST_COMMIT_WITH_EXPERIMENTS,
+    RunFolder,
+    RunSettings,
+    read_settings,
+)
 
 SETTINGS = RunSettings(scenario("walls-increment"), TrainSettings(hidden_size=8, seed=4))
 

@@ -3,8 +3,8 @@ from pathlib import Path
 
 import pytest
 
-from contracts.errors import ConfigError
-from training.study import (
+from qnav.contracts.errors import ConfigError
+from qnav.training.study import (
     MODELS,
     RunSpec,
     parse_choices,
