@@ -17,6 +17,7 @@ COPY simcar ./simcar
 COPY training ./training
 COPY controller ./controller
 COPY firmware_bridge ./firmware_bridge
+COPY lab ./lab
 
 FROM base AS runtime
 RUN pip install --no-cache-dir . \

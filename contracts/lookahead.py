@@ -1,7 +1,7 @@
 """A short look ahead: play candidate action sequences forward with the shared motion model and
 score them, knowing (or believing) where the obstacles are and how fast they move.
 
-The simulator's oracle planner (`sim.oracle`) runs it on the world's true state; the onboard
+The simulator's oracle planner (`lab.oracle`) runs it on the world's true state; the onboard
 controller (`controller.lookahead`) runs the same code on what its obstacle tracker perceives.
 Candidates are the structured sequences (one action held for a while, then another) plus random
 ones held three steps at a time, which each caller draws its own way.

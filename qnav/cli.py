@@ -171,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--state-error",
         choices=["exact", "lidar-grade", "tracker", "coarse"],
         help="with --agent oracle: plan on a noisy estimate of the state, as a perceive-then-plan "
-        "controller would (errors in sim.oracle.PERCEPTION_LEVELS)",
+        "controller would (errors in lab.oracle.PERCEPTION_LEVELS)",
     )
     evaluate.add_argument(
         "--tracker",
@@ -297,7 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
     calibrate.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate.set_defaults(handler=_lazy("qnav.sim.cli:calibrate"))
+    calibrate.set_defaults(handler=_lazy("qnav.commands:calibrate"))
 
     render = verbs.add_parser("render", help="draw an episode to PNG and animated GIF")
     _world_options(render, "obstacles-inertia")

@@ -16,8 +16,8 @@ from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent,
 from qnav.sim.evaluate import evaluate as run_evaluation
 
 if TYPE_CHECKING:
-    from qnav.training.imitate import ImitationResult, ImitationSettings
-    from qnav.training.probe import PerceptionSettings
+    from qnav.lab.imitate import ImitationResult, ImitationSettings
+    from qnav.lab.probe import PerceptionSettings
     from qnav.training.study import Engine, RunSpec, StudySettings
 
 
@@ -116,7 +116,7 @@ def evaluate(args: argparse.Namespace) -> int:
         label += f" with {args.random_action_prob:.0%} random actions"
     if planner and args.tracker:
         from qnav.controller.perception import TrackerSettings
-        from qnav.tracking import run_perceiving_oracle
+        from qnav.lab.tracking import run_perceiving_oracle
 
         label += ", planning on the onboard tracker's estimate"
         result = run_perceiving_oracle(
@@ -127,7 +127,7 @@ def evaluate(args: argparse.Namespace) -> int:
             progress=not args.json,
         )
     elif planner:
-        from qnav.sim.oracle import PERCEPTION_LEVELS, run_oracle
+        from qnav.lab.oracle import PERCEPTION_LEVELS, run_oracle
 
         error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
         if error is not None:
@@ -172,7 +172,12 @@ def train(args: argparse.Namespace) -> int:
         + ("" if settings.relabel == "paper" else f"-{settings.relabel}")
     )
     print(f"run folder: {run_dir}")
-    results = run_training(world, settings, run_dir, progress=not args.quiet)
+    # The decisive-state gauge comes from the lab (it needs the oracle planner): the shell hands
+    # it to the run, which knows only the protocol (training.validation.Gauge).
+    from qnav.lab.gauge import training_gauge
+
+    gauge = training_gauge(world, settings, progress=not args.quiet)
+    results = run_training(world, settings, run_dir, progress=not args.quiet, gauge=gauge)
     test = results["test"]
     print(
         f"test ({test['episodes']} episodes of up to 500 steps): success {test['success']:.3f}, "
@@ -306,6 +311,32 @@ def sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def calibrate(args: argparse.Namespace) -> int:
+    """Random, go-to-target and oracle agents in each paper scenario, beside the paper's rows."""
+    from qnav.lab.calibrate import calibrate as measure
+    from qnav.lab.calibrate import table
+    from qnav.sim import paper
+    from qnav.sim.config import scenario
+
+    worlds = {name: scenario(name) for name in paper.RANDOM}
+    rows = measure(
+        worlds,
+        episodes=args.episodes,
+        oracle_episodes=args.oracle_episodes,
+        seed=args.seed,
+        progress=not args.json,
+    )
+    if args.json:
+        print(json.dumps([row.as_dict() for row in rows]))
+        return 0
+    print(
+        f"{args.episodes} episodes of up to 500 steps per scenario for random and go-to-target, "
+        f"{args.oracle_episodes} for the oracle (seed {args.seed})\n"
+    )
+    print(table(rows))
+    return 0
+
+
 def figures(args: argparse.Namespace) -> int:
     """Action maps and trajectories of a training run, as PNG."""
     from qnav.training.figures import write_figures
@@ -317,7 +348,7 @@ def figures(args: argparse.Namespace) -> int:
 
 def diagnose(args: argparse.Namespace) -> int:
     """Generalisation gap, target sensitivity and action mix of a training run."""
-    from qnav.training.diagnose import diagnose as measure
+    from qnav.lab.diagnose import diagnose as measure
 
     print(measure(args.run, fresh_episodes=args.fresh_episodes).render())
     return 0
@@ -327,7 +358,7 @@ def gauge(args: argparse.Namespace) -> int:
     """The decisive states of a world with the baselines' scores, or each run's score on its
     own world's states beside its test success."""
     from qnav.contracts.actions import Action
-    from qnav.sim.decisive import (
+    from qnav.lab.decisive import (
         GaugeResult,
         GaugeSettings,
         cached,
@@ -336,8 +367,8 @@ def gauge(args: argparse.Namespace) -> int:
         perception_ceiling,
         random_expectation,
     )
-    from qnav.sim.decisive import score as judge
-    from qnav.sim.oracle import PERCEPTION_LEVELS
+    from qnav.lab.decisive import score as judge
+    from qnav.lab.oracle import PERCEPTION_LEVELS
 
     rows: list[dict[str, object]] = []
     if not args.runs:
@@ -374,9 +405,9 @@ def gauge(args: argparse.Namespace) -> int:
             f"(planner {visited['planner']}, go-to-target {visited['go-to-target']})"
         )
     for run in args.runs:
-        from qnav.training.diagnose import decisive_report
+        from qnav.lab.diagnose import decisive_report
+        from qnav.lab.gauge import decisive_states
         from qnav.training.policy import load_network
-        from qnav.training.validation import decisive_states
 
         network, settings = load_network(run)
         train = replace(settings.train, gauge_episodes=args.episodes)
@@ -408,8 +439,8 @@ def probe(args: argparse.Namespace) -> int:
     """Fit the paper's network to the planner's doom labels and print the gauge after each pass,
     or (--perception) fit it to locate the nearest obstacle and print the median errors."""
     from qnav.contracts.settings import to_toml
-    from qnav.training.probe import PerceptionSettings, ProbeSettings
-    from qnav.training.probe import probe as fit
+    from qnav.lab.probe import PerceptionSettings, ProbeSettings
+    from qnav.lab.probe import probe as fit
 
     if args.tracker:
         return _track(args)
@@ -458,7 +489,7 @@ def _track(args: argparse.Namespace) -> int:
     """The onboard tracker's errors on the perception probe's drive."""
     from qnav.contracts.settings import to_toml
     from qnav.controller.perception import TrackerSettings
-    from qnav.tracking import TrackerCheckSettings, measure_tracker
+    from qnav.lab.tracking import TrackerCheckSettings, measure_tracker
 
     tracker: TrackerSettings
     check: TrackerCheckSettings
@@ -488,7 +519,7 @@ def _track(args: argparse.Namespace) -> int:
 
 
 def _perceive(world: WorldConfig, settings: PerceptionSettings, as_json: bool) -> int:
-    from qnav.training.probe import perceive
+    from qnav.lab.probe import perceive
 
     for epoch in perceive(world, settings, progress=not as_json):
         if as_json:
@@ -502,8 +533,8 @@ def _perceive(world: WorldConfig, settings: PerceptionSettings, as_json: bool) -
 
 def imitate(args: argparse.Namespace) -> int:
     """Copy the oracle planner with the learner's network; test the copy."""
-    from qnav.training.imitate import ImitationSettings
-    from qnav.training.imitate import imitate as measure
+    from qnav.lab.imitate import ImitationSettings
+    from qnav.lab.imitate import imitate as measure
 
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
     settings = ImitationSettings(
@@ -519,7 +550,7 @@ def imitate(args: argparse.Namespace) -> int:
         threads=args.threads,
     )
     if args.privileged:
-        from qnav.training.privileged import imitate_privileged
+        from qnav.lab.privileged import imitate_privileged
 
         result = imitate_privileged(world, settings)
     else:

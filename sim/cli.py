@@ -5,15 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import IncrementDynamics
 from qnav.contracts.settings import to_markdown, to_toml
-from qnav.sim import paper
-from qnav.sim.calibrate import Calibration
 from qnav.sim.config import SCENARIOS, WorldConfig, load_world, scenario
-from qnav.sim.evaluate import EvalResult, RandomAgent
+from qnav.sim.evaluate import RandomAgent
 
 
 def _world(args: argparse.Namespace) -> WorldConfig:
@@ -65,47 +62,6 @@ def settings_reference() -> str:
             "",
         ]
     )
-
-
-def calibrate(args: argparse.Namespace) -> int:
-    """Random, go-to-target and oracle agents in each paper scenario, beside the paper's rows."""
-    from qnav.sim.calibrate import calibrate as measure
-    from qnav.sim.calibrate import table
-
-    worlds = {name: scenario(name) for name in paper.RANDOM}
-    rows = measure(
-        worlds,
-        episodes=args.episodes,
-        oracle_episodes=args.oracle_episodes,
-        seed=args.seed,
-        progress=not args.json,
-    )
-    if args.json:
-        print(json.dumps([_calibration_dict(row) for row in rows]))
-        return 0
-    print(
-        f"{args.episodes} episodes of up to 500 steps per scenario for random and go-to-target, "
-        f"{args.oracle_episodes} for the oracle (seed {args.seed})\n"
-    )
-    print(table(rows))
-    return 0
-
-
-def _calibration_dict(row: Calibration) -> dict[str, object]:
-    def fractions(result: EvalResult | None) -> dict[str, float] | None:
-        if result is None:
-            return None
-        return {k: v for k, v in asdict(result).items() if k != "mean_steps"}
-
-    return {
-        "scenario": row.scenario,
-        "random": fractions(row.random),
-        "go_to_target": fractions(row.goto),
-        "oracle": fractions(row.oracle),
-        "doomed_at_start": row.doomed_at_start,
-        "random_within_two_errors": row.random_within_two_errors(),
-        "oracle_reaches_best_seed": row.oracle_reaches_best_seed(),
-    }
 
 
 def render(args: argparse.Namespace) -> int:

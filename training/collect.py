@@ -25,10 +25,10 @@ def collect_round(
 ) -> list[Episode]:
     """Run one episode per world, each with the layout of (seed, its episode id), to its end.
 
-    With a `demonstrator` (the worlds' full state -> actions, e.g. `sim.oracle.OracleDriver`)
+    With a `demonstrator` (the worlds' full state -> actions, e.g. `lab.oracle.OracleDriver`)
     it drives instead of the agent (which may then be None). With a `labeller` the episodes
     store its action for each state visited instead of the action taken (DAgger's labels).
-    Both serve `training.imitate`; training runs drive with the agent."""
+    Both serve `lab.imitate`; training runs drive with the agent."""
     if agent is None and demonstrator is None:
         raise ValueError("collect_round needs an agent or a demonstrator")
     n = episode_ids.size

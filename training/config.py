@@ -89,7 +89,8 @@ class TrainSettings:
     """Episodes of each greedy evaluation during training (episodes as long as in training)."""
     gauge_episodes: int = 400
     """Episodes per driver behind the decisive-state gauge reported with each evaluation in
-    obstacle worlds (`sim.decisive`; collected once per world and cached; 0: none)."""
+    obstacle worlds (`lab.decisive`, handed to the run by `qnav train`; collected once per world
+    and cached; 0: none)."""
     snapshot_every_episodes: int = 0
     """Save the online network every this many episodes, for the action-map figure (0: never)."""
     final_eval_episodes: int = 200

@@ -7,7 +7,7 @@ The pieces it runs, each in a module of its own:
     training.replay       storage of every collected episode
     training.sampling     how a batch is drawn: steps, targets and obstacles re-drawn
     training.algorithm    double DQN: the update, the target network, the optimiser
-    training.validation   greedy evaluations and the decisive-state gauge during training
+    training.validation   greedy evaluations during training, and an opt-in gauge beside them
 
 A run killed at any moment resumes from its last checkpoint when started again with the same
 folder: rounds collected after that checkpoint are read back from `episodes/` and trained on.
@@ -39,7 +39,7 @@ from qnav.training.policy import make_network
 from qnav.training.replay import EpisodeReplay
 from qnav.training.run_folder import Progress, RunFolder, RunSettings, source_commit
 from qnav.training.sampling import sample
-from qnav.training.validation import Validation, evaluate_network
+from qnav.training.validation import Gauge, Validation, evaluate_network
 
 REACHED_LEVELS = (0.5, 0.9, 0.99)
 """Validation success levels whose first crossing results.json records."""
@@ -47,9 +47,14 @@ _TRAIN_LAYOUT_SEED = 1_000_003
 
 
 def train(
-    world: WorldConfig, settings: TrainSettings, run_dir: Path, progress: bool = True
+    world: WorldConfig,
+    settings: TrainSettings,
+    run_dir: Path,
+    progress: bool = True,
+    gauge: Gauge | None = None,
 ) -> dict[str, Any]:
-    """Run (or resume) training in `run_dir`; returns the final test results."""
+    """Run (or resume) training in `run_dir`; returns the final test results. A `gauge` judges
+    the network beside each evaluation (progress.csv's decisive_ columns, empty without)."""
     world = replace(world, max_episode_steps=settings.max_episode_steps)
     folder = RunFolder(run_dir)
     folder.start(RunSettings(world, settings))
@@ -57,7 +62,7 @@ def train(
     torch.manual_seed(settings.seed)
     dqn = DoubleDQN(make_network(world, settings), settings)
     state, logged, replay = _resume(folder, dqn, world, settings)
-    validation = Validation(world, settings, progress)
+    validation = Validation(world, settings, gauge)
     title = f"{world.name}, {settings.model}, seed {settings.seed}"
     bar = tqdm(total=settings.episodes, initial=state.episodes, unit="ep",
                disable=not progress, desc=f"train {title}")  # fmt: skip

@@ -1,11 +1,12 @@
-"""Greedy evaluations of a network while it trains, and the decisive-state gauge beside them."""
+"""Greedy evaluations of a network while it trains, and a gauge of its choices beside them."""
 
 from __future__ import annotations
 
+from typing import NamedTuple, Protocol
+
 from qnav.sim.config import WorldConfig
-from qnav.sim.decisive import DecisiveStates, GaugeSettings, cached, score
 from qnav.sim.evaluate import EvalResult, EvalSettings, evaluate
-from qnav.training.agent import greedy_actions, policy_agent
+from qnav.training.agent import policy_agent
 from qnav.training.config import TrainSettings
 from qnav.training.networks import QNetwork
 
@@ -30,31 +31,37 @@ def evaluate_network(
     return evaluate(world, policy_agent(network, world, settings.num_worlds, window), settings)
 
 
-def decisive_states(
-    world: WorldConfig, settings: TrainSettings, progress: bool = False
-) -> DecisiveStates:
-    """The gauge's decisive states for this world, with the run's window and episode length."""
-    gauge = GaugeSettings(
-        episodes_per_driver=settings.gauge_episodes,
-        max_episode_steps=settings.max_episode_steps,
-        window=settings.window,
-    )
-    return cached(world, gauge, progress)
+class GaugeScore(NamedTuple):
+    """A gauge's judgement of a network's greedy choices (progress.csv's decisive_ columns)."""
+
+    safe: float
+    """Share of the judged states where the chosen action is safe."""
+    balanced: float
+    """The safe share averaged over kinds of state, each weighted alike (for the decisive-state
+    gauge: over the doom patterns, where a choice blind to the scan scores 1/2)."""
+
+
+class Gauge(Protocol):
+    """A judge of the network's greedy choices beside each evaluation, opt-in: the run knows
+    only this protocol; `qnav train` hands it the lab's decisive-state gauge
+    (`qnav.lab.gauge.training_gauge`), as the oracle planner behind it is no part of the product."""
+
+    def __call__(self, network: QNetwork) -> GaugeScore: ...
 
 
 class Validation:
     """A run's evaluation during training: its progress.csv columns for the network now."""
 
-    def __init__(self, world: WorldConfig, settings: TrainSettings, progress: bool) -> None:
+    def __init__(
+        self, world: WorldConfig, settings: TrainSettings, gauge: Gauge | None = None
+    ) -> None:
         self.world = world
         self.settings = settings
-        self.progress = progress
-        self.gauged = bool(settings.gauge_episodes and world.obstacles.count)
-        self._decisive: DecisiveStates | None = None  # collected at the first evaluation
+        self.gauge = gauge
 
     def __call__(self, network: QNetwork) -> dict[str, float]:
-        """Success, collision and unfinished shares on the validation layouts, and in obstacle
-        worlds the shares of safe and balanced choices on the decisive states."""
+        """Success, collision and unfinished shares on the validation layouts, and with a gauge
+        its shares of safe and balanced choices."""
         settings = self.settings
         result = evaluate_network(
             self.world,
@@ -69,10 +76,8 @@ class Validation:
             "eval_collision": result.collision,
             "eval_unfinished": result.unfinished,
         }
-        if self.gauged:
-            if self._decisive is None:
-                self._decisive = decisive_states(self.world, settings, self.progress)
-            judged = score(self._decisive, greedy_actions(network, self._decisive.windows))
+        if self.gauge is not None:
+            judged = self.gauge(network)
             row["decisive_safe"] = round(judged.safe, 4)
             row["decisive_balanced"] = round(judged.balanced, 4)
         return row

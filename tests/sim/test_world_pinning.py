@@ -5,8 +5,8 @@ paper's best recurrent seed in both obstacle tables, so the paper's results are 
 import pytest
 
 from qnav.contracts.motion import IncrementDynamics, InertiaDynamics
+from qnav.lab.calibrate import calibrate
 from qnav.sim import paper
-from qnav.sim.calibrate import calibrate
 from qnav.sim.config import scenario
 
 

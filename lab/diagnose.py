@@ -12,7 +12,7 @@
   fixed scans (the share of probe scans on which it turns towards the target).
 - **Action mix** of the greedy policy in test episodes, with its outcome.
 - **Decisive states** (obstacle worlds): the share of the gauge's decisive states
-  (`sim.decisive`) where the greedy action is safe, beside what a random choice and the blind
+  (`lab.decisive`) where the greedy action is safe, beside what a random choice and the blind
   go-to-target controller score there.
 """
 
@@ -30,14 +30,15 @@ from torch.nn import functional
 from qnav.contracts.actions import NUM_ACTIONS, Action
 from qnav.contracts.observation import distance_scale_m, encode_frame, encode_scan
 from qnav.contracts.policy_file import CONV_CHANNELS
-from qnav.sim.config import WorldConfig
-from qnav.sim.decisive import (
+from qnav.lab.decisive import (
     DecisiveStates,
     constant_choice,
     go_to_target_choices,
     random_expectation,
     score,
 )
+from qnav.lab.gauge import decisive_states
+from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings, evaluate
 from qnav.sim.world import Observation, observe, reset
 from qnav.training.agent import TorchAgent, greedy_actions, policy_agent
@@ -49,7 +50,6 @@ from qnav.training.policy import load_network
 from qnav.training.replay import Batch, EpisodeReplay
 from qnav.training.run_folder import RunSettings
 from qnav.training.sampling import sample
-from qnav.training.validation import decisive_states
 
 _FRESH_LAYOUT_SEED = 777_777
 """Layouts of the fresh episodes (neither training, validation nor test use it)."""

@@ -1,7 +1,7 @@
 """How well can the Q-network copy the oracle planner? A behaviour-cloning ceiling.
 
 `qnav imitate --scenario S` collects episodes driven by the planner that knows the obstacles'
-future (`sim.oracle.OracleDriver`), trains the learner's own network (recurrent or feedforward,
+future (`lab.oracle.OracleDriver`), trains the learner's own network (recurrent or feedforward,
 the paper's sizes) to pick the planner's action from the same windows of k observations the
 policy sees (cross-entropy on its three outputs as logits), and runs the clone under the test
 protocol. Nothing of reinforcement learning is involved, so the result separates two reasons a
@@ -34,9 +34,9 @@ from tqdm import tqdm
 from qnav.contracts.motion import Outcome
 from qnav.contracts.observation import TARGET_FEATURES
 from qnav.contracts.settings import check_range
+from qnav.lab.oracle import OracleDriver
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
-from qnav.sim.oracle import OracleDriver
 from qnav.training.agent import policy_agent
 from qnav.training.algorithm import cpu_has_bf16
 from qnav.training.collect import collect_round

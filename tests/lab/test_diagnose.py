@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from qnav.lab.diagnose import _turns_towards_target, diagnose
 from qnav.sim.config import scenario
 from qnav.training.config import FAST
-from qnav.training.diagnose import _turns_towards_target, diagnose
 from qnav.training.policy import load_network
 
 TINY = replace(

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from qnav.contracts.actions import NUM_ACTIONS
-from qnav.sim.config import scenario
-from qnav.sim.decisive import (
+from qnav.lab.decisive import (
     DRIVERS,
     DecisiveStates,
     GaugeSettings,
@@ -20,7 +19,8 @@ from qnav.sim.decisive import (
     random_expectation,
     score,
 )
-from qnav.sim.oracle import StateError, doomed_actions
+from qnav.lab.oracle import StateError, doomed_actions
+from qnav.sim.config import scenario
 from qnav.sim.world import reset
 from tests.test_cli import _qnav
 

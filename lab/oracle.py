@@ -10,7 +10,7 @@ it cannot be expected to beat this planner by much: where the planner fails, the
 
 The same simulation says which first actions are *doomed*: every continuation the planner
 knows collides within a few seconds. A state where some action is doomed and another is not is
-a *decisive* state (`doomed_actions`); `sim.decisive` builds the gauge of how often a policy
+a *decisive* state (`doomed_actions`); `lab.decisive` builds the gauge of how often a policy
 picks a safe action there.
 
 `qnav eval --agent oracle --scenario obstacles-inertia` runs it under the test protocol. Its
@@ -228,7 +228,7 @@ class OracleDriver:
 
 Perceive = Callable[[WorldState, Observation], WorldState]
 """A perceiver: the state a controller would believe in, from the true state's keys and what
-the robot observes (e.g. `qnav.tracking.WorldTrackers.perceive_state`)."""
+the robot observes (e.g. `qnav.lab.tracking.WorldTrackers.perceive_state`)."""
 
 
 def run_oracle(

@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from qnav.lab.privileged import SECTORS, privileged_features
 from qnav.sim.config import scenario
 from qnav.sim.world import observe, reset
-from qnav.training.privileged import SECTORS, privileged_features
 
 
 def test_obstacles_are_seen_in_the_robots_frame_nearest_first() -> None:

@@ -3,9 +3,7 @@
 import numpy as np
 import pytest
 
-from qnav.sim.config import scenario
-from qnav.sim.evaluate import EvalSettings
-from qnav.sim.oracle import (
+from qnav.lab.oracle import (
     PERCEPTION_LEVELS,
     StateError,
     held_sequences,
@@ -13,6 +11,8 @@ from qnav.sim.oracle import (
     run_oracle,
     with_error,
 )
+from qnav.sim.config import scenario
+from qnav.sim.evaluate import EvalSettings
 from qnav.sim.world import WorldState, reset
 
 

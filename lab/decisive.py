@@ -2,7 +2,7 @@
 
 Most decisions in an obstacle world do not matter: every action is safe, or none is. A state
 is *decisive* when some first action is doomed (every continuation the oracle planner knows
-collides within `sim.oracle.DOOM_HORIZON_S`) and another is not. A policy that only seeks the
+collides within `lab.oracle.DOOM_HORIZON_S`) and another is not. A policy that only seeks the
 target passes the ordinary states and fails exactly these, so test success over a few hundred
 episodes hears about them only through noise; the share of a fixed set of decisive states where
 a policy's greedy action is safe measures them directly, in seconds.
@@ -30,9 +30,9 @@ from tqdm import tqdm
 
 from qnav.contracts.observation import FrameWindow, distance_scale_m, encode_frame
 from qnav.contracts.settings import check_range, to_toml
+from qnav.lab.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import go_to_target
-from qnav.sim.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
 from qnav.sim.world import Observation, WorldState, observe, reset, step, take_rows
 
 StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]

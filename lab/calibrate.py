@@ -13,15 +13,15 @@ and the blind go-to-target controller and the share of layouts that are lost fro
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from tqdm import tqdm
 
+from qnav.lab.oracle import doomed_actions, run_oracle
 from qnav.sim import paper
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, GoToTargetAgent, RandomAgent, evaluate
-from qnav.sim.oracle import doomed_actions, run_oracle
 from qnav.sim.world import reset
 
 PAPER_EPISODES = 200
@@ -34,7 +34,7 @@ def paper_standard_error(fraction: float) -> float:
 
 
 def doomed_at_start(config: WorldConfig, settings: EvalSettings, progress: bool = False) -> float:
-    """Share of the test layouts where every first action is doomed (`sim.oracle`): lost before
+    """Share of the test layouts where every first action is doomed (`lab.oracle`): lost before
     the robot moves, whatever it does."""
     lost = 0
     batches = np.array_split(
@@ -77,6 +77,24 @@ class Calibration:
         if self.oracle is None:
             return None
         return self.oracle.success >= paper.RECURRENT_BEST[self.scenario].success
+
+    def as_dict(self) -> dict[str, object]:
+        """The row as `qnav calibrate --json` prints it (fractions without the mean length)."""
+
+        def fractions(result: EvalResult | None) -> dict[str, float] | None:
+            if result is None:
+                return None
+            return {k: v for k, v in asdict(result).items() if k != "mean_steps"}
+
+        return {
+            "scenario": self.scenario,
+            "random": fractions(self.random),
+            "go_to_target": fractions(self.goto),
+            "oracle": fractions(self.oracle),
+            "doomed_at_start": self.doomed_at_start,
+            "random_within_two_errors": self.random_within_two_errors(),
+            "oracle_reaches_best_seed": self.oracle_reaches_best_seed(),
+        }
 
 
 def calibrate(

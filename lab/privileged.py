@@ -1,6 +1,6 @@
 """A copy of the oracle planner that is given the world's state instead of reading it from scans.
 
-`qnav imitate --privileged` asks where the copies of `training.imitate` lose the planner: in
+`qnav imitate --privileged` asks where the copies of `lab.imitate` lose the planner: in
 reading the obstacles' positions and motion from five scans, or in the policy itself. Its copy
 sees, at every step, the target features, the robot's velocity, the scan's nearest return in
 each of 72 sectors (the walls) and, for every obstacle, its exact position and velocity in the
@@ -28,11 +28,7 @@ from tqdm import tqdm
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.motion import Outcome
 from qnav.contracts.observation import TARGET_FEATURES
-from qnav.sim.config import WorldConfig
-from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
-from qnav.sim.oracle import OracleDriver
-from qnav.sim.world import Observation, WorldState
-from qnav.training.imitate import (
+from qnav.lab.imitate import (
     AGREEMENT_PROBE,
     DEMONSTRATION_LAYOUT_SEED,
     ImitationResult,
@@ -42,6 +38,10 @@ from qnav.training.imitate import (
     greedy_choices,
     held_out_counts,
 )
+from qnav.lab.oracle import OracleDriver
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
+from qnav.sim.world import Observation, WorldState
 
 SECTORS = 72
 """Sectors of the scan the copy sees (nearest return in each, 5 degrees wide)."""

@@ -2,9 +2,9 @@
 
 RL hears that an action was doomed only through a collision many steps later, under a re-drawn
 target and obstacles. This probe removes all of that: the paper's network is trained by plain
-supervision on the planner's per-action doom labels (is each first action doomed, `sim.oracle`)
+supervision on the planner's per-action doom labels (is each first action doomed, `lab.oracle`)
 of windows from planner and go-to-target episodes, then judged on the gauge's held-out decisive
-states (`sim.decisive`). If it cannot pick safe actions there, no replay scheme or loss
+states (`lab.decisive`). If it cannot pick safe actions there, no replay scheme or loss
 weighting on top of RL will teach the same network from the same amount of experience: the
 limit is perception. `qnav probe` runs it.
 
@@ -27,10 +27,10 @@ from qnav.contracts.errors import ConfigError
 from qnav.contracts.observation import TARGET_FEATURES, FrameWindow, distance_scale_m, encode_frame
 from qnav.contracts.policy_file import CONV_CHANNELS
 from qnav.contracts.settings import check_range
+from qnav.lab.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
+from qnav.lab.oracle import PERCEIVED
 from qnav.sim.config import WorldConfig
-from qnav.sim.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
 from qnav.sim.evaluate import WanderingGoToTarget
-from qnav.sim.oracle import PERCEIVED
 from qnav.sim.world import BatchedWorld, WorldState, observe
 from qnav.training.agent import greedy_actions
 from qnav.training.networks import QNetwork, conv_layers, conv_output_length, lstm_last_output

@@ -9,11 +9,9 @@ import pytest
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.observation import distance_scale_m
-from qnav.sim.config import scenario
-from qnav.sim.decisive import GaugeSettings, collect
-from qnav.sim.oracle import PERCEIVED
-from qnav.sim.world import reset
-from qnav.training.probe import (
+from qnav.lab.decisive import GaugeSettings, collect
+from qnav.lab.oracle import PERCEIVED
+from qnav.lab.probe import (
     PerceptionSettings,
     ProbeSettings,
     decisive_only,
@@ -22,6 +20,8 @@ from qnav.training.probe import (
     probe,
     state_features,
 )
+from qnav.sim.config import scenario
+from qnav.sim.world import reset
 from tests.test_cli import _qnav
 
 SMALL_GAUGE = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6)
