@@ -108,12 +108,16 @@ def calibrate(
     """Random, go-to-target and (where obstacles move) oracle and doomed share, per scenario."""
     rows = []
     for name, world in worlds.items():
-        settings = EvalSettings(episodes=episodes, num_worlds=250, seed=seed)
-        random = evaluate(world, RandomAgent(250, seed=seed), settings, progress)
+        # Up to 250 worlds side by side; fewer episodes than that run as many worlds as episodes.
+        worlds_at_once = min(250, episodes)
+        settings = EvalSettings(episodes=episodes, num_worlds=worlds_at_once, seed=seed)
+        random = evaluate(world, RandomAgent(worlds_at_once, seed=seed), settings, progress)
         goto = evaluate(world, GoToTargetAgent(), settings, progress)
         oracle = doomed = None
         if world.obstacles.count and oracle_episodes:
-            planner_settings = replace(settings, episodes=oracle_episodes, num_worlds=50)
+            planner_settings = replace(
+                settings, episodes=oracle_episodes, num_worlds=min(50, oracle_episodes)
+            )
             oracle = run_oracle(world, planner_settings, progress=progress)
             doomed = doomed_at_start(world, planner_settings, progress)
         rows.append(Calibration(name, random, goto, oracle, doomed))
