@@ -32,12 +32,12 @@ from qnav.lab.imitate import (
     AGREEMENT_PROBE,
     DEMONSTRATION_LAYOUT_SEED,
     ImitationResult,
-    ImitationSettings,
     clone,
     fraction_true,
     greedy_choices,
     held_out_counts,
 )
+from qnav.lab.imitation_settings import ImitationSettings
 from qnav.lab.oracle import OracleDriver
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target

@@ -13,6 +13,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from qnav import __version__
 from qnav.contracts.errors import ConfigError, PolicyFileError, PolicyInputError
@@ -94,14 +95,45 @@ def _zenoh_options(parser: argparse.ArgumentParser) -> None:
 
 class _Parser(argparse.ArgumentParser):
     """A verb's parser whose help may end with a listing built only when help is asked for
-    (`listing`: the settings, read from their dataclasses' docstrings)."""
+    (`listing`: the settings, read from their dataclasses' docstrings), and whose options
+    generated from settings dataclasses (`generated`) are added only when the verb runs or
+    shows its help, so `qnav --help` imports no verb's settings."""
 
     listing: Callable[[], str] | None = None
+    generated: list[tuple[str, str, str, frozenset[str]]]
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.generated = []
+
+    def _generate(self) -> None:
+        from qnav.options import add_settings_options
+
+        for target, prefix, title, skip in self.generated:
+            module, name = target.split(":")
+            cls = getattr(importlib.import_module(module), name)
+            add_settings_options(self, cls, prefix, title=title, skip=skip)
+        self.generated = []
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        self._generate()
+        return super().parse_known_args(args, namespace)
 
     def format_help(self) -> str:
+        self._generate()
         if self.listing is not None and self.epilog is None:
             self.epilog = self.listing()
         return super().format_help()
+
+
+def _settings_options(
+    parser: _Parser, target: str, title: str, prefix: str = "", skip: Sequence[str] = ()
+) -> None:
+    """An option per field of the settings dataclass `module:Class` (qnav.options), in a
+    group `title`; `skip` names the fields left to hand-written options."""
+    parser.generated.append((target, prefix, title, frozenset(skip)))
 
 
 def _listing(target: str, intro: str) -> Callable[[], str]:
@@ -207,35 +239,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="with --policy: take a random action with probability P at each step",
     )
-    evaluate.add_argument("--episodes", type=int, default=200, help="test episodes (default 200)")
-    evaluate.add_argument(
-        "--max-steps", type=int, default=500, help="steps before an episode is unfinished (500)"
-    )
-    evaluate.add_argument("--seed", type=int, default=12345, help="seed of the test layouts")
-    evaluate.add_argument("--num-worlds", type=int, default=64, help="worlds stepped together")
+    _settings_options(evaluate, "qnav.sim.evaluate:EvalSettings", "test protocol")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(handler=_lazy("qnav.commands:evaluate"))
 
     train = verbs.add_parser("train", help="train a Q-network (resumes a killed run)")
-    _with_listing(
-        train,
-        "qnav.training.config:TrainSettings",
-        "learner settings (--train-set train.FIELD=VALUE, or a [train] table in --train-config; "
-        "the defaults below, before the preset's own)",
-    )
     _world_options(train)
-    train.add_argument("--model", choices=["recurrent", "feedforward"], help="Q-network kind")
-    train.add_argument("--seed", type=int, help="run seed")
     train.add_argument(
         "--preset",
         default="fast",
         choices=["fast", "paper"],
         help="fast: our schedule for 2 CPU cores (default); paper: the paper's exact schedule",
     )
-    train.add_argument(
-        "--relabel", choices=["paper", "local", "hindsight", "none"], help="target re-drawing"
-    )
-    train.add_argument("--episodes", type=int, help="training episodes")
     train.add_argument(
         "--train-config", type=Path, metavar="FILE", help="TOML file with a [train] table"
     )
@@ -245,7 +260,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="train.FIELD=VALUE",
-        help="change one learner setting (repeatable)",
+        help="change one learner setting (repeatable; as its option below)",
+    )
+    _settings_options(
+        train,
+        "qnav.training.config:TrainSettings",
+        "learner settings (each over the preset, --train-config and --train-set)",
     )
     train.add_argument("--run-dir", type=Path, help="run folder (default runs/SCENARIO/...)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -381,9 +401,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _world_options(imitate, "obstacles-increment")
     imitate.add_argument(
-        "--model", default="recurrent", choices=["recurrent", "feedforward"], help="network"
-    )
-    imitate.add_argument(
         "--privileged",
         action="store_true",
         help="copy with a network given the obstacles' exact positions and velocities instead",
@@ -394,28 +411,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=WINDOW_LENGTH,
         help=f"observations per decision (paper: {WINDOW_LENGTH})",
     )
-    imitate.add_argument("--episodes", type=int, default=2000, help="planner episodes (2000)")
-    imitate.add_argument(
-        "--held-out-episodes", type=int, default=200, help="planner episodes not copied (200)"
+    _settings_options(
+        imitate, "qnav.lab.imitation_settings:ImitationSettings", "imitation settings"
     )
-    imitate.add_argument(
-        "--iterations", type=int, default=3000, help="gradient steps, and per DAgger round (3000)"
-    )
-    imitate.add_argument("--dagger-rounds", type=int, default=0, help="DAgger rounds (0)")
-    imitate.add_argument(
-        "--dagger-episodes", type=int, default=1000, help="episodes per DAgger round (1000)"
-    )
-    imitate.add_argument(
-        "--dodge-weight",
-        type=float,
-        default=1.0,
-        help="loss weight of decisions where the planner does not go to the target (1)",
-    )
-    imitate.add_argument(
-        "--test-episodes", type=int, default=200, help="test protocol episodes (200)"
-    )
-    imitate.add_argument("--seed", type=int, default=0, help="seed (0)")
-    imitate.add_argument("--threads", type=int, default=2, help="torch threads (2)")
     imitate.add_argument("--json", action="store_true", help="print the result as JSON")
     imitate.set_defaults(handler=_lazy("qnav.commands:imitate"))
 

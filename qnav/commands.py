@@ -11,25 +11,23 @@ from typing import TYPE_CHECKING, Any, cast
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import load_toml, parse_assignments, with_overrides
+from qnav.options import settings_from_args
 from qnav.sim.config import WorldConfig, load_world
 from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
 
 if TYPE_CHECKING:
-    from qnav.lab.imitate import ImitationResult, ImitationSettings
+    from qnav.lab.imitate import ImitationResult
+    from qnav.lab.imitation_settings import ImitationSettings
     from qnav.lab.probe import PerceptionSettings
     from qnav.training.study import Engine, RunSpec, StudySettings
 
 
 def evaluate(args: argparse.Namespace) -> int:
     """The paper's test protocol with the random agent or a trained policy."""
-    eval_settings = EvalSettings(
-        episodes=args.episodes,
-        max_episode_steps=args.max_steps,
-        num_worlds=args.num_worlds,
-        seed=args.seed,
-    )
-    worlds = min(args.num_worlds, args.episodes)
+    eval_settings = settings_from_args(EvalSettings(), args)
+    seed = eval_settings.seed
+    worlds = min(eval_settings.num_worlds, eval_settings.episodes)
     agent: Agent
     if args.policy is not None and args.policy.suffix == ".onnx":
         from qnav.controller.policy import Expectation, PolicyRuntime
@@ -45,16 +43,16 @@ def evaluate(args: argparse.Namespace) -> int:
         runtime = PolicyRuntime(
             args.policy, backend=args.backend, num_streams=worlds, expect=expect
         )
-        agent = StreamPolicyAgent(runtime, worlds, args.random_action_prob, seed=args.seed)
+        agent = StreamPolicyAgent(runtime, worlds, args.random_action_prob, seed=seed)
         label = f"policy file {args.policy} ({args.backend})"
     elif args.policy is None:
         world = load_world(args.scenario or "walls-inertia", args.world_config, args.assignments)
         agent, label = (
-            (RandomAgent(worlds, seed=args.seed), "random agent")
+            (RandomAgent(worlds, seed=seed), "random agent")
             if args.agent == "random"
             else (GoToTargetAgent(), "go-to-target baseline")
             if args.agent == "goto"
-            else (RandomAgent(worlds, seed=args.seed), "oracle planner (knows the future)")
+            else (RandomAgent(worlds, seed=seed), "oracle planner (knows the future)")
         )
     else:
         from qnav.training.agent import policy_agent
@@ -73,7 +71,7 @@ def evaluate(args: argparse.Namespace) -> int:
             run.train.window,
             epsilon=args.random_action_prob,
             hold_steps=1,
-            seed=args.seed,
+            seed=seed,
         )
         label = f"{run.train.model} policy {args.policy}"
     planner = args.policy is None and args.agent == "oracle"
@@ -109,7 +107,7 @@ def evaluate(args: argparse.Namespace) -> int:
             tracker=TrackerSettings(),
             lookahead=LookaheadSettings(mode=args.lookahead),
             range_noise_m=args.range_noise_m,
-            seed=args.seed,
+            seed=seed,
         )
         label += f", the controller's look ahead in {args.lookahead} mode"
     if args.random_action_prob:
@@ -138,7 +136,8 @@ def evaluate(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({k: v for k, v in asdict(result).items() if k != "mean_steps"}))
         return 0
-    print(f"{world.name}, {label}, {result.episodes} episodes of up to {args.max_steps} steps")
+    steps = eval_settings.max_episode_steps
+    print(f"{world.name}, {label}, {result.episodes} episodes of up to {steps} steps")
     for name in ("success", "collision", "unfinished"):
         value = getattr(result, name)
         print(f"  {name:<11} {value:.3f} +- {result.standard_error(value):.3f}")
@@ -157,16 +156,7 @@ def train(args: argparse.Namespace) -> int:
     settings = preset(args.preset, world)
     if args.train_config is not None:
         settings = with_overrides(settings, load_toml(args.train_config).get("train", {}))
-    if args.train_assignments:
-        settings = with_overrides(
-            settings, parse_assignments(args.train_assignments).get("train", {})
-        )
-    chosen = {
-        name: getattr(args, name)
-        for name in ("model", "seed", "relabel", "episodes")
-        if getattr(args, name) is not None
-    }
-    settings = replace(settings, **chosen)
+    settings = settings_from_args(settings, args, assignments=args.train_assignments)
     run_dir = args.run_dir or Path("runs") / world.name / (
         f"{settings.model}-seed{settings.seed}-{args.preset}"
         + ("" if settings.relabel == "paper" else f"-{settings.relabel}")
@@ -533,22 +523,11 @@ def _perceive(world: WorldConfig, settings: PerceptionSettings, as_json: bool) -
 
 def imitate(args: argparse.Namespace) -> int:
     """Copy the oracle planner with the learner's network; test the copy."""
-    from qnav.lab.imitate import ImitationSettings
     from qnav.lab.imitate import imitate as measure
+    from qnav.lab.imitation_settings import ImitationSettings
 
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
-    settings = ImitationSettings(
-        model=args.model,
-        episodes=args.episodes,
-        held_out_episodes=args.held_out_episodes,
-        dagger_rounds=args.dagger_rounds,
-        dagger_episodes=args.dagger_episodes,
-        test_episodes=args.test_episodes,
-        iterations=args.iterations,
-        dodge_weight=args.dodge_weight,
-        seed=args.seed,
-        threads=args.threads,
-    )
+    settings = settings_from_args(ImitationSettings(), args)
     if args.privileged:
         from qnav.lab.privileged import imitate_privileged
 

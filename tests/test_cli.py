@@ -137,7 +137,6 @@ def test_every_daemon_prints_its_settings_with_one_spelling_and_reads_them_back(
 @pytest.mark.parametrize(
     ("verb", "target"),
     [
-        ("train", "qnav.training.config:TrainSettings"),
         ("controller", "qnav.controller.config:DaemonConfig"),
         ("bridge", "qnav.firmware_bridge.settings:BridgeSettings"),
         ("fake-vehicle", "qnav.simcar.mavlink_vehicle:MavlinkVehicleSettings"),
