@@ -558,25 +558,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="the Ed25519 private key that signs announcements (qnav keys DIR)",
     )
-    serve.add_argument(
-        "--poll-s", type=float, default=2.0, help="seconds between looks at the sources (2)"
-    )
-    serve.add_argument(
-        "--announce-interval-s",
-        type=float,
-        default=2.0,
-        help="the current announcement is repeated this often, for late cars (2)",
-    )
-    serve.add_argument(
-        "--chunk-bytes", type=int, default=262144, help="chunk size of transfers (262144)"
-    )
-    serve.add_argument(
-        "--export-runs",
-        type=int,
-        default=0,
-        metavar="EPISODES",
-        help="export each training run whose keep-best weights are newer than its policy.onnx, "
-        "testing it over EPISODES episodes (0: serve only exported files; needs torch)",
+    _settings_options(
+        serve,
+        "qnav.serve:ServeSettings",
+        "serving",
+        skip=("sources", "private_key", "zenoh"),
     )
     serve.add_argument(
         "--zenoh-config",
@@ -642,35 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the simulator as the car: scans and poses out on zenoh, motion in over MAVLink",
     )
     _world_options(sim_car, "walls-increment")
-    sim_car.add_argument("--episodes", type=int, default=50, help="episodes to run (50)")
-    sim_car.add_argument("--first-episode", type=int, default=0, help="index of the first")
-    sim_car.add_argument("--seed", type=int, default=12345, help="layout seed (the test seed)")
-    sim_car.add_argument(
-        "--rest-s",
-        type=float,
-        default=0.0,
-        help="after each episode, stay at rest this long (pose and scan still published) before "
-        "the next target (0)",
-    )
-    sim_car.add_argument(
-        "--vehicle",
-        default="udpout:127.0.0.1:14550",
-        help="MAVLink connection of the simulated autopilot (udpout:127.0.0.1:14550, where "
-        "`qnav bridge` listens by default)",
-    )
-    sim_car.add_argument(
-        "--firmware",
-        metavar="CONNECTION",
-        help="a real autopilot's MAVLink port (e.g. SITL's SERIAL0, tcp:127.0.0.1:5760): its own "
-        "pose moves the robot, instead of the test vehicle on --vehicle",
-    )
-    sim_car.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="step the world only once the command decided on the period's scan has reached the "
-        "test vehicle, then move the car one control period under it (the in-process episodes, "
-        "whatever the latency); default: real time",
-    )
+    _settings_options(sim_car, "qnav.simcar.car:SimCarSettings", "sim-car settings")
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
     sim_car.set_defaults(handler=_lazy("qnav.stack:sim_car_verb"))
@@ -812,7 +770,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _study_options(
-    parser: argparse.ArgumentParser,
+    parser: _Parser,
     runs_dir: Path,
     scenarios: str = "obstacles-inertia,walls-inertia,walls-increment,obstacles-increment",
     models: str = "recurrent,feedforward",
@@ -852,34 +810,10 @@ def _study_options(
         help="local: `qnav train` processes on this machine (default); ray: one Ray task per run "
         "(pip install '.[cluster]')",
     )
-    engine.add_argument(
-        "--address",
-        help="with --engine ray: join the cluster whose head is HOST:PORT (default: start a "
-        "local Ray instance on this machine)",
-    )
-    engine.add_argument(
-        "--connect-timeout-s",
-        type=float,
-        default=15.0,
-        help="with --address: how long the head has to answer before the study gives up (15)",
-    )
-    engine.add_argument(
-        "--cpus", type=int, help="with --engine ray and no --address: the local instance's CPUs"
-    )
-    engine.add_argument(
-        "--artifacts",
-        action="store_true",
-        help="workers share no disk: runs train in a scratch folder on their node and their "
-        "files (checkpoint as it goes, results, policy, progress) come back to --runs-dir",
-    )
-    engine.add_argument(
-        "--scratch-dir", help="with --artifacts: the workers' run folder (their temporary one)"
-    )
-    engine.add_argument(
-        "--max-retries",
-        type=int,
-        default=3,
-        help="times a run whose worker died starts again, from its checkpoint (3)",
+    _settings_options(
+        parser,
+        "qnav.training.cluster:ClusterSettings",
+        "Ray settings (with --engine ray)",
     )
 
 

@@ -257,25 +257,19 @@ def _threads(args: argparse.Namespace) -> int | None:
 
 def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | None:
     """The engine a study's options ask for: None for the local runner, else Ray's."""
+    from qnav.options import given_settings
+
     if args.engine == "local":
-        for option in ("address", "cpus", "scratch_dir"):
-            if getattr(args, option) is not None:
-                raise ConfigError(f"--{option.replace('_', '-')} needs --engine ray")
-        if args.artifacts:
-            raise ConfigError("--artifacts needs --engine ray")
+        given = sorted(given_settings(args))
+        if given:
+            options = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise ConfigError(f"{options} {'needs' if len(given) == 1 else 'need'} --engine ray")
         return None
     from qnav.training.cluster import ClusterSettings, RayEngine, parse_address
 
-    if args.address is not None:
-        parse_address(args.address)  # a malformed one is named before anything else
-    settings = ClusterSettings(
-        address=args.address,
-        local_cpus=args.cpus,
-        artifacts=args.artifacts,
-        scratch_dir=args.scratch_dir,
-        max_retries=args.max_retries,
-        connect_timeout_s=args.connect_timeout_s,
-    )
+    settings = settings_from_args(ClusterSettings(), args)
+    if settings.address is not None:
+        parse_address(settings.address)  # a malformed one is named before anything else
     return lambda study: RayEngine(args.runs_dir, study, settings)
 
 

@@ -279,7 +279,7 @@ def run_stack(
     hub = f"tcp/127.0.0.1:{free_port()}"
     mavlink_port = free_port(socket.SOCK_DGRAM)
     sitl = None
-    vehicle_args = ["--vehicle", f"udpin:127.0.0.1:{mavlink_port}"]
+    vehicle_args = ["--vehicle-connection", f"udpin:127.0.0.1:{mavlink_port}"]
     lockstep = lockstep and sitl_binary is None  # the firmware keeps its own time
     if lockstep:
         vehicle_args.append("--lockstep")
@@ -290,7 +290,7 @@ def run_stack(
         sitl = SitlProcess(
             sitl_binary, files.root / "sitl", [SITL_PARAMS, SKID_PARAMS], model="rover-skid"
         )
-        vehicle_args = ["--firmware", sitl.serial0]
+        vehicle_args = ["--firmware-connection", sitl.serial0]
         bridge_values = sitl_bridge_settings(sitl.serial1)
     write_configs(
         files,
@@ -623,22 +623,16 @@ def sim_car_verb(args: argparse.Namespace) -> int:
 
     from qnav.contracts.daemon import stop_on_signals
     from qnav.contracts.transport import ZenohSettings
+    from qnav.options import given_settings, settings_from_args
     from qnav.sim.config import load_world
     from qnav.simcar.car import SimCar, SimCarSettings, summary, write_log
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     world = load_world(args.scenario, args.world_config, args.assignments)
-    settings = SimCarSettings(
-        episodes=args.episodes,
-        first_episode=args.first_episode,
-        seed=args.seed,
-        rest_s=args.rest_s,
-        vehicle_connection=args.vehicle,
-        firmware_connection=args.firmware or "",
-        lockstep=args.lockstep,
+    settings = settings_from_args(SimCarSettings(), args)
+    if settings.firmware_connection and "start_timeout_s" not in given_settings(args):
         # An autopilot boots, finds GPS and arms in tens of seconds.
-        start_timeout_s=180.0 if args.firmware else SimCarSettings().start_timeout_s,
-    )
+        settings = replace(settings, start_timeout_s=180.0)
     zenoh = ZenohSettings(
         listen=tuple(args.listen or ()),
         connect=tuple(args.connect or ()),
