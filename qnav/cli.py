@@ -175,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
     scenarios = verbs.add_parser("scenarios", help="list the built-in scenarios")
-    scenarios.set_defaults(handler=_lazy("qnav.sim.cli:scenarios"))
+    scenarios.set_defaults(handler=_lazy("qnav.verbs.world:scenarios"))
 
     settings = verbs.add_parser(
         "settings", help="print a scenario's world settings as a commented TOML file"
@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     settings.add_argument(
         "--reference", action="store_true", help="print the settings reference (docs/settings.md)"
     )
-    settings.set_defaults(handler=_lazy("qnav.sim.cli:settings"))
+    settings.set_defaults(handler=_lazy("qnav.verbs.world:settings"))
 
     evaluate = verbs.add_parser(
         "eval", help="run the paper's test protocol and print success, collision, unfinished"
@@ -241,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _settings_options(evaluate, "qnav.sim.evaluate:EvalSettings", "test protocol")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
-    evaluate.set_defaults(handler=_lazy("qnav.commands:evaluate"))
+    evaluate.set_defaults(handler=_lazy("qnav.verbs.world:evaluate"))
 
     train = verbs.add_parser("train", help="train a Q-network (resumes a killed run)")
     _world_options(train)
@@ -269,7 +269,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument("--run-dir", type=Path, help="run folder (default runs/SCENARIO/...)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
-    train.set_defaults(handler=_lazy("qnav.commands:train"))
+    train.set_defaults(handler=_lazy("qnav.verbs.learn:train"))
 
     export = verbs.add_parser(
         "export", help="write a run's policy as one ONNX file with its contract, and test it"
@@ -300,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
         "float32 for a run, the file's own for a policy file",
     )
     export.add_argument("--quiet", action="store_true", help="no progress bar")
-    export.set_defaults(handler=_lazy("qnav.commands:export"))
+    export.set_defaults(handler=_lazy("qnav.verbs.learn:export"))
 
     calibrate = verbs.add_parser(
         "calibrate",
@@ -317,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
     calibrate.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate.set_defaults(handler=_lazy("qnav.commands:calibrate"))
+    calibrate.set_defaults(handler=_lazy("qnav.verbs.lab:calibrate"))
 
     render = verbs.add_parser("render", help="draw an episode to PNG and animated GIF")
     _world_options(render, "obstacles-inertia")
@@ -327,14 +327,14 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--max-steps", type=int, default=None, help="cut the episode short")
     render.add_argument("--rays", action="store_true", help="draw the lidar rays")
     render.add_argument("--out", type=Path, default=Path("out/render"), help="output folder")
-    render.set_defaults(handler=_lazy("qnav.sim.cli:render"))
+    render.set_defaults(handler=_lazy("qnav.verbs.world:render"))
 
     figures = verbs.add_parser(
         "figures", help="action maps (paper figure 3) and trajectories (figure 10) of a run"
     )
     figures.add_argument("run", type=Path, help="training run folder")
     figures.add_argument("--out", type=Path, default=Path("docs/img"), help="output folder")
-    figures.set_defaults(handler=_lazy("qnav.commands:figures"))
+    figures.set_defaults(handler=_lazy("qnav.verbs.learn:figures"))
 
     diagnose = verbs.add_parser(
         "diagnose",
@@ -344,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     diagnose.add_argument(
         "--fresh-episodes", type=int, default=64, help="fresh episodes to measure on (64)"
     )
-    diagnose.set_defaults(handler=_lazy("qnav.commands:diagnose"))
+    diagnose.set_defaults(handler=_lazy("qnav.verbs.lab:diagnose"))
 
     gauge = verbs.add_parser(
         "gauge",
@@ -363,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="also score the best choice under each perception error (is doom learnable?)",
     )
     gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
-    gauge.set_defaults(handler=_lazy("qnav.commands:gauge"))
+    gauge.set_defaults(handler=_lazy("qnav.verbs.lab:gauge"))
 
     probe = verbs.add_parser(
         "probe",
@@ -393,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     probe.add_argument("--print-config", action="store_true", help="print the probe settings")
     probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")
-    probe.set_defaults(handler=_lazy("qnav.commands:probe"))
+    probe.set_defaults(handler=_lazy("qnav.verbs.lab:probe"))
 
     imitate = verbs.add_parser(
         "imitate",
@@ -415,7 +415,7 @@ def build_parser() -> argparse.ArgumentParser:
         imitate, "qnav.lab.imitation_settings:ImitationSettings", "imitation settings"
     )
     imitate.add_argument("--json", action="store_true", help="print the result as JSON")
-    imitate.set_defaults(handler=_lazy("qnav.commands:imitate"))
+    imitate.set_defaults(handler=_lazy("qnav.verbs.lab:imitate"))
 
     reproduce = verbs.add_parser(
         "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
@@ -439,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument(
         "--tables-only", action="store_true", help="rewrite the tables from results/, train nothing"
     )
-    reproduce.set_defaults(handler=_lazy("qnav.commands:reproduce"))
+    reproduce.set_defaults(handler=_lazy("qnav.verbs.learn:reproduce"))
 
     sweep = verbs.add_parser(
         "sweep", help="train every point of a settings grid (resumable; locally or on Ray)"
@@ -468,7 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=Path("runs/sweep/results"),
         help="one JSON per run (a run with one is skipped)",
     )
-    sweep.set_defaults(handler=_lazy("qnav.commands:sweep"))
+    sweep.set_defaults(handler=_lazy("qnav.verbs.learn:sweep"))
 
     controller = verbs.add_parser(
         "controller",
@@ -498,7 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="print every setting with its meaning as a TOML file, and exit",
     )
-    controller.set_defaults(handler=_lazy("qnav.controller.daemon:main"))
+    controller.set_defaults(handler=_lazy("qnav.verbs.onboard:controller"))
 
     record = verbs.add_parser(
         "record", help="record the project's zenoh topics to MCAP (ROS 2 profile, CDR)"
@@ -631,7 +631,7 @@ def build_parser() -> argparse.ArgumentParser:
     _settings_options(sim_car, "qnav.simcar.car:SimCarSettings", "sim-car settings")
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
-    sim_car.set_defaults(handler=_lazy("qnav.stack:sim_car_verb"))
+    sim_car.set_defaults(handler=_lazy("qnav.verbs.onboard:sim_car"))
 
     stack = verbs.add_parser(
         "stack",
@@ -691,7 +691,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_MAX_AGE_S,
         help=f"oldest acceptable beat in seconds ({DEFAULT_MAX_AGE_S:g})",
     )
-    health.set_defaults(handler=_lazy("qnav.commands:health"))
+    health.set_defaults(handler=_lazy("qnav.verbs.onboard:health"))
 
     bench = verbs.add_parser("bench", help="benchmarks")
     benches = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
@@ -705,7 +705,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench_sim.add_argument("--no-scaling", action="store_true", help="skip beam/obstacle scaling")
     bench_sim.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_sim.set_defaults(handler=_lazy("qnav.sim.cli:bench"))
+    bench_sim.set_defaults(handler=_lazy("qnav.verbs.bench:bench_sim"))
     bench_learner = benches.add_parser(
         "learner", help="one training iteration's GFLOP/s against the machine's matmul rate"
     )
@@ -716,7 +716,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_learner.add_argument("--repeats", type=int, default=10, help="timed iterations (10)")
     bench_learner.add_argument("--threads", type=int, default=2, help="torch threads (2)")
     bench_learner.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_learner.set_defaults(handler=_lazy("qnav.commands:bench_learner"))
+    bench_learner.set_defaults(handler=_lazy("qnav.verbs.bench:bench_learner"))
     bench_policy = benches.add_parser(
         "policy", help="per-decision latency of the onboard runtime, per backend, one thread"
     )
@@ -735,7 +735,7 @@ def build_parser() -> argparse.ArgumentParser:
         "back, caches warm; 20 or 200: the 50 Hz or 5 Hz case)",
     )
     bench_policy.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_policy.set_defaults(handler=_lazy("qnav.commands:bench_policy"))
+    bench_policy.set_defaults(handler=_lazy("qnav.verbs.bench:bench_policy"))
     bench_lookahead = benches.add_parser(
         "lookahead",
         help="the controller's look ahead per decision: tracker update, shield forecast, plan",
@@ -745,7 +745,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--decisions", type=int, default=2000, help="timed decisions (2000)"
     )
     bench_lookahead.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_lookahead.set_defaults(handler=_lazy("qnav.commands:bench_lookahead"))
+    bench_lookahead.set_defaults(handler=_lazy("qnav.verbs.bench:bench_lookahead"))
     bench_controller = benches.add_parser(
         "controller",
         help="end to end: scan published by one process to command received by another",
@@ -758,13 +758,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--seconds", type=float, default=30.0, help="timed seconds per rate (30)"
     )
     bench_controller.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_controller.set_defaults(handler=_lazy("qnav.commands:bench_controller"))
+    bench_controller.set_defaults(handler=_lazy("qnav.verbs.bench:bench_controller"))
     bench_cluster = benches.add_parser(
         "cluster", help="a small fixed study on 1 Ray worker, then on 2: wall times and ratio"
     )
     bench_cluster.add_argument("--repeats", type=int, default=3, help="timed pairs (3)")
     bench_cluster.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_cluster.set_defaults(handler=_lazy("qnav.training.bench_cluster:bench"))
+    bench_cluster.set_defaults(handler=_lazy("qnav.verbs.bench:bench_cluster"))
     _bench_bridge(benches)
     return parser
 
@@ -861,7 +861,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     bridge.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
-    bridge.set_defaults(handler=_lazy("qnav.firmware_bridge.daemon:run"))
+    bridge.set_defaults(handler=_lazy("qnav.verbs.onboard:bridge"))
 
     calibrate_car = verbs.add_parser(
         "calibrate-car",
@@ -886,7 +886,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
         "--wait-s", type=float, default=60.0, help="wait this long for an armed car (60 s)"
     )
     calibrate_car.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate_car.set_defaults(handler=_lazy("qnav.firmware_bridge.calibrate:run"))
+    calibrate_car.set_defaults(handler=_lazy("qnav.verbs.onboard:calibrate_car"))
 
     vehicle = verbs.add_parser(
         "fake-vehicle", help="a small MAVLink car that behaves like ArduPilot Rover"
@@ -923,7 +923,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     vehicle.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
-    vehicle.set_defaults(handler=_lazy("qnav.simcar.mavlink_vehicle:run"))
+    vehicle.set_defaults(handler=_lazy("qnav.verbs.onboard:fake_vehicle"))
 
 
 def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
@@ -944,7 +944,7 @@ def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
         help="also time a bare zenoh-to-UDP echo process: the floor this machine sets",
     )
     bench.add_argument("--json", action="store_true", help="print one JSON object")
-    bench.set_defaults(handler=_lazy("qnav.firmware_bridge.bench:bench"))
+    bench.set_defaults(handler=_lazy("qnav.verbs.bench:bench_bridge"))
 
 
 ZENOH_DAEMONS = frozenset({"bridge", "controller", "record", "serve", "sim-car"})

@@ -615,37 +615,3 @@ def episode_agreement(
         ended = names.get(Outcome(int(transition.outcome[0])), "unfinished")
         counts["same_outcome"] += ended == entry["outcome"]
     return counts
-
-
-def sim_car_verb(args: argparse.Namespace) -> int:
-    """`qnav sim-car`: the simulator as the car, until its episodes are done or SIGTERM."""
-    import logging
-
-    from qnav.contracts.daemon import stop_on_signals
-    from qnav.contracts.transport import ZenohSettings
-    from qnav.options import given_settings, settings_from_args
-    from qnav.sim.config import load_world
-    from qnav.simcar.car import SimCar, SimCarSettings, summary, write_log
-
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
-    world = load_world(args.scenario, args.world_config, args.assignments)
-    settings = settings_from_args(SimCarSettings(), args)
-    if settings.firmware_connection and "start_timeout_s" not in given_settings(args):
-        # An autopilot boots, finds GPS and arms in tens of seconds.
-        settings = replace(settings, start_timeout_s=180.0)
-    zenoh = ZenohSettings(
-        listen=tuple(args.listen or ()),
-        connect=tuple(args.connect or ()),
-        namespace=args.namespace or "",
-    )
-    car = SimCar(world, settings, zenoh)
-
-    def report(entry: Any) -> None:
-        print(f"episode {entry.episode}: {entry.outcome}, {entry.steps} steps", flush=True)
-
-    with stop_on_signals() as stop:
-        episodes = car.run(stop, progress=report)
-    if args.log:
-        write_log(episodes, args.log)
-    print(json.dumps(summary(episodes)), flush=True)
-    return 0

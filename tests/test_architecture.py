@@ -141,3 +141,9 @@ def test_the_rule_sees_an_eager_import_and_forgives_a_lazy_one(tmp_path: Path) -
         "from qnav import lab\n"
     )
     assert _eager_lab_imports(path) == [2, 7]
+
+
+def test_only_the_shell_parses_command_lines() -> None:
+    # The packages take typed settings; options and their handlers live in qnav/ (qnav.verbs).
+    for package in [*PARTS, "lab"]:
+        assert "argparse" not in _modules(package), package

@@ -90,7 +90,7 @@ def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: igno
 def test_settings_reference_in_docs_is_current() -> None:
     from pathlib import Path
 
-    from qnav.sim.cli import settings_reference
+    from qnav.verbs.world import settings_reference
 
     docs = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
     assert docs.read_text() == settings_reference(), "run `make docs` to regenerate"
