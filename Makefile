@@ -116,7 +116,7 @@ figures: $(STAMP)
 
 # Regenerate the settings reference from the settings classes.
 docs: $(STAMP)
-	$(BIN)/qnav settings --reference > docs/settings.md
+	$(BIN)/qnav scenarios --reference > docs/settings.md
 
 clean:
 	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache out

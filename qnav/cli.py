@@ -20,6 +20,7 @@ from qnav.contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from qnav.contracts.health import DEFAULT_MAX_AGE_S
 from qnav.contracts.observation import WINDOW_LENGTH
 from qnav.contracts.policy_file import WEIGHT_TYPES
+from qnav.options import add_print_config
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -70,7 +71,8 @@ def _world_options(parser: argparse.ArgumentParser, default: str | None = "walls
         "--world-config",
         type=Path,
         metavar="FILE",
-        help="TOML file of world settings applied over the scenario (`qnav settings` writes one)",
+        help="TOML file of world settings applied over the scenario (`qnav eval --print-config` "
+        "writes one)",
     )
     parser.add_argument(
         "--set",
@@ -175,17 +177,12 @@ def build_parser() -> argparse.ArgumentParser:
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
     scenarios = verbs.add_parser("scenarios", help="list the built-in scenarios")
+    scenarios.add_argument(
+        "--reference",
+        action="store_true",
+        help="print the reference of every world setting instead (docs/settings.md)",
+    )
     scenarios.set_defaults(handler=_lazy("qnav.verbs.world:scenarios"))
-
-    settings = verbs.add_parser(
-        "settings", help="print a scenario's world settings as a commented TOML file"
-    )
-    _world_options(settings)
-    settings.add_argument("--markdown", action="store_true", help="print a Markdown table instead")
-    settings.add_argument(
-        "--reference", action="store_true", help="print the settings reference (docs/settings.md)"
-    )
-    settings.set_defaults(handler=_lazy("qnav.verbs.world:settings"))
 
     evaluate = verbs.add_parser(
         "eval", help="run the paper's test protocol and print success, collision, unfinished"
@@ -239,6 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="with --policy: take a random action with probability P at each step",
     )
+    add_print_config(evaluate, markdown=True)
     _settings_options(evaluate, "qnav.sim.evaluate:EvalSettings", "test protocol")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(handler=_lazy("qnav.verbs.world:evaluate"))
@@ -269,6 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument("--run-dir", type=Path, help="run folder (default runs/SCENARIO/...)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_print_config(train)
     train.set_defaults(handler=_lazy("qnav.verbs.learn:train"))
 
     export = verbs.add_parser(
@@ -391,7 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="instead: the onboard obstacle tracker's errors on the perception probe's drive "
         "(settings tracker.FIELD and tracker_check.FIELD)",
     )
-    probe.add_argument("--print-config", action="store_true", help="print the probe settings")
+    add_print_config(probe)
     probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")
     probe.set_defaults(handler=_lazy("qnav.verbs.lab:probe"))
 
@@ -415,6 +414,7 @@ def build_parser() -> argparse.ArgumentParser:
         imitate, "qnav.lab.imitation_settings:ImitationSettings", "imitation settings"
     )
     imitate.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_print_config(imitate)
     imitate.set_defaults(handler=_lazy("qnav.verbs.lab:imitate"))
 
     reproduce = verbs.add_parser(
@@ -493,11 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SECTION.FIELD=VALUE",
         help="change one setting, e.g. --set controller.trigger=scan (repeatable)",
     )
-    controller.add_argument(
-        "--print-config",
-        action="store_true",
-        help="print every setting with its meaning as a TOML file, and exit",
-    )
+    add_print_config(controller)
     controller.set_defaults(handler=_lazy("qnav.verbs.onboard:controller"))
 
     record = verbs.add_parser(
@@ -572,6 +568,7 @@ def build_parser() -> argparse.ArgumentParser:
         "zenoh-server.json5)",
     )
     _zenoh_options(serve)
+    add_print_config(serve)
     serve.set_defaults(handler=_lazy("qnav.serve:serve_verb"))
 
     recover = verbs.add_parser(
@@ -629,6 +626,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _world_options(sim_car, "walls-increment")
     _settings_options(sim_car, "qnav.simcar.car:SimCarSettings", "sim-car settings")
+    add_print_config(sim_car)
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
     sim_car.set_defaults(handler=_lazy("qnav.verbs.onboard:sim_car"))
@@ -855,9 +853,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
         metavar="SECTION.FIELD=VALUE",
         help="change one setting, e.g. --set mavlink.connection=udpin:0.0.0.0:14550",
     )
-    bridge.add_argument(
-        "--print-config", action="store_true", help="print every setting as TOML and exit"
-    )
+    add_print_config(bridge)
     bridge.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
@@ -917,9 +913,7 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     vehicle.add_argument(
         "--pose-period-s", type=float, default=1.0, help="log the pose this often (0: never)"
     )
-    vehicle.add_argument(
-        "--print-config", action="store_true", help="print every setting as TOML and exit"
-    )
+    add_print_config(vehicle)
     vehicle.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )

@@ -14,7 +14,13 @@ import types
 import typing
 from typing import Any, TypeVar
 
-from qnav.contracts.settings import field_docs, parse_assignments, with_overrides
+from qnav.contracts.settings import (
+    field_docs,
+    parse_assignments,
+    to_markdown,
+    to_toml,
+    with_overrides,
+)
 
 T = TypeVar("T")
 
@@ -113,3 +119,26 @@ def settings_from_args(
         base = with_overrides(base, parse_assignments(assignments).get(section, {}), section)
     given = given_settings(args, prefix)
     return with_overrides(base, given, section) if given else base
+
+
+def add_print_config(parser: argparse.ArgumentParser, markdown: bool = False) -> None:
+    """`--print-config`, the one spelling of "show me the settings" (and `--markdown`)."""
+    parser.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the settings this command would run with, as a commented TOML file, and exit",
+    )
+    if markdown:
+        parser.add_argument(
+            "--markdown",
+            action="store_true",
+            help="with --print-config: a Markdown table (setting, value, meaning) instead",
+        )
+
+
+def config_text(*settings: object, markdown: bool = False) -> str:
+    """What `--print-config` prints: each settings object as commented TOML, one with a
+    `SECTION` under its own table (`[train]`), or as Markdown tables."""
+    if markdown:
+        return "\n".join(to_markdown(each) for each in settings)
+    return "\n".join(to_toml(each, getattr(each, "SECTION", "")) for each in settings)

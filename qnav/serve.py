@@ -33,7 +33,7 @@ from qnav.contracts.errors import ConfigError, PolicyFileError
 from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.controller.onnx_file import parse_onnx
-from qnav.options import settings_from_args
+from qnav.options import config_text, settings_from_args
 
 log = logging.getLogger("qnav.serve")
 
@@ -353,6 +353,9 @@ def serve_verb(args: argparse.Namespace) -> int:
         ServeSettings(sources=tuple(args.sources), private_key=args.key, zenoh=zenoh_settings),
         args,
     )
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
     with stop_on_signals(logger=log) as stop:
         run(settings, stop)
     return 0

@@ -78,22 +78,56 @@ def test_bench_lookahead_json_times_each_part_of_the_decision() -> None:
         assert 0 < report[f"{part}_ms_p50"] <= report[f"{part}_ms_p99"]
 
 
-def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    printed = _qnav("settings", "--scenario", "obstacles-increment", "--set", "obstacles.count=2")
+def test_eval_prints_the_world_as_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    printed = _qnav(
+        "eval", "--scenario", "obstacles-increment", "--set", "obstacles.count=2", "--print-config"
+    )
     assert printed.returncode == 0
+    assert "count = 2" in printed.stdout
     path = tmp_path / "world.toml"
     path.write_text(printed.stdout)
     result = _qnav("eval", "--world-config", str(path), "--episodes", "5", "--json")
     assert result.returncode == 0, result.stderr
+    table = _qnav("eval", "--scenario", "obstacles-increment", "--print-config", "--markdown")
+    assert table.stdout.startswith("| setting | value | meaning |")
 
 
 def test_settings_reference_in_docs_is_current() -> None:
-    from pathlib import Path
-
-    from qnav.verbs.world import settings_reference
-
     docs = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
-    assert docs.read_text() == settings_reference(), "run `make docs` to regenerate"
+    printed = _qnav("scenarios", "--reference")
+    assert printed.returncode == 0, printed.stderr
+    assert docs.read_text() == printed.stdout, "run `make docs` to regenerate"
+
+
+def _print_config_argv(verb: str, folder: Path) -> list[str]:
+    """`verb --print-config`, with what the verb needs besides (serve: a source and a key)."""
+    if verb == "serve":
+        key = folder / "key.pem"
+        key.write_text("unused")
+        return [verb, str(folder), "--key", str(key), "--print-config"]
+    return [*verb.split(), "--print-config"]
+
+
+@pytest.mark.parametrize(
+    "verb",
+    [
+        "train",
+        "eval",
+        "controller",
+        "bridge",
+        "fake-vehicle",
+        "sim-car",
+        "serve",
+        "probe",
+        "imitate",
+    ],
+)
+def test_every_verb_with_settings_prints_them_as_toml(verb: str, tmp_path: Path) -> None:
+    import tomllib
+
+    printed = _qnav(*_print_config_argv(verb, tmp_path))
+    assert printed.returncode == 0, printed.stderr
+    assert len(tomllib.loads(printed.stdout)) >= 1
 
 
 @pytest.mark.parametrize(

@@ -9,8 +9,8 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.settings import parse_assignments, to_toml, with_overrides
-from qnav.options import settings_from_args
+from qnav.contracts.settings import parse_assignments, with_overrides
+from qnav.options import config_text, settings_from_args
 from qnav.sim.config import WorldConfig, load_world
 
 if TYPE_CHECKING:
@@ -147,7 +147,7 @@ def probe(args: argparse.Namespace) -> int:
         args.probe_assignments, PerceptionSettings() if args.perception else ProbeSettings()
     )
     if args.print_config:
-        print(to_toml(settings))
+        print(config_text(settings), end="")
         return 0
     world = load_world(args.scenario, args.world_config, args.assignments)
     if not world.obstacles.count:
@@ -192,9 +192,7 @@ def _track(args: argparse.Namespace) -> int:
     check: TrackerCheckSettings
     tracker, check = _probe_set(args.probe_assignments, TrackerSettings(), TrackerCheckSettings())
     if args.print_config:
-        print(
-            f"[{tracker.SECTION}]\n{to_toml(tracker)}\n[{check.SECTION}]\n{to_toml(check)}", end=""
-        )
+        print(config_text(tracker, check), end="")
         return 0
     world = load_world(args.scenario, args.world_config, args.assignments)
     errors = measure_tracker(world, tracker, check, progress=not args.json)
@@ -235,6 +233,9 @@ def imitate(args: argparse.Namespace) -> int:
 
     world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
     settings = settings_from_args(ImitationSettings(), args)
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
     if args.privileged:
         from qnav.lab.privileged import imitate_privileged
 

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import load_toml, with_overrides
-from qnav.options import settings_from_args
+from qnav.options import config_text, settings_from_args
 from qnav.sim.config import WorldConfig, load_world
 from qnav.sim.evaluate import EvalSettings, RandomAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
@@ -29,6 +29,9 @@ def train(args: argparse.Namespace) -> int:
     if args.train_config is not None:
         settings = with_overrides(settings, load_toml(args.train_config).get("train", {}))
     settings = settings_from_args(settings, args, assignments=args.train_assignments)
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
     run_dir = args.run_dir or Path("runs") / world.name / (
         f"{settings.model}-seed{settings.seed}-{args.preset}"
         + ("" if settings.relabel == "paper" else f"-{settings.relabel}")

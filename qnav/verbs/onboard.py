@@ -10,7 +10,7 @@ import sys
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from qnav.contracts.settings import to_toml
+from qnav.options import config_text
 
 if TYPE_CHECKING:
     from qnav.firmware_bridge.settings import BridgeSettings
@@ -55,7 +55,7 @@ def bridge(args: argparse.Namespace) -> int:
 
     settings = _bridge_settings(args)
     if args.print_config:
-        print(to_toml(settings), end="")
+        print(config_text(settings), end="")
         return 0
     logging.basicConfig(level=getattr(logging, args.log_level.upper()), format=LOG_FORMAT)
     serve(settings)
@@ -105,7 +105,7 @@ def fake_vehicle(args: argparse.Namespace) -> int:
         assignments.append(f'signing_key_file="{args.signing_key_file}"')
     settings = load_vehicle_settings(args.config, assignments)
     if args.print_config:
-        sys.stdout.write(to_toml(settings))
+        print(config_text(settings), end="")
         return 0
     logging.basicConfig(level=getattr(logging, args.log_level.upper()), format=LOG_FORMAT)
     serve(settings, args.pose_period_s)
@@ -126,6 +126,9 @@ def sim_car(args: argparse.Namespace) -> int:
     if settings.firmware_connection and "start_timeout_s" not in given_settings(args):
         # An autopilot boots, finds GPS and arms in tens of seconds.
         settings = replace(settings, start_timeout_s=180.0)
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
     zenoh = ZenohSettings(
         listen=tuple(args.listen or ()),
         connect=tuple(args.connect or ()),

@@ -10,8 +10,8 @@ from typing import cast
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import IncrementDynamics
-from qnav.contracts.settings import to_markdown, to_toml
-from qnav.options import settings_from_args
+from qnav.contracts.settings import to_markdown
+from qnav.options import config_text, settings_from_args
 from qnav.sim.config import SCENARIOS, WorldConfig, load_world, scenario
 from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
@@ -22,22 +22,15 @@ def _world(args: argparse.Namespace) -> WorldConfig:
 
 
 def scenarios(args: argparse.Namespace) -> int:
-    """Print one line per built-in scenario."""
+    """Print one line per built-in scenario, or (--reference) every world setting."""
+    if args.reference:
+        sys.stdout.write(settings_reference())
+        return 0
     print(f"{'scenario':<22} {'dynamics':<10} {'obstacles':>9} {'lidar':>6}")
     for name, config in SCENARIOS.items():
         dynamics = "increment" if isinstance(config.dynamics, IncrementDynamics) else "inertia"
         lidar = str(config.lidar.num_beams) if config.lidar else "none"
         print(f"{name:<22} {dynamics:<10} {config.obstacles.count:>9} {lidar:>6}")
-    return 0
-
-
-def settings(args: argparse.Namespace) -> int:
-    """Print the world settings as a commented TOML file (or a Markdown table)."""
-    if args.reference:
-        sys.stdout.write(settings_reference())
-        return 0
-    world = _world(args)
-    sys.stdout.write(to_markdown(world) if args.markdown else to_toml(world))
     return 0
 
 
@@ -53,8 +46,8 @@ def settings_reference() -> str:
             "The other scenarios differ only in `name`, `obstacles.count` (0 in the walls-only",
             "scenarios), `dynamics` (below) and `lidar` (none in the `toycar-*` variants).",
             "Print any scenario's settings as a commented TOML file with",
-            "`qnav settings --scenario NAME`, edit it and pass it back with `--world-config FILE`,",
-            "or change one value with `--set section.field=value`.",
+            "`qnav eval --scenario NAME --print-config`, edit it and pass it back with",
+            "`--world-config FILE`, or change one value with `--set section.field=value`.",
             "",
             "Generated from the settings classes by `make docs`; a test fails when it is stale.",
             "",
@@ -119,6 +112,9 @@ def evaluate(args: argparse.Namespace) -> int:
             seed=seed,
         )
         label = f"{run.train.model} policy {args.policy}"
+    if args.print_config:
+        print(config_text(world, markdown=args.markdown), end="")
+        return 0
     planner = args.policy is None and args.agent == "oracle"
     if args.state_error and not planner:
         raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
