@@ -1,6 +1,6 @@
 """How well can the Q-network copy the oracle planner? A behaviour-cloning ceiling.
 
-`qnav imitate --scenario S` collects episodes driven by the planner that knows the obstacles'
+`qnav lab imitate --scenario S` collects episodes driven by the planner that knows the obstacles'
 future (`lab.oracle.OracleDriver`), trains the learner's own network (recurrent or feedforward,
 the paper's sizes) to pick the planner's action from the same windows of k observations the
 policy sees (cross-entropy on its three outputs as logits), and runs the clone under the test

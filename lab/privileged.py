@@ -1,6 +1,6 @@
 """A copy of the oracle planner that is given the world's state instead of reading it from scans.
 
-`qnav imitate --privileged` asks where the copies of `lab.imitate` lose the planner: in
+`qnav lab imitate --privileged` asks where the copies of `lab.imitate` lose the planner: in
 reading the obstacles' positions and motion from five scans, or in the policy itself. Its copy
 sees, at every step, the target features, the robot's velocity, the scan's nearest return in
 each of 72 sectors (the walls) and, for every obstacle, its exact position and velocity in the

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import logging
 import os
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,17 +27,44 @@ from qnav.options import add_print_config
 Handler = Callable[[argparse.Namespace], int]
 
 
-EXTRAS = {
-    "torch": "train",
-    "onnx": "train",
-    "onnxscript": "train",
-    "matplotlib": "viz",
-    "PIL": "viz",
-    "ray": "cluster",
-    "stable_baselines3": "dev",
+EXTRA_MODULES = {
+    "train": ("torch", "onnx", "onnxscript", "matplotlib"),
+    "viz": ("matplotlib", "PIL"),
+    "cluster": ("ray",),
+    "dev": ("stable_baselines3",),
 }
-"""The optional packages a verb may need, and the extra of `pyproject.toml` that installs each;
-the base install is the car's (no torch, no plotting)."""
+"""The extras of `pyproject.toml` and the packages each brings; the base install is the car's
+(no torch, no plotting)."""
+
+VERB_EXTRAS = {
+    "train": ("train",),
+    "export": ("train",),
+    "reproduce": ("train",),
+    "sweep": ("train",),
+    "figures": ("train",),
+    "render": ("viz",),
+    "bench learner": ("train",),
+    "bench cluster": ("train", "cluster"),
+    "lab diagnose": ("train",),
+    "lab probe": ("train",),
+    "lab imitate": ("train",),
+}
+"""The verbs that cannot run without an extra: `qnav --help` marks them where it is missing, and
+they stop with one line naming it. (A verb that needs one only with some options, such as
+`eval --policy RUN`, names it when the import fails.)"""
+
+
+def missing_extras(verb: str) -> list[str]:
+    """The extras `verb` needs that this install lacks (found without importing anything)."""
+    return [
+        extra
+        for extra in VERB_EXTRAS.get(verb, ())
+        if any(importlib.util.find_spec(module) is None for module in EXTRA_MODULES[extra])
+    ]
+
+
+def _needs(extras: list[str]) -> str:
+    return ", ".join(f"qnav[{extra}]" for extra in extras)
 
 
 def _lazy(target: str) -> Handler:
@@ -49,9 +78,9 @@ def _lazy(target: str) -> Handler:
             return handler(args)
         except ModuleNotFoundError as error:
             package = (error.name or "").split(".")[0]
-            if package not in EXTRAS:
+            extra = next((e for e, names in EXTRA_MODULES.items() if package in names), None)
+            if extra is None:
                 raise
-            extra = EXTRAS[package]
             raise ConfigError(
                 f"this needs {package}, which this install leaves out (the base install is the "
                 f"car's): pip install 'qnav[{extra}]'"
@@ -175,6 +204,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"qnav {__version__}")
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
+
+    lab = verbs.add_parser(
+        "lab",
+        help="the research tools of lab/: calibrate, diagnose, gauge, probe, imitate "
+        "(`qnav lab TOOL --help`)",
+    )
+    tools = lab.add_subparsers(dest="tool", metavar="TOOL", required=True, parser_class=_Parser)
 
     scenarios = verbs.add_parser("scenarios", help="list the built-in scenarios")
     scenarios.add_argument(
@@ -301,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--quiet", action="store_true", help="no progress bar")
     export.set_defaults(handler=_lazy("qnav.verbs.learn:export"))
 
-    calibrate = verbs.add_parser(
+    calibrate = tools.add_parser(
         "calibrate",
         help="random, go-to-target and oracle agents in the paper's scenarios, beside its rows",
     )
@@ -335,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     figures.add_argument("--out", type=Path, default=Path("docs/img"), help="output folder")
     figures.set_defaults(handler=_lazy("qnav.verbs.learn:figures"))
 
-    diagnose = verbs.add_parser(
+    diagnose = tools.add_parser(
         "diagnose",
         help="why a run learns or not: generalisation gap, target sensitivity, action mix",
     )
@@ -345,7 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     diagnose.set_defaults(handler=_lazy("qnav.verbs.lab:diagnose"))
 
-    gauge = verbs.add_parser(
+    gauge = tools.add_parser(
         "gauge",
         help="decisive-state gauge: how often a policy avoids a doomed action where it matters",
     )
@@ -364,7 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
     gauge.set_defaults(handler=_lazy("qnav.verbs.lab:gauge"))
 
-    probe = verbs.add_parser(
+    probe = tools.add_parser(
         "probe",
         help="perception ceiling: the Q-network fitted to the planner's doom labels, on the gauge",
     )
@@ -376,7 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="probe.FIELD=VALUE",
         help="change one probe setting, e.g. probe.epochs=20 or, with --perception, "
-        "perception.epochs=20 (repeatable; `qnav probe [--perception] --print-config` lists them)",
+        "perception.epochs=20 (repeatable; `qnav lab probe [--perception] --print-config` lists "
+        "them)",
     )
     probe.add_argument(
         "--perception",
@@ -394,7 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
     probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")
     probe.set_defaults(handler=_lazy("qnav.verbs.lab:probe"))
 
-    imitate = verbs.add_parser(
+    imitate = tools.add_parser(
         "imitate",
         help="behaviour-cloning ceiling: train the network to copy the oracle planner, test it",
     )
@@ -764,7 +801,58 @@ def build_parser() -> argparse.ArgumentParser:
     bench_cluster.add_argument("--json", action="store_true", help="print one JSON object")
     bench_cluster.set_defaults(handler=_lazy("qnav.verbs.bench:bench_cluster"))
     _bench_bridge(benches)
+    for prefix, group in (("", verbs), ("lab ", tools), ("bench ", benches)):
+        _mark_extras(group, prefix)
+    _list_verbs(parser, verbs)
     return parser
+
+
+VERB_GROUPS = {
+    "simulate, learn, test": (
+        "scenarios", "eval", "train", "export", "render", "figures", "reproduce", "sweep",
+    ),
+    "on the car": (
+        "controller", "bridge", "calibrate-car", "fake-vehicle", "sim-car", "stack", "record",
+        "playback", "recover", "health",
+    ),
+    "deliver policies": ("serve", "keys", "certs"),
+    "measure": ("bench",),
+    "research (lab/, apart from the product)": ("lab",),
+}  # fmt: skip
+"""How `qnav --help` groups the verbs."""
+
+
+def _mark_extras(verbs: argparse._SubParsersAction[_Parser], prefix: str) -> None:
+    """Each verb's help line ends with the extras it needs that this install lacks."""
+    for action in verbs._choices_actions:
+        missing = missing_extras(prefix + action.dest)
+        if missing:
+            action.help = f"{action.help} (needs {_needs(missing)})"
+
+
+def _list_verbs(
+    parser: argparse.ArgumentParser, verbs: argparse._SubParsersAction[_Parser]
+) -> None:
+    """`qnav --help` lists the verbs by group (VERB_GROUPS) instead of in one block."""
+    helps = {action.dest: action.help or "" for action in verbs._choices_actions}
+    grouped = [name for names in VERB_GROUPS.values() for name in names]
+    groups = {**VERB_GROUPS, "other": tuple(name for name in helps if name not in grouped)}
+    lines: list[str] = []
+    for title, names in groups.items():
+        if names:
+            lines += ["", f"{title}:"] if lines else [f"{title}:"]
+            for name in names:
+                lines += textwrap.wrap(
+                    helps[name],
+                    100,
+                    initial_indent=f"  {name:<15}",
+                    subsequent_indent=" " * 17,
+                    break_on_hyphens=False,
+                )
+    verbs._choices_actions.clear()
+    verbs.help = "a verb below; `qnav VERB --help` shows its options"
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = "\n".join(lines)
 
 
 def _study_options(
@@ -945,16 +1033,32 @@ ZENOH_DAEMONS = frozenset({"bridge", "controller", "record", "serve", "sim-car"}
 """Verbs that run a zenoh session until a signal stops them."""
 
 
+def verb_of(args: argparse.Namespace) -> str:
+    """The verb as typed: `train`, `lab probe`, `bench learner`."""
+    sub = getattr(args, "tool", None) or getattr(args, "bench", None)
+    return f"{args.verb} {sub}" if sub else str(args.verb)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one verb and return its exit status (what tests call in-process)."""
     args = build_parser().parse_args(argv)
+    verb = verb_of(args)
+    missing = missing_extras(verb)
+    if missing:
+        install = " ".join(f"'qnav[{extra}]'" for extra in missing)
+        print(
+            f"qnav {verb}: needs {_needs(missing)}, which this install leaves out (the base "
+            f"install is the car's): pip install {install}",
+            file=sys.stderr,
+        )
+        return 2
     try:
         return int(args.handler(args))
     except (ConfigError, PolicyFileError, PolicyInputError) as error:
-        print(f"qnav {args.verb}: {error}", file=sys.stderr)
+        print(f"qnav {verb}: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"qnav {args.verb}: interrupted", file=sys.stderr)
+        print(f"qnav {verb}: interrupted", file=sys.stderr)
         return 130
 
 
