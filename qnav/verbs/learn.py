@@ -101,19 +101,9 @@ def reproduce(args: argparse.Namespace) -> int:
     """Run the study's missing runs, then write docs/results.md."""
     from qnav.sim import paper
     from qnav.sim.config import scenario
-    from qnav.training.study import (
-        MODELS,
-        SCENARIOS,
-        ablation_plan,
-        parse_choices,
-        parse_seeds,
-        plan,
-        results_markdown,
-    )
+    from qnav.training.study import ablation_plan, parse_seeds, plan, results_markdown
 
-    seeds = parse_seeds(args.seeds)
-    scenarios = parse_choices("--scenarios", args.scenarios, SCENARIOS)
-    models = parse_choices("--models", args.models, MODELS)
+    scenarios, models, seeds = _study_axes(args)
     specs = plan(scenarios, models, seeds)
     if args.ablation:
         ablation_seeds = parse_seeds(args.ablation_seeds, "--ablation-seeds")
@@ -133,6 +123,19 @@ def reproduce(args: argparse.Namespace) -> int:
     args.docs.write_text(results_markdown(args.results_dir, random_rows))
     print(f"wrote {args.docs}")
     return 0
+
+
+def _study_axes(
+    args: argparse.Namespace,
+) -> tuple[tuple[str, ...], tuple[str, ...], tuple[int, ...]]:
+    """The scenarios, models and seeds a study's options name (`reproduce` and `sweep`)."""
+    from qnav.training.study import MODELS, SCENARIOS, parse_choices, parse_seeds
+
+    return (
+        parse_choices("--scenarios", args.scenarios, SCENARIOS),
+        parse_choices("--models", args.models, MODELS),
+        parse_seeds(args.seeds),
+    )
 
 
 def _run_study(
@@ -184,21 +187,10 @@ def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | Non
 
 def sweep(args: argparse.Namespace) -> int:
     """Train every point of a settings grid, then print each run's test figures."""
-    from qnav.training.study import (
-        MODELS,
-        SCENARIOS,
-        parse_choices,
-        parse_grid,
-        parse_seeds,
-        sweep_plan,
-        sweep_table,
-    )
+    from qnav.training.study import parse_grid, sweep_plan, sweep_table
 
     grid = parse_grid(args.grid)
-    scenarios = parse_choices("--scenarios", args.scenarios, SCENARIOS)
-    specs = sweep_plan(
-        scenarios, parse_choices("--models", args.models, MODELS), parse_seeds(args.seeds), grid
-    )
+    specs = sweep_plan(*_study_axes(args), grid)
     _run_study(args, specs, common=tuple(args.common))
     print(sweep_table(specs, args.results_dir))
     return 0
