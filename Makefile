@@ -101,7 +101,7 @@ bench-bridge: $(STAMP)
 	$(BIN)/qnav bench bridge --baseline
 
 calibrate: $(STAMP)
-	$(BIN)/qnav calibrate
+	$(BIN)/qnav lab calibrate
 
 # The paper's figures 3 (action maps early and late) and 10 (trajectories, the lidar-less toy car
 # too) into docs/img: two short trainings with snapshots, about 15 minutes on 2 cores.
@@ -116,7 +116,7 @@ figures: $(STAMP)
 
 # Regenerate the settings reference from the settings classes.
 docs: $(STAMP)
-	$(BIN)/qnav settings --reference > docs/settings.md
+	$(BIN)/qnav scenarios --reference > docs/settings.md
 
 clean:
 	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache out

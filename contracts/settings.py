@@ -14,7 +14,7 @@ import textwrap
 import tomllib
 import types
 import typing
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, TypeVar
 
 from qnav.contracts.errors import ConfigError
@@ -218,9 +218,10 @@ def _deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
     return merged
 
 
-def to_toml(settings: object) -> str:
-    """Settings as a TOML document with each field's documentation as a comment above it."""
-    return "\n".join(_toml_section(settings, "")).lstrip() + "\n"
+def to_toml(settings: object, section: str = "") -> str:
+    """Settings as a TOML document with each field's documentation as a comment above it; with
+    `section`, under that table (`[train]`), its nested sections under `[train.NAME]`."""
+    return "\n".join(_toml_section(settings, section)).lstrip() + "\n"
 
 
 def _is_settings(value: object) -> bool:
@@ -253,6 +254,8 @@ def _toml_value(value: Any) -> str:
         return "true" if value else "false"
     if isinstance(value, int | float):
         return repr(value)
+    if isinstance(value, PurePath):
+        value = str(value)
     if isinstance(value, str):
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(value, list | tuple):

@@ -11,7 +11,6 @@ decision pays for what the gap evicted, as the daemon does between scans.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -119,10 +118,6 @@ def format_report(report: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description="time one backend (used by `qnav bench policy`)")
-    parser.add_argument("policy", type=Path)
-    parser.add_argument("backend")
-    parser.add_argument("decisions", type=int)
-    parser.add_argument("gap_s", type=float)
-    args = parser.parse_args()
-    print(json.dumps(time_decisions(args.policy, args.backend, args.decisions, 200, args.gap_s)))
+    # The child `run` starts: policy, backend, decisions, gap_s (no user types these).
+    policy, backend, decisions, gap_s = sys.argv[1:]
+    print(json.dumps(time_decisions(Path(policy), backend, int(decisions), 200, float(gap_s))))

@@ -21,7 +21,6 @@ receiver's callback).
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import platform
@@ -274,10 +273,6 @@ def format_report(report: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description="publisher of `qnav bench controller`")
-    parser.add_argument("endpoint")
-    parser.add_argument("rate", type=float)
-    parser.add_argument("count", type=int)
-    parser.add_argument("beams", type=int)
-    args = parser.parse_args()
-    print(publish(args.endpoint, args.rate, args.count, args.beams))
+    # The publisher process `run` starts: endpoint, rate, count, beams (no user types these).
+    endpoint, rate, count, beams = sys.argv[1:]
+    print(publish(endpoint, float(rate), int(count), int(beams)))

@@ -19,16 +19,13 @@ the session is closed, and no decision is published after it.
 
 from __future__ import annotations
 
-import argparse
 import gc
 import logging
-import sys
 import tempfile
 import textwrap
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +37,7 @@ from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.settings import to_toml
 from qnav.contracts.transport import StoppedError, open_session
 from qnav.contracts.wire import Twist2D
-from qnav.controller.config import DaemonConfig, load_config
+from qnav.controller.config import DaemonConfig
 from qnav.controller.decision import Controller, Input, Output, Reason
 from qnav.controller.delivery import Candidate, PolicyFetcher
 from qnav.controller.policy import PolicyRuntime
@@ -369,23 +366,6 @@ def serve(daemon: Daemon) -> None:
         daemon.run()
 
 
-def main(args: argparse.Namespace) -> int:
-    """Handler of `qnav controller`."""
-    if args.print_config:
-        sys.stdout.write(commented_config())
-        return 0
-    config = load_config(args.config, args.assignments)
-    if args.policy is not None:
-        config = replace(config, controller=replace(config.controller, policy=str(args.policy)))
-    logging.basicConfig(
-        level=config.controller.log_level.upper(),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        stream=sys.stderr,
-    )
-    serve(build(config))
-    return 0
-
-
 def commented_config() -> str:
     """Every setting with its meaning, as a TOML file (`config/controller.toml`)."""
     header = (
@@ -400,12 +380,3 @@ def commented_config() -> str:
         else:
             lines.append(line)
     return header + "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":  # pragma: no cover - `qnav controller` is the entry point
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--config", type=Path)
-    parser.add_argument("--policy", type=Path)
-    parser.add_argument("--set", dest="assignments", action="append", default=[])
-    parser.add_argument("--print-config", action="store_true")
-    sys.exit(main(parser.parse_args()))

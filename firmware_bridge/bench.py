@@ -12,8 +12,6 @@ arriving, to be compared with `failsafe.command_timeout_s` + 50 ms.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import signal
 import socket
@@ -23,8 +21,9 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -135,19 +134,75 @@ def _commands(count: int) -> list[Twist2D]:
     return [Twist2D(0.1 + 0.05 * (i % 9), 0.1 * ((i % 5) - 2) + 0.05) for i in range(count)]
 
 
-def bench(args: argparse.Namespace) -> int:
-    """Run the benchmark and print its figures."""
-    if args.commands < 1 or args.stops < 1:
+@dataclass(frozen=True)
+class BridgeBench:
+    """What `measure` timed: commands through the bridge, its failsafe stops, and the floor."""
+
+    output: str
+    """The bridge's output mode (manual or guided)."""
+    timeout_s: float
+    """failsafe.command_timeout_s of the bridge measured."""
+    latencies_ms: tuple[float, ...]
+    """Each command's time from zenoh publish to its MAVLink message at the vehicle."""
+    stops_ms: tuple[float, ...]
+    """Each failsafe stop's time from the last command to the stop at the vehicle."""
+    floor_ms: tuple[float, ...] = ()
+    """Round trips through a bare zenoh-to-UDP echo process (empty: not measured)."""
+
+    def report(self) -> dict[str, float]:
+        """The figures as one JSON-friendly object."""
+        report = {
+            "p50_ms": round(float(np.percentile(self.latencies_ms, 50)), 4),
+            "p99_ms": round(float(np.percentile(self.latencies_ms, 99)), 4),
+            "failsafe_stop_ms": round(max(self.stops_ms), 2),
+        }
+        if self.floor_ms:
+            report["baseline_p50_ms"] = round(float(np.percentile(self.floor_ms, 50)), 4)
+            report["baseline_p99_ms"] = round(float(np.percentile(self.floor_ms, 99)), 4)
+        return report
+
+    def text(self) -> str:
+        """The figures as lines for a person, beside their goals."""
+        report = self.report()
+        timeout_ms = self.timeout_s * 1000
+        lines = [
+            f"bridge ({self.output} output), {len(self.latencies_ms)} commands, "
+            "zenoh -> MAVLink on UDP:",
+            f"  latency p50 {report['p50_ms']:.3f} ms, p99 {report['p99_ms']:.3f} ms, "
+            f"max {max(self.latencies_ms):.3f} ms (goal: p99 <= 2 ms)",
+            f"  failsafe: first stop {', '.join(f'{s:.1f}' for s in self.stops_ms)} ms after the "
+            f"last command (timeout {timeout_ms:.0f} ms; goal <= {timeout_ms + 50:.0f} ms)",
+        ]
+        if self.floor_ms:
+            lines.append(
+                f"  floor on this machine now (a bare zenoh subscriber echoing to UDP): "
+                f"p50 {report['baseline_p50_ms']:.3f} ms, p99 {report['baseline_p99_ms']:.3f} ms"
+            )
+        return "\n".join(lines)
+
+
+def measure(
+    *,
+    commands: int = 1000,
+    stops: int = 5,
+    output: Literal["manual", "guided"] = "manual",
+    timeout_s: float = 0.5,
+    baseline: bool = False,
+) -> BridgeBench:
+    """Time `commands` commands through a `qnav bridge` process and `stops` failsafe stops
+    (its output mode and failsafe.command_timeout_s as given); with `baseline`, also a bare
+    zenoh-to-UDP echo process."""
+    if commands < 1 or stops < 1:
         raise ConfigError("qnav bench bridge needs --commands and --stops of at least 1")
     zenoh_port, mavlink_port = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
     settings = BridgeSettings(
         zenoh=ZenohSettings(connect=(f"tcp/127.0.0.1:{zenoh_port}",)),
         mavlink=MavlinkSettings(connection=f"udpout:127.0.0.1:{mavlink_port}"),
-        output=OutputSettings(mode=args.output),
-        failsafe=FailsafeSettings(command_timeout_s=args.timeout_s, disarm_on_exit=False),
+        output=OutputSettings(mode=output),
+        failsafe=FailsafeSettings(command_timeout_s=timeout_s, disarm_on_exit=False),
         vehicle=VehicleSettings(set_mode_on_connect=False),
     )
-    mode = ROVER_MODES["GUIDED" if args.output == "guided" else "MANUAL"]
+    mode = ROVER_MODES["GUIDED" if output == "guided" else "MANUAL"]
     vehicle = _FakeAutopilot(mavlink_port, mode)
     with (
         tempfile.TemporaryDirectory() as folder,
@@ -160,53 +215,38 @@ def bench(args: argparse.Namespace) -> int:
         states = zenoh.declare_subscriber(key(VEHICLE_STATE), lambda sample: joined.set())
         bridge = _spawn("qnav", "bridge", "--config", str(config), "--log-level", "warning")
         try:
-            latencies_ms, stops_ms = _measure(args, settings, vehicle, publisher, joined)
+            latencies_ms, stops_ms = _measure(
+                settings,
+                vehicle,
+                publisher,
+                joined,
+                commands=commands,
+                stops=stops,
+                timeout_s=timeout_s,
+            )
         finally:
             _terminate(bridge)
             states.undeclare()
         floor_ms: list[float] = []
-        if args.baseline:
+        if baseline:
             echo = _spawn("qnav.firmware_bridge.bench", "echo", str(zenoh_port), str(mavlink_port))
             try:
-                floor_ms = _measure_echo(args.commands, vehicle, zenoh.declare_publisher(ECHO_KEY))
+                floor_ms = _measure_echo(commands, vehicle, zenoh.declare_publisher(ECHO_KEY))
             finally:
                 _terminate(echo)
         vehicle.socket.close()
-    report = {
-        "p50_ms": round(float(np.percentile(latencies_ms, 50)), 4),
-        "p99_ms": round(float(np.percentile(latencies_ms, 99)), 4),
-        "failsafe_stop_ms": round(max(stops_ms), 2),
-    }
-    if floor_ms:
-        report["baseline_p50_ms"] = round(float(np.percentile(floor_ms, 50)), 4)
-        report["baseline_p99_ms"] = round(float(np.percentile(floor_ms, 99)), 4)
-    if args.json:
-        print(json.dumps(report))
-        return 0
-    timeout_ms = args.timeout_s * 1000
-    print(f"bridge ({args.output} output), {len(latencies_ms)} commands, zenoh -> MAVLink on UDP:")
-    print(
-        f"  latency p50 {report['p50_ms']:.3f} ms, p99 {report['p99_ms']:.3f} ms, "
-        f"max {max(latencies_ms):.3f} ms (goal: p99 <= 2 ms)"
-    )
-    print(
-        f"  failsafe: first stop {', '.join(f'{s:.1f}' for s in stops_ms)} ms after the last "
-        f"command (timeout {timeout_ms:.0f} ms; goal <= {timeout_ms + 50:.0f} ms)"
-    )
-    if floor_ms:
-        print(
-            f"  floor on this machine now (a bare zenoh subscriber echoing to UDP): "
-            f"p50 {report['baseline_p50_ms']:.3f} ms, p99 {report['baseline_p99_ms']:.3f} ms"
-        )
-    return 0
+    return BridgeBench(output, timeout_s, tuple(latencies_ms), tuple(stops_ms), tuple(floor_ms))
 
 
 def _measure(
-    args: argparse.Namespace,
     settings: BridgeSettings,
     vehicle: _FakeAutopilot,
     publisher: Any,
     joined: threading.Event,
+    *,
+    commands: int,
+    stops: int,
+    timeout_s: float,
 ) -> tuple[list[float], list[float]]:
     stop = _matcher(settings, STOP)
     # The vehicle side runs before zenoh is joined (stops flow without it): wait for both.
@@ -221,7 +261,7 @@ def _measure(
     time.sleep(0.2)  # let zenoh finish declaring the bridge's subscriber to us
     latencies_ms: list[float] = []
     warmup = 20
-    for i, twist in enumerate(_commands(args.commands + warmup)):
+    for i, twist in enumerate(_commands(commands + warmup)):
         vehicle.heartbeat_if_due()
         payload = encode_twist_msg(twist)
         sent_ns = time.perf_counter_ns()
@@ -231,11 +271,11 @@ def _measure(
             latencies_ms.append((arrived_ns - sent_ns) / 1e6)
         time.sleep(COMMAND_GAP_S)
     stops_ms: list[float] = []
-    for twist in _commands(args.stops):
+    for twist in _commands(stops):
         sent_ns = time.perf_counter_ns()
         publisher.put(encode_twist_msg(twist))
         vehicle.wait_for(_matcher(settings, twist), 2.0)
-        arrived_ns = vehicle.wait_for(stop, args.timeout_s + 2.0)
+        arrived_ns = vehicle.wait_for(stop, timeout_s + 2.0)
         stops_ms.append((arrived_ns - sent_ns) / 1e6)
     return latencies_ms, stops_ms
 

@@ -17,17 +17,14 @@ into the bridge's configuration.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import sys
 import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from qnav.contracts.settings import parse_assignments, with_overrides
+from qnav.contracts.errors import ConfigError
 from qnav.contracts.transport import open_session
 from qnav.contracts.wire import (
     COMMAND,
@@ -37,7 +34,7 @@ from qnav.contracts.wire import (
     encode_twist_msg,
     key,
 )
-from qnav.firmware_bridge.settings import BridgeSettings, load_settings
+from qnav.firmware_bridge.settings import BridgeSettings
 
 COMMAND_PERIOD_S = 0.1
 """Commands go out at 10 Hz, as a controller's would."""
@@ -222,40 +219,20 @@ class Calibrator:
         }
 
 
-def run(args: argparse.Namespace) -> int:
-    """`qnav calibrate-car`."""
-    settings = load_settings(args.config)
-    if args.assignments:
-        settings = with_overrides(settings, parse_assignments(args.assignments))
+def measure_scales(
+    settings: BridgeSettings, *, max_distance_m: float = 15.0, wait_s: float = 60.0
+) -> dict[str, Any]:
+    """`qnav calibrate-car`: wait up to `wait_s` for an armed car behind the bridge, drive the
+    pattern (aborted beyond `max_distance_m`) and fit the two scales; CalibrationAbortedError
+    when the pattern was cut short."""
     if settings.output.mode != "manual":
-        print(
-            "qnav calibrate-car: output.mode must be manual (the scales map a Twist to sticks; "
-            "GUIDED takes m/s and rad/s as they are)",
-            file=sys.stderr,
+        raise ConfigError(
+            "output.mode must be manual (the scales map a Twist to sticks; GUIDED takes m/s and "
+            "rad/s as they are)"
         )
-        return 2
-    pattern = Pattern(max_distance_m=args.max_distance_m)
-    calibrator = Calibrator(settings, pattern)
+    calibrator = Calibrator(settings, Pattern(max_distance_m=max_distance_m))
     try:
-        calibrator.wait_ready(args.wait_s)
-        result = calibrator.calibrate()
-    except CalibrationAbortedError as error:
-        print(f"qnav calibrate-car: aborted: {error}", file=sys.stderr)
-        return 1
+        calibrator.wait_ready(wait_s)
+        return calibrator.calibrate()
     finally:
         calibrator.close()
-    if args.json:
-        print(json.dumps(result))
-    else:
-        for r in result["runs"]:
-            print(
-                f"# throttle {r['throttle']:+.2f} steering {r['steering']:+.2f}: "
-                f"{r['forward_mps']:+.3f} m/s, {r['turn_rate_radps']:+.3f} rad/s"
-            )
-        print(
-            output_section(
-                result["speed_at_full_throttle_mps"], result["turn_rate_at_full_steering_radps"]
-            ),
-            end="",
-        )
-    return 0

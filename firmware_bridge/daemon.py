@@ -20,7 +20,6 @@ not a command, so the failsafe treats it as silence.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import threading
 import time
@@ -32,7 +31,6 @@ from qnav.contracts.daemon import RateLimitedLog, Service, stop_on_signals
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.health import Heartbeat
 from qnav.contracts.mavlink import key_file_is_private, load_signing_key
-from qnav.contracts.settings import parse_assignments, to_toml, with_overrides
 from qnav.contracts.transport import StoppedError, open_session
 from qnav.contracts.wire import (
     COMMAND,
@@ -51,7 +49,7 @@ from qnav.contracts.wire import (
 )
 from qnav.firmware_bridge.core import Action, BridgeCore, Publish, Reopen, Send
 from qnav.firmware_bridge.link import MavlinkLink, serial0_warning
-from qnav.firmware_bridge.settings import BridgeSettings, load_settings
+from qnav.firmware_bridge.settings import BridgeSettings
 
 log = logging.getLogger("qnav.firmware_bridge")
 
@@ -292,18 +290,8 @@ class Bridge(Service):
             self._heartbeat.beat(link_up=self.core.link_up, armed=self.core.armed)
 
 
-def run(args: argparse.Namespace) -> int:
-    """`qnav bridge`: run until SIGINT or SIGTERM."""
-    settings = load_settings(args.config)
-    if args.assignments:
-        settings = with_overrides(settings, parse_assignments(args.assignments))
-    if args.print_config:
-        print(to_toml(settings), end="")
-        return 0
-    logging.basicConfig(
-        level=getattr(logging, args.log_level.upper()),
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-    )
+def serve(settings: BridgeSettings) -> None:
+    """Run the bridge in this (main) thread until SIGINT or SIGTERM (`qnav bridge`)."""
     with stop_on_signals(logger=log) as stop:
         bridge = Bridge(settings)
         bridge.start(zenoh_in_background=True)
@@ -313,4 +301,3 @@ def run(args: argparse.Namespace) -> int:
                     raise bridge.error
         finally:
             bridge.close()
-    return 0

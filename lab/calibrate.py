@@ -7,7 +7,7 @@ A world is acceptable when, over many test episodes,
   recurrent seed in each obstacle scenario: what the paper's agents did must be possible here;
 and the blind go-to-target controller and the share of layouts that are lost from the start
 (every first action doomed) show how much room the world leaves above target seeking.
-`qnav calibrate` prints the table; docs/simulator.md gives the choices it supports.
+`qnav lab calibrate` prints the table; docs/simulator.md gives the choices it supports.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ class Calibration:
         return self.oracle.success >= paper.RECURRENT_BEST[self.scenario].success
 
     def as_dict(self) -> dict[str, object]:
-        """The row as `qnav calibrate --json` prints it (fractions without the mean length)."""
+        """The row as `qnav lab calibrate --json` prints it (fractions without the mean length)."""
 
         def fractions(result: EvalResult | None) -> dict[str, float] | None:
             if result is None:

@@ -10,7 +10,7 @@ a policy's greedy action is safe measures them directly, in seconds.
 The set is collected once from seeded episodes driven by the planner (states a good policy
 visits) and by the blind go-to-target controller (states where target seeking runs into
 obstacles, as today's learners do), each kept with the window of encoded frames the policy
-would have seen there. `qnav gauge` builds and caches it; `qnav diagnose RUN` and training
+would have seen there. `qnav lab gauge` builds and caches it; `qnav lab diagnose RUN` and training
 progress report it.
 """
 
@@ -56,7 +56,7 @@ class GaugeSettings:
     """Frames per window (the paper's k)."""
     ordinary_share: float = 0.0
     """Share of the other states (every action safe, or every one doomed) kept as well, drawn
-    from the seed: the gauge keeps none; a set to train on doom labels (`qnav probe`) some."""
+    from the seed: the gauge keeps none; a set to train on doom labels (`qnav lab probe`) some."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes_per_driver", self.episodes_per_driver, 1, 10**7)

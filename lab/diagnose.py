@@ -1,6 +1,6 @@
 """Why a run learns or does not: its generalisation gap, and what its greedy policy attends to.
 
-`qnav diagnose RUN` prints three measurements that separate the usual failures of a DQN run:
+`qnav lab diagnose RUN` prints three measurements that separate the usual failures of a DQN run:
 
 - **Generalisation gap.** The TD error (squared, double-DQN targets from the network itself) on
   transitions from the run's own replay, against the same on fresh episodes collected by the

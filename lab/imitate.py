@@ -1,6 +1,6 @@
 """How well can the Q-network copy the oracle planner? A behaviour-cloning ceiling.
 
-`qnav imitate --scenario S` collects episodes driven by the planner that knows the obstacles'
+`qnav lab imitate --scenario S` collects episodes driven by the planner that knows the obstacles'
 future (`lab.oracle.OracleDriver`), trains the learner's own network (recurrent or feedforward,
 the paper's sizes) to pick the planner's action from the same windows of k observations the
 policy sees (cross-entropy on its three outputs as logits), and runs the clone under the test
@@ -33,14 +33,13 @@ from tqdm import tqdm
 
 from qnav.contracts.motion import Outcome
 from qnav.contracts.observation import TARGET_FEATURES
-from qnav.contracts.settings import check_range
+from qnav.lab.imitation_settings import ImitationSettings
 from qnav.lab.oracle import OracleDriver
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, evaluate, go_to_target
 from qnav.training.agent import policy_agent
 from qnav.training.algorithm import cpu_has_bf16
 from qnav.training.collect import collect_round
-from qnav.training.config import ModelKind
 from qnav.training.episode_log import Episode
 from qnav.training.networks import QNetwork
 from qnav.training.replay import EpisodeReplay
@@ -49,55 +48,6 @@ DEMONSTRATION_LAYOUT_SEED = 555_555
 """Layouts of the demonstrations: neither the training runs', the validation's nor the test's."""
 AGREEMENT_PROBE = 4096
 """Copied decisions drawn at random to measure the clone's agreement on them."""
-
-
-@dataclass(frozen=True)
-class ImitationSettings:
-    """What `imitate` collects and how it trains the clone."""
-
-    SECTION = "imitate"
-
-    model: ModelKind = "recurrent"
-    """Network to train (the paper's sizes)."""
-    episodes: int = 2000
-    """Planner episodes to copy."""
-    held_out_episodes: int = 200
-    """Further planner episodes, only to measure the clone's agreement on unseen windows."""
-    dagger_rounds: int = 0
-    """DAgger rounds after the first copy (Ross et al. 2011): each runs the copy, labels every
-    state it visits with the planner's action, adds them to the copied decisions and trains
-    `iterations` more steps on all of them (0: none)."""
-    dagger_episodes: int = 1000
-    """Episodes the copy drives in each DAgger round."""
-    test_episodes: int = 200
-    """Episodes of the clone's test (the paper's protocol: 200)."""
-    iterations: int = 3000
-    """Gradient steps."""
-    batch_size: int = 256
-    """Windows per step."""
-    learning_rate: float = 5e-4
-    """Adam's learning rate."""
-    dodge_weight: float = 1.0
-    """Weight of the loss on dodges (decisions where the planner's action is not the go-to-target
-    baseline's) against 1 on every other decision."""
-    parallel_worlds: int = 32
-    """Planner episodes collected at once."""
-    max_episode_steps: int = 200
-    """Steps before a planner episode is cut (as in training)."""
-    seed: int = 0
-    """Seed of the layouts, the planner's random sequences, the network and the sampling."""
-    threads: int = 2
-    """Torch threads."""
-
-    def __post_init__(self) -> None:
-        for name in ("episodes", "held_out_episodes", "test_episodes", "iterations"):
-            check_range(self, name, getattr(self, name), 1, 10**7)
-        check_range(self, "batch_size", self.batch_size, 1, 10**6)
-        check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
-        check_range(self, "threads", self.threads, 1, 1024)
-        check_range(self, "dagger_rounds", self.dagger_rounds, 0, 1000)
-        check_range(self, "dagger_episodes", self.dagger_episodes, 1, 10**7)
-        check_range(self, "dodge_weight", self.dodge_weight, 1e-3, 1e3)
 
 
 @dataclass(frozen=True)

@@ -156,7 +156,7 @@ PERCEPTION_LEVELS: dict[str, StateError] = {
     "tracker": StateError(0.03, 0.05, 0.05, 0.1),
     "coarse": StateError(0.1, 0.2, 0.1, 0.2),
 }
-"""Perception errors `qnav gauge --ceiling` and `qnav eval --agent oracle --state-error` know.
+"""Perception errors `qnav lab gauge --ceiling` and `qnav eval --agent oracle --state-error` know.
 A 720-beam lidar resolves 0.5 degree, a few centimetres at the ranges that matter, and five
 frames 0.2 s apart give velocities to a few cm/s: "lidar-grade" is what a perfect perceiver of
 the window could know, "tracker" a good hand-built obstacle tracker, "coarse" a sloppy one."""
@@ -170,7 +170,7 @@ PERCEIVED = (
     "robot_speed_mps",
     "robot_turn_radps",
 )
-"""What a perceiver is judged on (`qnav probe --perception`, `qnav probe --tracker`): the
+"""What a perceiver is judged on (`qnav lab probe --perception`, `qnav lab probe --tracker`): the
 nearest obstacle's position and velocity in the robot's frame, and the robot's own speed and
 turn rate (hidden under inertia)."""
 

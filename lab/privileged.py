@@ -1,6 +1,6 @@
 """A copy of the oracle planner that is given the world's state instead of reading it from scans.
 
-`qnav imitate --privileged` asks where the copies of `lab.imitate` lose the planner: in
+`qnav lab imitate --privileged` asks where the copies of `lab.imitate` lose the planner: in
 reading the obstacles' positions and motion from five scans, or in the policy itself. Its copy
 sees, at every step, the target features, the robot's velocity, the scan's nearest return in
 each of 72 sectors (the walls) and, for every obstacle, its exact position and velocity in the
@@ -32,12 +32,12 @@ from qnav.lab.imitate import (
     AGREEMENT_PROBE,
     DEMONSTRATION_LAYOUT_SEED,
     ImitationResult,
-    ImitationSettings,
     clone,
     fraction_true,
     greedy_choices,
     held_out_counts,
 )
+from qnav.lab.imitation_settings import ImitationSettings
 from qnav.lab.oracle import OracleDriver
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target

@@ -6,7 +6,7 @@ supervision on the planner's per-action doom labels (is each first action doomed
 of windows from planner and go-to-target episodes, then judged on the gauge's held-out decisive
 states (`lab.decisive`). If it cannot pick safe actions there, no replay scheme or loss
 weighting on top of RL will teach the same network from the same amount of experience: the
-limit is perception. `qnav probe` runs it.
+limit is perception. `qnav lab probe` runs it.
 
 The probe is a diagnostic: nothing in training or the product imports it.
 """
@@ -242,7 +242,7 @@ def probe(
 
 @dataclass(frozen=True)
 class PerceptionSettings:
-    """Windows and fit of the perception probe (`qnav probe --perception`)."""
+    """Windows and fit of the perception probe (`qnav lab probe --perception`)."""
 
     SECTION = "perception"
 

@@ -1,8 +1,8 @@
 """The onboard obstacle tracker (`controller.perception`) measured against the simulator's truth,
 and the oracle planner driven by what it perceives instead of the true state.
 
-`qnav probe --tracker` prints the tracker's errors in the same terms as the perception probe
-(`qnav probe --perception`), so the two perceivers sit in one table; `qnav eval --agent oracle
+`qnav lab probe --tracker` prints the tracker's errors in the same terms as the perception probe
+(`qnav lab probe --perception`), so the two perceivers sit in one table; `qnav eval --agent oracle
 --tracker` runs the planner on the tracker's estimate under the test protocol.
 """
 
@@ -143,7 +143,8 @@ def run_perceiving_oracle(
 
 @dataclass(frozen=True)
 class TrackerCheckSettings:
-    """The drive the tracker is judged on (`qnav probe --tracker`), as the perception probe's."""
+    """The drive the tracker is judged on (`qnav lab probe --tracker`), as the perception
+    probe's."""
 
     SECTION = "tracker_check"
 

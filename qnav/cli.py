@@ -8,32 +8,63 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import logging
 import os
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from qnav import __version__
 from qnav.contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from qnav.contracts.health import DEFAULT_MAX_AGE_S
 from qnav.contracts.observation import WINDOW_LENGTH
 from qnav.contracts.policy_file import WEIGHT_TYPES
+from qnav.options import add_print_config
 
 Handler = Callable[[argparse.Namespace], int]
 
 
-EXTRAS = {
-    "torch": "train",
-    "onnx": "train",
-    "onnxscript": "train",
-    "matplotlib": "viz",
-    "PIL": "viz",
-    "ray": "cluster",
-    "stable_baselines3": "dev",
+EXTRA_MODULES = {
+    "train": ("torch", "onnx", "onnxscript", "matplotlib"),
+    "viz": ("matplotlib", "PIL"),
+    "cluster": ("ray",),
+    "dev": ("stable_baselines3",),
 }
-"""The optional packages a verb may need, and the extra of `pyproject.toml` that installs each;
-the base install is the car's (no torch, no plotting)."""
+"""The extras of `pyproject.toml` and the packages each brings; the base install is the car's
+(no torch, no plotting)."""
+
+VERB_EXTRAS = {
+    "train": ("train",),
+    "export": ("train",),
+    "reproduce": ("train",),
+    "sweep": ("train",),
+    "figures": ("train",),
+    "render": ("viz",),
+    "bench learner": ("train",),
+    "bench cluster": ("train", "cluster"),
+    "lab diagnose": ("train",),
+    "lab probe": ("train",),
+    "lab imitate": ("train",),
+}
+"""The verbs that cannot run without an extra: `qnav --help` marks them where it is missing, and
+they stop with one line naming it. (A verb that needs one only with some options, such as
+`eval --policy RUN`, names it when the import fails.)"""
+
+
+def missing_extras(verb: str) -> list[str]:
+    """The extras `verb` needs that this install lacks (found without importing anything)."""
+    return [
+        extra
+        for extra in VERB_EXTRAS.get(verb, ())
+        if any(importlib.util.find_spec(module) is None for module in EXTRA_MODULES[extra])
+    ]
+
+
+def _needs(extras: list[str]) -> str:
+    return ", ".join(f"qnav[{extra}]" for extra in extras)
 
 
 def _lazy(target: str) -> Handler:
@@ -47,15 +78,38 @@ def _lazy(target: str) -> Handler:
             return handler(args)
         except ModuleNotFoundError as error:
             package = (error.name or "").split(".")[0]
-            if package not in EXTRAS:
+            extra = next((e for e, names in EXTRA_MODULES.items() if package in names), None)
+            if extra is None:
                 raise
-            extra = EXTRAS[package]
             raise ConfigError(
                 f"this needs {package}, which this install leaves out (the base install is the "
                 f"car's): pip install 'qnav[{extra}]'"
             ) from None
 
     return run
+
+
+def _verb(
+    group: argparse._SubParsersAction[_Parser], target: str, name: str, **kwargs: Any
+) -> _Parser:
+    """A verb's parser, run by the handler `module:function` (imported when it runs)."""
+    parser = group.add_parser(name, **kwargs)
+    parser.set_defaults(handler=_lazy(target))
+    return parser
+
+
+def _flag(parser: argparse._ActionsContainer, name: str, help_text: str) -> None:
+    """An option that is off unless given."""
+    parser.add_argument(name, action="store_true", help=help_text)
+
+
+def _repeated(
+    parser: argparse._ActionsContainer, name: str, dest: str, metavar: str, help_text: str
+) -> None:
+    """An option given any number of times, its values collected in order (--set, --grid)."""
+    parser.add_argument(
+        name, dest=dest, action="append", default=[], metavar=metavar, help=help_text
+    )
 
 
 def _world_options(parser: argparse.ArgumentParser, default: str | None = "walls-inertia") -> None:
@@ -69,15 +123,15 @@ def _world_options(parser: argparse.ArgumentParser, default: str | None = "walls
         "--world-config",
         type=Path,
         metavar="FILE",
-        help="TOML file of world settings applied over the scenario (`qnav settings` writes one)",
+        help="TOML file of world settings applied over the scenario (`qnav eval --print-config` "
+        "writes one)",
     )
-    parser.add_argument(
+    _repeated(
+        parser,
         "--set",
-        dest="assignments",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="change one world setting, e.g. --set obstacles.count=3 (repeatable)",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one world setting, e.g. --set obstacles.count=3 (repeatable)",
     )
 
 
@@ -94,14 +148,45 @@ def _zenoh_options(parser: argparse.ArgumentParser) -> None:
 
 class _Parser(argparse.ArgumentParser):
     """A verb's parser whose help may end with a listing built only when help is asked for
-    (`listing`: the settings, read from their dataclasses' docstrings)."""
+    (`listing`: the settings, read from their dataclasses' docstrings), and whose options
+    generated from settings dataclasses (`generated`) are added only when the verb runs or
+    shows its help, so `qnav --help` imports no verb's settings."""
 
     listing: Callable[[], str] | None = None
+    generated: list[tuple[str, str, str, frozenset[str]]]
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.generated = []
+
+    def _generate(self) -> None:
+        from qnav.options import add_settings_options
+
+        for target, prefix, title, skip in self.generated:
+            module, name = target.split(":")
+            cls = getattr(importlib.import_module(module), name)
+            add_settings_options(self, cls, prefix, title=title, skip=skip)
+        self.generated = []
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        self._generate()
+        return super().parse_known_args(args, namespace)
 
     def format_help(self) -> str:
+        self._generate()
         if self.listing is not None and self.epilog is None:
             self.epilog = self.listing()
         return super().format_help()
+
+
+def _settings_options(
+    parser: _Parser, target: str, title: str, prefix: str = "", skip: Sequence[str] = ()
+) -> None:
+    """An option per field of the settings dataclass `module:Class` (qnav.options), in a
+    group `title`; `skip` names the fields left to hand-written options."""
+    parser.generated.append((target, prefix, title, frozenset(skip)))
 
 
 def _listing(target: str, intro: str) -> Callable[[], str]:
@@ -142,21 +227,27 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"qnav {__version__}")
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
-    scenarios = verbs.add_parser("scenarios", help="list the built-in scenarios")
-    scenarios.set_defaults(handler=_lazy("qnav.sim.cli:scenarios"))
-
-    settings = verbs.add_parser(
-        "settings", help="print a scenario's world settings as a commented TOML file"
+    lab = verbs.add_parser(
+        "lab",
+        help="the research tools of lab/: calibrate, diagnose, gauge, probe, imitate "
+        "(`qnav lab TOOL --help`)",
     )
-    _world_options(settings)
-    settings.add_argument("--markdown", action="store_true", help="print a Markdown table instead")
-    settings.add_argument(
-        "--reference", action="store_true", help="print the settings reference (docs/settings.md)"
-    )
-    settings.set_defaults(handler=_lazy("qnav.sim.cli:settings"))
+    tools = lab.add_subparsers(dest="tool", metavar="TOOL", required=True, parser_class=_Parser)
 
-    evaluate = verbs.add_parser(
-        "eval", help="run the paper's test protocol and print success, collision, unfinished"
+    scenarios = _verb(
+        verbs, "qnav.verbs.world:scenarios", "scenarios", help="list the built-in scenarios"
+    )
+    _flag(
+        scenarios,
+        "--reference",
+        "print the reference of every world setting instead (docs/settings.md)",
+    )
+
+    evaluate = _verb(
+        verbs,
+        "qnav.verbs.world:evaluate",
+        "eval",
+        help="run the paper's test protocol and print success, collision, unfinished",
     )
     _world_options(evaluate, default=None)
     evaluate.add_argument(
@@ -173,10 +264,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --agent oracle: plan on a noisy estimate of the state, as a perceive-then-plan "
         "controller would (errors in lab.oracle.PERCEPTION_LEVELS)",
     )
-    evaluate.add_argument(
+    _flag(
+        evaluate,
         "--tracker",
-        action="store_true",
-        help="with --agent oracle: plan on the onboard obstacle tracker's estimate "
+        "with --agent oracle: plan on the onboard obstacle tracker's estimate "
         "(controller.perception: lidar plus pose, the room's walls known) instead of the truth",
     )
     _lookahead_option(evaluate, "with --policy: ")
@@ -207,25 +298,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="with --policy: take a random action with probability P at each step",
     )
-    evaluate.add_argument("--episodes", type=int, default=200, help="test episodes (default 200)")
-    evaluate.add_argument(
-        "--max-steps", type=int, default=500, help="steps before an episode is unfinished (500)"
-    )
-    evaluate.add_argument("--seed", type=int, default=12345, help="seed of the test layouts")
-    evaluate.add_argument("--num-worlds", type=int, default=64, help="worlds stepped together")
-    evaluate.add_argument("--json", action="store_true", help="print one JSON object")
-    evaluate.set_defaults(handler=_lazy("qnav.commands:evaluate"))
+    add_print_config(evaluate, markdown=True)
+    _settings_options(evaluate, "qnav.sim.evaluate:EvalSettings", "test protocol")
+    _flag(evaluate, "--json", "print one JSON object")
 
-    train = verbs.add_parser("train", help="train a Q-network (resumes a killed run)")
-    _with_listing(
-        train,
-        "qnav.training.config:TrainSettings",
-        "learner settings (--train-set train.FIELD=VALUE, or a [train] table in --train-config; "
-        "the defaults below, before the preset's own)",
+    train = _verb(
+        verbs, "qnav.verbs.learn:train", "train", help="train a Q-network (resumes a killed run)"
     )
     _world_options(train)
-    train.add_argument("--model", choices=["recurrent", "feedforward"], help="Q-network kind")
-    train.add_argument("--seed", type=int, help="run seed")
     train.add_argument(
         "--preset",
         default="fast",
@@ -233,26 +313,29 @@ def build_parser() -> argparse.ArgumentParser:
         help="fast: our schedule for 2 CPU cores (default); paper: the paper's exact schedule",
     )
     train.add_argument(
-        "--relabel", choices=["paper", "local", "hindsight", "none"], help="target re-drawing"
-    )
-    train.add_argument("--episodes", type=int, help="training episodes")
-    train.add_argument(
         "--train-config", type=Path, metavar="FILE", help="TOML file with a [train] table"
     )
-    train.add_argument(
+    _repeated(
+        train,
         "--train-set",
-        dest="train_assignments",
-        action="append",
-        default=[],
-        metavar="train.FIELD=VALUE",
-        help="change one learner setting (repeatable)",
+        "train_assignments",
+        "train.FIELD=VALUE",
+        "change one learner setting (repeatable; as its option below)",
+    )
+    _settings_options(
+        train,
+        "qnav.training.config:TrainSettings",
+        "learner settings (each over the preset, --train-config and --train-set)",
     )
     train.add_argument("--run-dir", type=Path, help="run folder (default runs/SCENARIO/...)")
-    train.add_argument("--quiet", action="store_true", help="no progress bar")
-    train.set_defaults(handler=_lazy("qnav.commands:train"))
+    _flag(train, "--quiet", "no progress bar")
+    add_print_config(train)
 
-    export = verbs.add_parser(
-        "export", help="write a run's policy as one ONNX file with its contract, and test it"
+    export = _verb(
+        verbs,
+        "qnav.verbs.learn:export",
+        "export",
+        help="write a run's policy as one ONNX file with its contract, and test it",
     )
     export.add_argument(
         "run",
@@ -279,10 +362,11 @@ def build_parser() -> argparse.ArgumentParser:
         "quicker decisions; its test records how often it agrees with float32). Default: "
         "float32 for a run, the file's own for a policy file",
     )
-    export.add_argument("--quiet", action="store_true", help="no progress bar")
-    export.set_defaults(handler=_lazy("qnav.commands:export"))
+    _flag(export, "--quiet", "no progress bar")
 
-    calibrate = verbs.add_parser(
+    calibrate = _verb(
+        tools,
+        "qnav.verbs.lab:calibrate",
         "calibrate",
         help="random, go-to-target and oracle agents in the paper's scenarios, beside its rows",
     )
@@ -296,27 +380,31 @@ def build_parser() -> argparse.ArgumentParser:
         help="oracle episodes per obstacle scenario (1000; about 4 CPU-minutes each)",
     )
     calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
-    calibrate.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate.set_defaults(handler=_lazy("qnav.commands:calibrate"))
+    _flag(calibrate, "--json", "print one JSON object")
 
-    render = verbs.add_parser("render", help="draw an episode to PNG and animated GIF")
+    render = _verb(
+        verbs, "qnav.verbs.world:render", "render", help="draw an episode to PNG and animated GIF"
+    )
     _world_options(render, "obstacles-inertia")
     render.add_argument("--agent", default="random", choices=["random"], help="who acts")
     render.add_argument("--seed", type=int, default=0, help="world seed (default 0)")
     render.add_argument("--episode", type=int, default=0, help="episode index of that seed")
     render.add_argument("--max-steps", type=int, default=None, help="cut the episode short")
-    render.add_argument("--rays", action="store_true", help="draw the lidar rays")
+    _flag(render, "--rays", "draw the lidar rays")
     render.add_argument("--out", type=Path, default=Path("out/render"), help="output folder")
-    render.set_defaults(handler=_lazy("qnav.sim.cli:render"))
 
-    figures = verbs.add_parser(
-        "figures", help="action maps (paper figure 3) and trajectories (figure 10) of a run"
+    figures = _verb(
+        verbs,
+        "qnav.verbs.learn:figures",
+        "figures",
+        help="action maps (paper figure 3) and trajectories (figure 10) of a run",
     )
     figures.add_argument("run", type=Path, help="training run folder")
     figures.add_argument("--out", type=Path, default=Path("docs/img"), help="output folder")
-    figures.set_defaults(handler=_lazy("qnav.commands:figures"))
 
-    diagnose = verbs.add_parser(
+    diagnose = _verb(
+        tools,
+        "qnav.verbs.lab:diagnose",
         "diagnose",
         help="why a run learns or not: generalisation gap, target sensitivity, action mix",
     )
@@ -324,9 +412,10 @@ def build_parser() -> argparse.ArgumentParser:
     diagnose.add_argument(
         "--fresh-episodes", type=int, default=64, help="fresh episodes to measure on (64)"
     )
-    diagnose.set_defaults(handler=_lazy("qnav.commands:diagnose"))
 
-    gauge = verbs.add_parser(
+    gauge = _verb(
+        tools,
+        "qnav.verbs.lab:gauge",
         "gauge",
         help="decisive-state gauge: how often a policy avoids a doomed action where it matters",
     )
@@ -337,56 +426,55 @@ def build_parser() -> argparse.ArgumentParser:
     gauge.add_argument(
         "--episodes", type=int, default=400, help="episodes per driver behind the state set (400)"
     )
-    gauge.add_argument(
+    _flag(
+        gauge,
         "--ceiling",
-        action="store_true",
-        help="also score the best choice under each perception error (is doom learnable?)",
+        "also score the best choice under each perception error (is doom learnable?)",
     )
-    gauge.add_argument("--json", action="store_true", help="print one JSON object per line")
-    gauge.set_defaults(handler=_lazy("qnav.commands:gauge"))
+    _flag(gauge, "--json", "print one JSON object per line")
 
-    probe = verbs.add_parser(
+    probe = _verb(
+        tools,
+        "qnav.verbs.lab:probe",
         "probe",
         help="perception ceiling: the Q-network fitted to the planner's doom labels, on the gauge",
     )
     _world_options(probe, "obstacles-inertia")
-    probe.add_argument(
+    _repeated(
+        probe,
         "--probe-set",
-        dest="probe_assignments",
-        action="append",
-        default=[],
-        metavar="probe.FIELD=VALUE",
-        help="change one probe setting, e.g. probe.epochs=20 or, with --perception, "
-        "perception.epochs=20 (repeatable; `qnav probe [--perception] --print-config` lists them)",
+        "probe_assignments",
+        "probe.FIELD=VALUE",
+        "change one probe setting, e.g. probe.epochs=20 or, with --perception, "
+        "perception.epochs=20 (repeatable; `qnav lab probe [--perception] --print-config` lists "
+        "them)",
     )
-    probe.add_argument(
+    _flag(
+        probe,
         "--perception",
-        action="store_true",
-        help="instead: can the network's encoder and LSTM locate the nearest obstacle and its "
+        "instead: can the network's encoder and LSTM locate the nearest obstacle and its "
         "velocity in a window? (median errors per pass)",
     )
-    probe.add_argument(
+    _flag(
+        probe,
         "--tracker",
-        action="store_true",
-        help="instead: the onboard obstacle tracker's errors on the perception probe's drive "
+        "instead: the onboard obstacle tracker's errors on the perception probe's drive "
         "(settings tracker.FIELD and tracker_check.FIELD)",
     )
-    probe.add_argument("--print-config", action="store_true", help="print the probe settings")
-    probe.add_argument("--json", action="store_true", help="print one JSON object per epoch")
-    probe.set_defaults(handler=_lazy("qnav.commands:probe"))
+    add_print_config(probe)
+    _flag(probe, "--json", "print one JSON object per epoch")
 
-    imitate = verbs.add_parser(
+    imitate = _verb(
+        tools,
+        "qnav.verbs.lab:imitate",
         "imitate",
         help="behaviour-cloning ceiling: train the network to copy the oracle planner, test it",
     )
     _world_options(imitate, "obstacles-increment")
-    imitate.add_argument(
-        "--model", default="recurrent", choices=["recurrent", "feedforward"], help="network"
-    )
-    imitate.add_argument(
+    _flag(
+        imitate,
         "--privileged",
-        action="store_true",
-        help="copy with a network given the obstacles' exact positions and velocities instead",
+        "copy with a network given the obstacles' exact positions and velocities instead",
     )
     imitate.add_argument(
         "--window",
@@ -394,33 +482,17 @@ def build_parser() -> argparse.ArgumentParser:
         default=WINDOW_LENGTH,
         help=f"observations per decision (paper: {WINDOW_LENGTH})",
     )
-    imitate.add_argument("--episodes", type=int, default=2000, help="planner episodes (2000)")
-    imitate.add_argument(
-        "--held-out-episodes", type=int, default=200, help="planner episodes not copied (200)"
+    _settings_options(
+        imitate, "qnav.lab.imitation_settings:ImitationSettings", "imitation settings"
     )
-    imitate.add_argument(
-        "--iterations", type=int, default=3000, help="gradient steps, and per DAgger round (3000)"
-    )
-    imitate.add_argument("--dagger-rounds", type=int, default=0, help="DAgger rounds (0)")
-    imitate.add_argument(
-        "--dagger-episodes", type=int, default=1000, help="episodes per DAgger round (1000)"
-    )
-    imitate.add_argument(
-        "--dodge-weight",
-        type=float,
-        default=1.0,
-        help="loss weight of decisions where the planner does not go to the target (1)",
-    )
-    imitate.add_argument(
-        "--test-episodes", type=int, default=200, help="test protocol episodes (200)"
-    )
-    imitate.add_argument("--seed", type=int, default=0, help="seed (0)")
-    imitate.add_argument("--threads", type=int, default=2, help="torch threads (2)")
-    imitate.add_argument("--json", action="store_true", help="print the result as JSON")
-    imitate.set_defaults(handler=_lazy("qnav.commands:imitate"))
+    _flag(imitate, "--json", "print the result as JSON")
+    add_print_config(imitate)
 
-    reproduce = verbs.add_parser(
-        "reproduce", help="the paper's whole study, resumable: trains, tests, writes the tables"
+    reproduce = _verb(
+        verbs,
+        "qnav.verbs.learn:reproduce",
+        "reproduce",
+        help="the paper's whole study, resumable: trains, tests, writes the tables",
     )
     _study_options(reproduce, Path("runs/study"))
     reproduce.add_argument(
@@ -429,22 +501,22 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument(
         "--docs", type=Path, default=Path("docs/results.md"), help="the tables, as Markdown"
     )
-    reproduce.add_argument(
+    _flag(
+        reproduce,
         "--ablation",
-        action="store_true",
-        help="also run the target re-drawing ablation (none / paper / hindsight) in the chosen "
+        "also run the target re-drawing ablation (none / paper / hindsight) in the chosen "
         "scenarios among walls-increment and obstacles-inertia",
     )
     reproduce.add_argument(
         "--ablation-seeds", default="0", help="comma-separated seeds of the ablation runs (0)"
     )
-    reproduce.add_argument(
-        "--tables-only", action="store_true", help="rewrite the tables from results/, train nothing"
-    )
-    reproduce.set_defaults(handler=_lazy("qnav.commands:reproduce"))
+    _flag(reproduce, "--tables-only", "rewrite the tables from results/, train nothing")
 
-    sweep = verbs.add_parser(
-        "sweep", help="train every point of a settings grid (resumable; locally or on Ray)"
+    sweep = _verb(
+        verbs,
+        "qnav.verbs.learn:sweep",
+        "sweep",
+        help="train every point of a settings grid (resumable; locally or on Ray)",
     )
     _study_options(sweep, Path("runs/sweep"), scenarios="walls-inertia", models="recurrent",
                    seeds="0")  # fmt: skip
@@ -456,13 +528,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="one setting and its values, e.g. --grid train.learning_rate=1e-4,3e-4 (repeatable: "
         "every combination is a run; train.* are learner settings, other sections the world's)",
     )
-    sweep.add_argument(
+    _repeated(
+        sweep,
         "--set",
-        dest="common",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="a setting of every run, e.g. --set train.episodes=100 (repeatable)",
+        "common",
+        "SECTION.FIELD=VALUE",
+        "a setting of every run, e.g. --set train.episodes=100 (repeatable)",
     )
     sweep.add_argument(
         "--results-dir",
@@ -470,9 +541,10 @@ def build_parser() -> argparse.ArgumentParser:
         default=Path("runs/sweep/results"),
         help="one JSON per run (a run with one is skipped)",
     )
-    sweep.set_defaults(handler=_lazy("qnav.commands:sweep"))
 
-    controller = verbs.add_parser(
+    controller = _verb(
+        verbs,
+        "qnav.verbs.onboard:controller",
         "controller",
         help="the onboard daemon: scans, poses, targets in over zenoh, motor commands out",
     )
@@ -487,23 +559,20 @@ def build_parser() -> argparse.ArgumentParser:
     controller.add_argument(
         "--policy", type=Path, metavar="FILE.onnx", help="policy file (over controller.policy)"
     )
-    controller.add_argument(
+    _repeated(
+        controller,
         "--set",
-        dest="assignments",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="change one setting, e.g. --set controller.trigger=scan (repeatable)",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one setting, e.g. --set controller.trigger=scan (repeatable)",
     )
-    controller.add_argument(
-        "--print-config",
-        action="store_true",
-        help="print every setting with its meaning as a TOML file, and exit",
-    )
-    controller.set_defaults(handler=_lazy("qnav.controller.daemon:main"))
+    add_print_config(controller)
 
-    record = verbs.add_parser(
-        "record", help="record the project's zenoh topics to MCAP (ROS 2 profile, CDR)"
+    record = _verb(
+        verbs,
+        "qnav.recording:record_verb",
+        "record",
+        help="record the project's zenoh topics to MCAP (ROS 2 profile, CDR)",
     )
     record.add_argument("--config", type=Path, metavar="FILE", help="recorder TOML file")
     record.add_argument("--out", type=Path, help="output folder (default recordings/)")
@@ -514,10 +583,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--duration-s", type=float, default=0.0, help="stop after this long (0: at SIGINT)"
     )
     _zenoh_options(record)
-    record.set_defaults(handler=_lazy("qnav.recording:record_verb"))
 
-    certs = verbs.add_parser(
-        "certs", help="a test CA and a certificate per identity, for zenoh's mutual TLS"
+    certs = _verb(
+        verbs,
+        "qnav.certs:certs_verb",
+        "certs",
+        help="a test CA and a certificate per identity, for zenoh's mutual TLS",
     )
     certs.add_argument("folder", type=Path, help="where to write them (e.g. certs/)")
     certs.add_argument(
@@ -530,19 +601,20 @@ def build_parser() -> argparse.ArgumentParser:
         default="tls/127.0.0.1:7447",
         help="the hub's TLS endpoint written into the zenoh configs (tls/127.0.0.1:7447)",
     )
-    certs.add_argument(
-        "--print-commands", action="store_true", help="print the openssl commands, run nothing"
-    )
-    certs.set_defaults(handler=_lazy("qnav.certs:certs_verb"))
+    _flag(certs, "--print-commands", "print the openssl commands, run nothing")
 
-    keys = verbs.add_parser(
-        "keys", help="an Ed25519 key pair that signs the policies qnav serve delivers"
+    keys = _verb(
+        verbs,
+        "qnav.serve:keys_verb",
+        "keys",
+        help="an Ed25519 key pair that signs the policies qnav serve delivers",
     )
     keys.add_argument("folder", type=Path, help="where to write the key pair (e.g. keys/)")
-    keys.add_argument("--force", action="store_true", help="replace an existing key pair")
-    keys.set_defaults(handler=_lazy("qnav.serve:keys_verb"))
+    _flag(keys, "--force", "replace an existing key pair")
 
-    serve = verbs.add_parser(
+    serve = _verb(
+        verbs,
+        "qnav.serve:serve_verb",
         "serve",
         help="serve exported policies to cars over zenoh, announcing the best (docs/serve.md)",
     )
@@ -560,25 +632,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="the Ed25519 private key that signs announcements (qnav keys DIR)",
     )
-    serve.add_argument(
-        "--poll-s", type=float, default=2.0, help="seconds between looks at the sources (2)"
-    )
-    serve.add_argument(
-        "--announce-interval-s",
-        type=float,
-        default=2.0,
-        help="the current announcement is repeated this often, for late cars (2)",
-    )
-    serve.add_argument(
-        "--chunk-bytes", type=int, default=262144, help="chunk size of transfers (262144)"
-    )
-    serve.add_argument(
-        "--export-runs",
-        type=int,
-        default=0,
-        metavar="EPISODES",
-        help="export each training run whose keep-best weights are newer than its policy.onnx, "
-        "testing it over EPISODES episodes (0: serve only exported files; needs torch)",
+    _settings_options(
+        serve,
+        "qnav.serve:ServeSettings",
+        "serving",
+        skip=("sources", "private_key", "zenoh"),
     )
     serve.add_argument(
         "--zenoh-config",
@@ -588,18 +646,21 @@ def build_parser() -> argparse.ArgumentParser:
         "zenoh-server.json5)",
     )
     _zenoh_options(serve)
-    serve.set_defaults(handler=_lazy("qnav.serve:serve_verb"))
+    add_print_config(serve)
 
-    recover = verbs.add_parser(
+    recover = _verb(
+        verbs,
+        "qnav.recording:recover_verb",
         "recover",
         help="make a killed recording whole: every complete message, indexed, with metadata.yaml",
     )
     recover.add_argument(
         "paths", nargs="+", type=Path, help="recording folders or .mcap files (cut or not)"
     )
-    recover.set_defaults(handler=_lazy("qnav.recording:recover_verb"))
 
-    playback = verbs.add_parser(
+    playback = _verb(
+        verbs,
+        "qnav.recording:playback_verb",
         "playback",
         help="publish MCAP recordings back onto zenoh at their recorded timing, or feed them "
         "into the controller's decision step (--into-controller)",
@@ -612,72 +673,46 @@ def build_parser() -> argparse.ArgumentParser:
         "no zenoh: the recording's inputs through a fresh controller, on "
         "the recording's clock (docs/recordings.md)",
     )
-    replay.add_argument(
+    _flag(
+        replay,
         "--into-controller",
-        action="store_true",
-        help="feed the recording into the controller's decision step and report its decisions",
+        "feed the recording into the controller's decision step and report its decisions",
     )
     replay.add_argument("--policy", type=Path, metavar="FILE.onnx", help="policy file")
     replay.add_argument(
         "--config", type=Path, metavar="FILE", help="controller TOML (safety, lidar, topics)"
     )
-    replay.add_argument(
+    _repeated(
+        replay,
         "--set",
-        dest="assignments",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="change one controller setting, e.g. --set safety.pose_timeout_s=1.0",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one controller setting, e.g. --set safety.pose_timeout_s=1.0",
     )
     replay.add_argument(
         "--trigger",
         choices=["scan", "period"],
         help="decide on each scan (default, as `qnav stack` runs the daemon) or every period",
     )
-    replay.add_argument("--json", action="store_true", help="print the decisions as JSON lines")
-    playback.set_defaults(handler=_lazy("qnav.recording:playback_verb"))
+    _flag(replay, "--json", "print the decisions as JSON lines")
 
     _bridge_verbs(verbs)
 
-    sim_car = verbs.add_parser(
+    sim_car = _verb(
+        verbs,
+        "qnav.verbs.onboard:sim_car",
         "sim-car",
         help="the simulator as the car: scans and poses out on zenoh, motion in over MAVLink",
     )
     _world_options(sim_car, "walls-increment")
-    sim_car.add_argument("--episodes", type=int, default=50, help="episodes to run (50)")
-    sim_car.add_argument("--first-episode", type=int, default=0, help="index of the first")
-    sim_car.add_argument("--seed", type=int, default=12345, help="layout seed (the test seed)")
-    sim_car.add_argument(
-        "--rest-s",
-        type=float,
-        default=0.0,
-        help="after each episode, stay at rest this long (pose and scan still published) before "
-        "the next target (0)",
-    )
-    sim_car.add_argument(
-        "--vehicle",
-        default="udpout:127.0.0.1:14550",
-        help="MAVLink connection of the simulated autopilot (udpout:127.0.0.1:14550, where "
-        "`qnav bridge` listens by default)",
-    )
-    sim_car.add_argument(
-        "--firmware",
-        metavar="CONNECTION",
-        help="a real autopilot's MAVLink port (e.g. SITL's SERIAL0, tcp:127.0.0.1:5760): its own "
-        "pose moves the robot, instead of the test vehicle on --vehicle",
-    )
-    sim_car.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="step the world only once the command decided on the period's scan has reached the "
-        "test vehicle, then move the car one control period under it (the in-process episodes, "
-        "whatever the latency); default: real time",
-    )
+    _settings_options(sim_car, "qnav.simcar.car:SimCarSettings", "sim-car settings")
+    add_print_config(sim_car)
     sim_car.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
     _zenoh_options(sim_car)
-    sim_car.set_defaults(handler=_lazy("qnav.stack:sim_car_verb"))
 
-    stack = verbs.add_parser(
+    stack = _verb(
+        verbs,
+        "qnav.stack:stack_verb",
         "stack",
         help="the full stack as separate processes (sim-car, controller, bridge, recorder)",
     )
@@ -686,8 +721,8 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument("--episodes", type=int, default=20, help="episodes (20)")
     _lookahead_option(stack, "in the controller, and alike in the in-process comparison: ")
     stack.add_argument("--out", type=Path, default=Path("out/stack"), help="output folder")
-    stack.add_argument("--no-record", action="store_true", help="do not record to MCAP")
-    stack.add_argument("--json", action="store_true", help="print one JSON object")
+    _flag(stack, "--no-record", "do not record to MCAP")
+    _flag(stack, "--json", "print one JSON object")
     stack.add_argument(
         "--vehicle",
         choices=["sim", "sitl"],
@@ -695,10 +730,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="the car: the MAVLink test vehicle (sim), or ArduPilot Rover SITL driven in GUIDED "
         "with the pose from the autopilot (sitl; loopback-only namespace, `make stack-sitl`)",
     )
-    stack.add_argument(
+    _flag(
+        stack,
         "--real-time",
-        action="store_true",
-        help="the sim-car in real time: the car moves under whatever command it has while the "
+        "the sim-car in real time: the car moves under whatever command it has while the "
         "next is decided (latency and load included); default: lockstep (`sim-car --lockstep`), "
         "the same episodes as in process. --vehicle sitl always runs in real time",
     )
@@ -719,9 +754,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --serve-folder: the key pair `qnav keys DIR` made (the server signs with its "
         "private key, the controller trusts its public key)",
     )
-    stack.set_defaults(handler=_lazy("qnav.stack:stack_verb"))
 
-    health = verbs.add_parser(
+    health = _verb(
+        verbs,
+        "qnav.verbs.onboard:health",
         "health",
         help="exit 0 while a daemon's loop beats (its QNAV_HEALTH_FILE is fresh): the image's "
         "HEALTHCHECK",
@@ -735,11 +771,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_MAX_AGE_S,
         help=f"oldest acceptable beat in seconds ({DEFAULT_MAX_AGE_S:g})",
     )
-    health.set_defaults(handler=_lazy("qnav.commands:health"))
 
     bench = verbs.add_parser("bench", help="benchmarks")
     benches = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
-    bench_sim = benches.add_parser("sim", help="simulator env-steps per second on one core")
+    bench_sim = _verb(
+        benches,
+        "qnav.verbs.bench:bench_sim",
+        "sim",
+        help="simulator env-steps per second on one core",
+    )
     _world_options(bench_sim, "obstacles-inertia")
     bench_sim.add_argument(
         "--batches", default="1,16,64,256", help="comma-separated batch sizes (1,16,64,256)"
@@ -747,11 +787,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench_sim.add_argument(
         "--seconds", type=float, default=2.0, help="timed seconds per configuration (2)"
     )
-    bench_sim.add_argument("--no-scaling", action="store_true", help="skip beam/obstacle scaling")
-    bench_sim.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_sim.set_defaults(handler=_lazy("qnav.sim.cli:bench"))
-    bench_learner = benches.add_parser(
-        "learner", help="one training iteration's GFLOP/s against the machine's matmul rate"
+    _flag(bench_sim, "--no-scaling", "skip beam/obstacle scaling")
+    _flag(bench_sim, "--json", "print one JSON object")
+    bench_learner = _verb(
+        benches,
+        "qnav.verbs.bench:bench_learner",
+        "learner",
+        help="one training iteration's GFLOP/s against the machine's matmul rate",
     )
     bench_learner.add_argument(
         "--model", default="recurrent", choices=["recurrent", "feedforward"], help="Q-network"
@@ -759,10 +801,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench_learner.add_argument("--batch", type=int, default=256, help="batch size (256)")
     bench_learner.add_argument("--repeats", type=int, default=10, help="timed iterations (10)")
     bench_learner.add_argument("--threads", type=int, default=2, help="torch threads (2)")
-    bench_learner.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_learner.set_defaults(handler=_lazy("qnav.commands:bench_learner"))
-    bench_policy = benches.add_parser(
-        "policy", help="per-decision latency of the onboard runtime, per backend, one thread"
+    _flag(bench_learner, "--json", "print one JSON object")
+    bench_policy = _verb(
+        benches,
+        "qnav.verbs.bench:bench_policy",
+        "policy",
+        help="per-decision latency of the onboard runtime, per backend, one thread",
     )
     _bench_policy_file(bench_policy)
     bench_policy.add_argument(
@@ -778,9 +822,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="sleep before each timed decision, as a daemon waits between scans (0: back to "
         "back, caches warm; 20 or 200: the 50 Hz or 5 Hz case)",
     )
-    bench_policy.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_policy.set_defaults(handler=_lazy("qnav.commands:bench_policy"))
-    bench_lookahead = benches.add_parser(
+    _flag(bench_policy, "--json", "print one JSON object")
+    bench_lookahead = _verb(
+        benches,
+        "qnav.verbs.bench:bench_lookahead",
         "lookahead",
         help="the controller's look ahead per decision: tracker update, shield forecast, plan",
     )
@@ -788,9 +833,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench_lookahead.add_argument(
         "--decisions", type=int, default=2000, help="timed decisions (2000)"
     )
-    bench_lookahead.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_lookahead.set_defaults(handler=_lazy("qnav.commands:bench_lookahead"))
-    bench_controller = benches.add_parser(
+    _flag(bench_lookahead, "--json", "print one JSON object")
+    bench_controller = _verb(
+        benches,
+        "qnav.verbs.bench:bench_controller",
         "controller",
         help="end to end: scan published by one process to command received by another",
     )
@@ -801,20 +847,72 @@ def build_parser() -> argparse.ArgumentParser:
     bench_controller.add_argument(
         "--seconds", type=float, default=30.0, help="timed seconds per rate (30)"
     )
-    bench_controller.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_controller.set_defaults(handler=_lazy("qnav.commands:bench_controller"))
-    bench_cluster = benches.add_parser(
-        "cluster", help="a small fixed study on 1 Ray worker, then on 2: wall times and ratio"
+    _flag(bench_controller, "--json", "print one JSON object")
+    bench_cluster = _verb(
+        benches,
+        "qnav.verbs.bench:bench_cluster",
+        "cluster",
+        help="a small fixed study on 1 Ray worker, then on 2: wall times and ratio",
     )
     bench_cluster.add_argument("--repeats", type=int, default=3, help="timed pairs (3)")
-    bench_cluster.add_argument("--json", action="store_true", help="print one JSON object")
-    bench_cluster.set_defaults(handler=_lazy("qnav.training.bench_cluster:bench"))
+    _flag(bench_cluster, "--json", "print one JSON object")
     _bench_bridge(benches)
+    for prefix, group in (("", verbs), ("lab ", tools), ("bench ", benches)):
+        _mark_extras(group, prefix)
+    _list_verbs(parser, verbs)
     return parser
 
 
+VERB_GROUPS = {
+    "simulate, learn, test": (
+        "scenarios", "eval", "train", "export", "render", "figures", "reproduce", "sweep",
+    ),
+    "on the car": (
+        "controller", "bridge", "calibrate-car", "fake-vehicle", "sim-car", "stack", "record",
+        "playback", "recover", "health",
+    ),
+    "deliver policies": ("serve", "keys", "certs"),
+    "measure": ("bench",),
+    "research (lab/, apart from the product)": ("lab",),
+}  # fmt: skip
+"""How `qnav --help` groups the verbs."""
+
+
+def _mark_extras(verbs: argparse._SubParsersAction[_Parser], prefix: str) -> None:
+    """Each verb's help line ends with the extras it needs that this install lacks."""
+    for action in verbs._choices_actions:
+        missing = missing_extras(prefix + action.dest)
+        if missing:
+            action.help = f"{action.help} (needs {_needs(missing)})"
+
+
+def _list_verbs(
+    parser: argparse.ArgumentParser, verbs: argparse._SubParsersAction[_Parser]
+) -> None:
+    """`qnav --help` lists the verbs by group (VERB_GROUPS) instead of in one block."""
+    helps = {action.dest: action.help or "" for action in verbs._choices_actions}
+    grouped = [name for names in VERB_GROUPS.values() for name in names]
+    groups = {**VERB_GROUPS, "other": tuple(name for name in helps if name not in grouped)}
+    lines: list[str] = []
+    for title, names in groups.items():
+        if names:
+            lines += ["", f"{title}:"] if lines else [f"{title}:"]
+            for name in names:
+                lines += textwrap.wrap(
+                    helps[name],
+                    100,
+                    initial_indent=f"  {name:<15}",
+                    subsequent_indent=" " * 17,
+                    break_on_hyphens=False,
+                )
+    verbs._choices_actions.clear()
+    verbs.help = "a verb below; `qnav VERB --help` shows its options"
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = "\n".join(lines)
+
+
 def _study_options(
-    parser: argparse.ArgumentParser,
+    parser: _Parser,
     runs_dir: Path,
     scenarios: str = "obstacles-inertia,walls-inertia,walls-increment,obstacles-increment",
     models: str = "recurrent,feedforward",
@@ -854,34 +952,10 @@ def _study_options(
         help="local: `qnav train` processes on this machine (default); ray: one Ray task per run "
         "(pip install '.[cluster]')",
     )
-    engine.add_argument(
-        "--address",
-        help="with --engine ray: join the cluster whose head is HOST:PORT (default: start a "
-        "local Ray instance on this machine)",
-    )
-    engine.add_argument(
-        "--connect-timeout-s",
-        type=float,
-        default=15.0,
-        help="with --address: how long the head has to answer before the study gives up (15)",
-    )
-    engine.add_argument(
-        "--cpus", type=int, help="with --engine ray and no --address: the local instance's CPUs"
-    )
-    engine.add_argument(
-        "--artifacts",
-        action="store_true",
-        help="workers share no disk: runs train in a scratch folder on their node and their "
-        "files (checkpoint as it goes, results, policy, progress) come back to --runs-dir",
-    )
-    engine.add_argument(
-        "--scratch-dir", help="with --artifacts: the workers' run folder (their temporary one)"
-    )
-    engine.add_argument(
-        "--max-retries",
-        type=int,
-        default=3,
-        help="times a run whose worker died starts again, from its checkpoint (3)",
+    _settings_options(
+        parser,
+        "qnav.training.cluster:ClusterSettings",
+        "Ray settings (with --engine ray)",
     )
 
 
@@ -904,8 +978,11 @@ def _bench_policy_file(bench: argparse.ArgumentParser) -> None:
 
 def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     """`qnav bridge` (zenoh to MAVLink) and `qnav fake-vehicle` (a MAVLink car for tests)."""
-    bridge = verbs.add_parser(
-        "bridge", help="the firmware bridge: commands from zenoh to the car over MAVLink"
+    bridge = _verb(
+        verbs,
+        "qnav.verbs.onboard:bridge",
+        "bridge",
+        help="the firmware bridge: commands from zenoh to the car over MAVLink",
     )
     _with_listing(
         bridge,
@@ -915,23 +992,21 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     bridge.add_argument(
         "--config", type=Path, metavar="FILE", help="TOML settings (see config/bridge.toml)"
     )
-    bridge.add_argument(
+    _repeated(
+        bridge,
         "--set",
-        dest="assignments",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="change one setting, e.g. --set mavlink.connection=udpin:0.0.0.0:14550",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one setting, e.g. --set mavlink.connection=udpin:0.0.0.0:14550",
     )
-    bridge.add_argument(
-        "--print-config", action="store_true", help="print every setting as TOML and exit"
-    )
+    add_print_config(bridge)
     bridge.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
-    bridge.set_defaults(handler=_lazy("qnav.firmware_bridge.daemon:run"))
 
-    calibrate_car = verbs.add_parser(
+    calibrate_car = _verb(
+        verbs,
+        "qnav.verbs.onboard:calibrate_car",
         "calibrate-car",
         help="drive a short bounded pattern through a running bridge and fit its speed and "
         "turn-rate scales from the vehicle's own velocity (the car must be armed, and watched)",
@@ -939,13 +1014,12 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     calibrate_car.add_argument(
         "--config", type=Path, metavar="FILE", help="the bridge's TOML settings (its zenoh)"
     )
-    calibrate_car.add_argument(
+    _repeated(
+        calibrate_car,
         "--set",
-        dest="assignments",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="change one bridge setting (as `qnav bridge --set`)",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one bridge setting (as `qnav bridge --set`)",
     )
     calibrate_car.add_argument(
         "--max-distance-m", type=float, default=15.0, help="abort beyond this (15 m)"
@@ -953,11 +1027,13 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     calibrate_car.add_argument(
         "--wait-s", type=float, default=60.0, help="wait this long for an armed car (60 s)"
     )
-    calibrate_car.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate_car.set_defaults(handler=_lazy("qnav.firmware_bridge.calibrate:run"))
+    _flag(calibrate_car, "--json", "print one JSON object")
 
-    vehicle = verbs.add_parser(
-        "fake-vehicle", help="a small MAVLink car that behaves like ArduPilot Rover"
+    vehicle = _verb(
+        verbs,
+        "qnav.verbs.onboard:fake_vehicle",
+        "fake-vehicle",
+        help="a small MAVLink car that behaves like ArduPilot Rover",
     )
     _with_listing(
         vehicle,
@@ -974,29 +1050,28 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
     vehicle.add_argument(
         "--signing-key-file", metavar="FILE", help="sign, and accept only signed messages"
     )
-    vehicle.add_argument(
+    _repeated(
+        vehicle,
         "--set",
-        dest="assignments",
-        action="append",
-        default=[],
-        metavar="FIELD=VALUE",
-        help="change one setting, e.g. --set dynamics.max_speed_mps=1.0 (repeatable)",
+        "assignments",
+        "FIELD=VALUE",
+        "change one setting, e.g. --set dynamics.max_speed_mps=1.0 (repeatable)",
     )
     vehicle.add_argument(
         "--pose-period-s", type=float, default=1.0, help="log the pose this often (0: never)"
     )
-    vehicle.add_argument(
-        "--print-config", action="store_true", help="print every setting as TOML and exit"
-    )
+    add_print_config(vehicle)
     vehicle.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
     )
-    vehicle.set_defaults(handler=_lazy("qnav.simcar.mavlink_vehicle:run"))
 
 
 def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
-    bench = benches.add_parser(
-        "bridge", help="command on zenoh to MAVLink on the wire, and the failsafe stop's delay"
+    bench = _verb(
+        benches,
+        "qnav.verbs.bench:bench_bridge",
+        "bridge",
+        help="command on zenoh to MAVLink on the wire, and the failsafe stop's delay",
     )
     bench.add_argument("--commands", type=int, default=1000, help="timed commands (1000)")
     bench.add_argument(
@@ -1006,29 +1081,44 @@ def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
         "--timeout-s", type=float, default=0.5, help="failsafe.command_timeout_s (0.5)"
     )
     bench.add_argument("--stops", type=int, default=5, help="failsafe stops timed (5)")
-    bench.add_argument(
+    _flag(
+        bench,
         "--baseline",
-        action="store_true",
-        help="also time a bare zenoh-to-UDP echo process: the floor this machine sets",
+        "also time a bare zenoh-to-UDP echo process: the floor this machine sets",
     )
-    bench.add_argument("--json", action="store_true", help="print one JSON object")
-    bench.set_defaults(handler=_lazy("qnav.firmware_bridge.bench:bench"))
+    _flag(bench, "--json", "print one JSON object")
 
 
 ZENOH_DAEMONS = frozenset({"bridge", "controller", "record", "serve", "sim-car"})
 """Verbs that run a zenoh session until a signal stops them."""
 
 
+def verb_of(args: argparse.Namespace) -> str:
+    """The verb as typed: `train`, `lab probe`, `bench learner`."""
+    sub = getattr(args, "tool", None) or getattr(args, "bench", None)
+    return f"{args.verb} {sub}" if sub else str(args.verb)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one verb and return its exit status (what tests call in-process)."""
     args = build_parser().parse_args(argv)
+    verb = verb_of(args)
+    missing = missing_extras(verb)
+    if missing:
+        install = " ".join(f"'qnav[{extra}]'" for extra in missing)
+        print(
+            f"qnav {verb}: needs {_needs(missing)}, which this install leaves out (the base "
+            f"install is the car's): pip install {install}",
+            file=sys.stderr,
+        )
+        return 2
     try:
         return int(args.handler(args))
     except (ConfigError, PolicyFileError, PolicyInputError) as error:
-        print(f"qnav {args.verb}: {error}", file=sys.stderr)
+        print(f"qnav {verb}: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"qnav {args.verb}: interrupted", file=sys.stderr)
+        print(f"qnav {verb}: interrupted", file=sys.stderr)
         return 130
 
 

@@ -33,6 +33,7 @@ from qnav.contracts.errors import ConfigError, PolicyFileError
 from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.controller.onnx_file import parse_onnx
+from qnav.options import config_text, settings_from_args
 
 log = logging.getLogger("qnav.serve")
 
@@ -348,15 +349,13 @@ def serve_verb(args: argparse.Namespace) -> int:
         namespace=args.namespace or "",
         config_file=str(args.zenoh_config or ""),
     )
-    settings = ServeSettings(
-        sources=tuple(args.sources),
-        private_key=args.key,
-        zenoh=zenoh_settings,
-        poll_s=args.poll_s,
-        announce_interval_s=args.announce_interval_s,
-        chunk_bytes=args.chunk_bytes,
-        export_runs=args.export_runs,
+    settings = settings_from_args(
+        ServeSettings(sources=tuple(args.sources), private_key=args.key, zenoh=zenoh_settings),
+        args,
     )
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
     with stop_on_signals(logger=log) as stop:
         run(settings, stop)
     return 0

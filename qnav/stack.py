@@ -279,7 +279,7 @@ def run_stack(
     hub = f"tcp/127.0.0.1:{free_port()}"
     mavlink_port = free_port(socket.SOCK_DGRAM)
     sitl = None
-    vehicle_args = ["--vehicle", f"udpin:127.0.0.1:{mavlink_port}"]
+    vehicle_args = ["--vehicle-connection", f"udpin:127.0.0.1:{mavlink_port}"]
     lockstep = lockstep and sitl_binary is None  # the firmware keeps its own time
     if lockstep:
         vehicle_args.append("--lockstep")
@@ -290,7 +290,7 @@ def run_stack(
         sitl = SitlProcess(
             sitl_binary, files.root / "sitl", [SITL_PARAMS, SKID_PARAMS], model="rover-skid"
         )
-        vehicle_args = ["--firmware", sitl.serial0]
+        vehicle_args = ["--firmware-connection", sitl.serial0]
         bridge_values = sitl_bridge_settings(sitl.serial1)
     write_configs(
         files,
@@ -615,43 +615,3 @@ def episode_agreement(
         ended = names.get(Outcome(int(transition.outcome[0])), "unfinished")
         counts["same_outcome"] += ended == entry["outcome"]
     return counts
-
-
-def sim_car_verb(args: argparse.Namespace) -> int:
-    """`qnav sim-car`: the simulator as the car, until its episodes are done or SIGTERM."""
-    import logging
-
-    from qnav.contracts.daemon import stop_on_signals
-    from qnav.contracts.transport import ZenohSettings
-    from qnav.sim.config import load_world
-    from qnav.simcar.car import SimCar, SimCarSettings, summary, write_log
-
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
-    world = load_world(args.scenario, args.world_config, args.assignments)
-    settings = SimCarSettings(
-        episodes=args.episodes,
-        first_episode=args.first_episode,
-        seed=args.seed,
-        rest_s=args.rest_s,
-        vehicle_connection=args.vehicle,
-        firmware_connection=args.firmware or "",
-        lockstep=args.lockstep,
-        # An autopilot boots, finds GPS and arms in tens of seconds.
-        start_timeout_s=180.0 if args.firmware else SimCarSettings().start_timeout_s,
-    )
-    zenoh = ZenohSettings(
-        listen=tuple(args.listen or ()),
-        connect=tuple(args.connect or ()),
-        namespace=args.namespace or "",
-    )
-    car = SimCar(world, settings, zenoh)
-
-    def report(entry: Any) -> None:
-        print(f"episode {entry.episode}: {entry.outcome}, {entry.steps} steps", flush=True)
-
-    with stop_on_signals() as stop:
-        episodes = car.run(stop, progress=report)
-    if args.log:
-        write_log(episodes, args.log)
-    print(json.dumps(summary(episodes)), flush=True)
-    return 0

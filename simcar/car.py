@@ -16,8 +16,8 @@ one control period under it (`MavlinkVehicle.advance`), so the episode is the in
 whatever the latency. Either way the episode log counts, per period, the decisions that came
 too late, on another pose, or as stops (`EpisodeLog`).
 
-With `firmware_connection` (`qnav sim-car --firmware`), a real autopilot moves the robot
-instead: its own pose estimate is the robot's pose (`simcar.firmware_vehicle`), as in
+With `firmware_connection` (`qnav sim-car --firmware-connection`), a real autopilot moves the
+robot instead: its own pose estimate is the robot's pose (`simcar.firmware_vehicle`), as in
 `qnav stack --vehicle sitl`.
 
 Episode g has the layout of the test protocol's episode g (seed and episode index as in

@@ -29,10 +29,8 @@ default).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
-import sys
 import threading
 import time
 from collections import Counter, deque
@@ -76,7 +74,6 @@ from qnav.contracts.settings import (
     from_dict,
     load_toml,
     parse_assignments,
-    to_toml,
     with_overrides,
 )
 
@@ -597,24 +594,12 @@ def load_vehicle_settings(
     return settings
 
 
-def run(args: argparse.Namespace) -> int:
-    """`qnav fake-vehicle`: run the vehicle until SIGINT or SIGTERM, logging its pose."""
-    assignments = list(args.assignments)
-    if args.connection:
-        assignments.append(f'connection="{args.connection}"')
-    if args.signing_key_file:
-        assignments.append(f'signing_key_file="{args.signing_key_file}"')
-    settings = load_vehicle_settings(args.config, assignments)
-    if args.print_config:
-        sys.stdout.write(to_toml(settings))
-        return 0
-    logging.basicConfig(
-        level=getattr(logging, args.log_level.upper()),
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-    )
+def serve(settings: MavlinkVehicleSettings, pose_period_s: float = 1.0) -> None:
+    """`qnav fake-vehicle`: run the vehicle until SIGINT or SIGTERM, logging its pose every
+    `pose_period_s` (0: never)."""
     with stop_on_signals() as stop, MavlinkVehicle(settings) as vehicle:
         log.info("vehicle %d serving %s", settings.system_id, settings.connection)
-        period = args.pose_period_s if args.pose_period_s > 0 else 3600.0
+        period = pose_period_s if pose_period_s > 0 else 3600.0
         while not stop.wait(period):
             x, y, yaw = vehicle.pose()
             log.info(
@@ -625,4 +610,3 @@ def run(args: argparse.Namespace) -> int:
                 y,
                 yaw,
             )
-    return 0

@@ -78,47 +78,118 @@ def test_bench_lookahead_json_times_each_part_of_the_decision() -> None:
         assert 0 < report[f"{part}_ms_p50"] <= report[f"{part}_ms_p99"]
 
 
-def test_settings_prints_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    printed = _qnav("settings", "--scenario", "obstacles-increment", "--set", "obstacles.count=2")
+def test_eval_prints_the_world_as_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    printed = _qnav(
+        "eval", "--scenario", "obstacles-increment", "--set", "obstacles.count=2", "--print-config"
+    )
     assert printed.returncode == 0
+    assert "count = 2" in printed.stdout
     path = tmp_path / "world.toml"
     path.write_text(printed.stdout)
     result = _qnav("eval", "--world-config", str(path), "--episodes", "5", "--json")
     assert result.returncode == 0, result.stderr
+    table = _qnav("eval", "--scenario", "obstacles-increment", "--print-config", "--markdown")
+    assert table.stdout.startswith("| setting | value | meaning |")
 
 
 def test_settings_reference_in_docs_is_current() -> None:
-    from pathlib import Path
-
-    from qnav.sim.cli import settings_reference
-
     docs = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
-    assert docs.read_text() == settings_reference(), "run `make docs` to regenerate"
+    printed = _qnav("scenarios", "--reference")
+    assert printed.returncode == 0, printed.stderr
+    assert docs.read_text() == printed.stdout, "run `make docs` to regenerate"
+
+
+def _print_config_argv(verb: str, folder: Path) -> list[str]:
+    """`verb --print-config`, with what the verb needs besides (serve: a source and a key)."""
+    if verb == "serve":
+        key = folder / "key.pem"
+        key.write_text("unused")
+        return [verb, str(folder), "--key", str(key), "--print-config"]
+    return [*verb.split(), "--print-config"]
+
+
+@pytest.mark.parametrize(
+    "verb",
+    [
+        "train",
+        "eval",
+        "controller",
+        "bridge",
+        "fake-vehicle",
+        "sim-car",
+        "serve",
+        "lab probe",
+        "lab imitate",
+    ],
+)
+def test_every_verb_with_settings_prints_them_as_toml(verb: str, tmp_path: Path) -> None:
+    import tomllib
+
+    printed = _qnav(*_print_config_argv(verb, tmp_path))
+    assert printed.returncode == 0, printed.stderr
+    assert len(tomllib.loads(printed.stdout)) >= 1
+
+
+def _without(blocked: str, code: str, folder: Path) -> subprocess.CompletedProcess[str]:
+    """Run `code` in a fresh interpreter where `blocked` cannot be imported, as on an install
+    that never had it (None in sys.modules: importing it fails, find_spec finds nothing)."""
+    return subprocess.run(
+        [sys.executable, "-c", f"import sys; sys.modules[{blocked!r}] = None\n{code}"],
+        capture_output=True, text=True, timeout=120, check=False, cwd=folder,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize(
     ("blocked", "argv", "extra"),
     [
         ("torch", ["train", "--scenario", "walls-increment", "--episodes", "2"], "train"),
+        ("torch", ["lab", "imitate", "--scenario", "walls-increment"], "train"),
+        ("torch", ["bench", "learner"], "train"),
         ("matplotlib", ["render", "--scenario", "walls-inertia", "--out", "unused"], "viz"),
+        # Needed only with this option: named when the import fails.
+        ("torch", ["eval", "--policy", "some-run", "--episodes", "2"], "train"),
     ],
 )
 def test_a_verb_whose_extra_is_not_installed_names_the_extra(
     blocked: str, argv: list[str], extra: str, tmp_path: Path
 ) -> None:
-    # On the car's install (no extras) `qnav train` used to end in a torch traceback. The package
-    # is made unimportable in a fresh interpreter, as if it had never been installed.
-    code = (
-        f"import sys; sys.modules[{blocked!r}] = None; from qnav.cli import main; "
-        f"sys.exit(main({argv!r}))"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False,
-        cwd=tmp_path,
-    )  # fmt: skip
+    # On the car's install (no extras) `qnav train` used to end in a torch traceback.
+    done = _without(blocked, f"from qnav.cli import main; sys.exit(main({argv!r}))", tmp_path)
     assert done.returncode == 2, done.stderr[-2000:]
     assert f"pip install 'qnav[{extra}]'" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_help_marks_the_verbs_whose_extra_is_missing(tmp_path: Path) -> None:
+    code = "from qnav.cli import main; main(['--help'])"
+    shown = _without("torch", code, tmp_path).stdout
+    lines = {line.split()[0]: line for line in shown.splitlines() if line.startswith("  ")}
+    assert "(needs qnav[train])" in lines["train"]
+    assert "(needs" not in lines["eval"]
+    full = _qnav("--help").stdout
+    assert "(needs" not in full  # this install has every extra
+    assert "other:" not in full  # every verb sits in one of VERB_GROUPS
+    assert "research (lab/" in full
+
+
+def test_imitate_help_imports_no_torch(tmp_path: Path) -> None:
+    code = (
+        "from qnav.cli import main\n"
+        "try:\n    main(['lab', 'imitate', '--help'])\n"
+        "except SystemExit as done:\n    assert done.code == 0\n"
+        "print('torch imported' if sys.modules.get('torch') else 'no torch')"
+    )
+    shown = subprocess.run(
+        [sys.executable, "-c", f"import sys\n{code}"],
+        capture_output=True, text=True, timeout=120, check=False, cwd=tmp_path,
+    )  # fmt: skip
+    assert shown.returncode == 0, shown.stderr
+    assert "--dagger-rounds" in shown.stdout
+    assert shown.stdout.strip().endswith("no torch")
+    blocked = _without("torch", code, tmp_path)
+    assert blocked.returncode == 0, blocked.stderr
+    assert "--dagger-rounds" in blocked.stdout
 
 
 @pytest.mark.parametrize("verb", ["controller", "bridge", "fake-vehicle"])
@@ -137,7 +208,6 @@ def test_every_daemon_prints_its_settings_with_one_spelling_and_reads_them_back(
 @pytest.mark.parametrize(
     ("verb", "target"),
     [
-        ("train", "qnav.training.config:TrainSettings"),
         ("controller", "qnav.controller.config:DaemonConfig"),
         ("bridge", "qnav.firmware_bridge.settings:BridgeSettings"),
         ("fake-vehicle", "qnav.simcar.mavlink_vehicle:MavlinkVehicleSettings"),

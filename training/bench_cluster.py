@@ -10,8 +10,6 @@ the speed-up).
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import tempfile
@@ -130,14 +128,3 @@ def format_report(report: dict[str, Any]) -> str:
         f"{report['speedup_1_over_2']:.2f}"
     )
     return "\n".join(lines)
-
-
-def bench(args: argparse.Namespace) -> int:
-    """`qnav bench cluster`."""
-    if args.repeats < 1:
-        from qnav.contracts.errors import ConfigError
-
-        raise ConfigError(f"--repeats = {args.repeats}: give at least 1")
-    report = run(args.repeats)
-    print(json.dumps(report) if args.json else format_report(report))
-    return 0

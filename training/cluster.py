@@ -61,7 +61,7 @@ class ClusterSettings:
 
     def __post_init__(self) -> None:
         if self.local_cpus is not None and self.local_cpus < 1:
-            raise ConfigError(f"--cpus = {self.local_cpus}: give at least 1")
+            raise ConfigError(f"--local-cpus = {self.local_cpus}: give at least 1")
         if self.object_store_mb < 64:
             raise ConfigError(f"object_store_mb = {self.object_store_mb}: Ray needs at least 64")
         if self.sync_every_s <= 0:

@@ -128,7 +128,8 @@ def test_the_cache_returns_what_was_collected_and_keys_on_the_settings(tmp_path:
 
 
 def test_qnav_gauge_prints_the_baselines_of_a_world() -> None:
-    result = _qnav("gauge", "--scenario", "obstacles-increment", "--episodes", "10", "--json")
+    world = ("--scenario", "obstacles-increment")
+    result = _qnav("lab", "gauge", *world, "--episodes", "10", "--json")
     assert result.returncode == 0, result.stderr
     rows = [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
     assert [row["policy"] for row in rows] == [
@@ -142,6 +143,6 @@ def test_qnav_gauge_prints_the_baselines_of_a_world() -> None:
 
 
 def test_qnav_gauge_refuses_a_world_without_moving_obstacles() -> None:
-    result = _qnav("gauge", "--scenario", "walls-increment")
+    result = _qnav("lab", "gauge", "--scenario", "walls-increment")
     assert result.returncode != 0
     assert "no moving obstacles" in result.stderr

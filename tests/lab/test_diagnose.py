@@ -1,4 +1,4 @@
-"""`qnav diagnose`: the measurements that tell memorising from learning."""
+"""`qnav lab diagnose`: the measurements that tell memorising from learning."""
 
 import subprocess
 import sys
@@ -63,7 +63,7 @@ def test_a_network_blind_to_the_target_never_seems_to_turn_towards_it(tiny_run: 
 
 def test_qnav_diagnose_prints_the_gap_and_the_action_mix(tiny_run: Path) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "qnav", "diagnose", str(tiny_run), "--fresh-episodes", "4"],
+        [sys.executable, "-m", "qnav", "lab", "diagnose", str(tiny_run), "--fresh-episodes", "4"],
         capture_output=True,
         text=True,
         timeout=300,

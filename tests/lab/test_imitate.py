@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-COMMAND = [sys.executable, "-m", "qnav", "imitate", "--scenario", "walls-increment"]
+COMMAND = [sys.executable, "-m", "qnav", "lab", "imitate", "--scenario", "walls-increment"]
 FULL = [
     "--episodes", "48", "--held-out-episodes", "16", "--iterations", "150",
     "--test-episodes", "8", "--dagger-rounds", "1", "--dagger-episodes", "8",

@@ -40,7 +40,7 @@ def test_obstacles_are_seen_in_the_robots_frame_nearest_first() -> None:
 
 
 COMMAND = [
-    sys.executable, "-m", "qnav", "imitate", "--privileged", "--scenario", "walls-increment",
+    sys.executable, "-m", "qnav", "lab", "imitate", "--privileged", "--scenario", "walls-increment",
     "--threads", "1", "--json",
 ]  # fmt: skip
 

@@ -193,7 +193,7 @@ def test_an_unreachable_head_is_named_after_a_bounded_wait(tmp_path: Path) -> No
     with pytest.raises(ConfigError, match=f"--address {address}: no Ray head answers"):
         check_reachable(address, timeout_s=1.0)
     assert time.monotonic() - started < 30
-    with pytest.raises(ConfigError, match="--cpus"):
+    with pytest.raises(ConfigError, match="--local-cpus"):
         ClusterSettings(local_cpus=0)
 
 

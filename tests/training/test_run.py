@@ -83,7 +83,7 @@ def test_an_exported_run_scores_what_its_torch_network_scores(tmp_path: Path) ->
     def evaluate(target: Path, *extra: str) -> dict[str, float]:
         done = subprocess.run(
             [sys.executable, "-m", "qnav", "eval", "--policy", str(target), "--episodes", "6",
-             "--max-steps", "60", "--json", *extra],
+             "--max-episode-steps", "60", "--json", *extra],
             capture_output=True, text=True, timeout=300, check=False,
         )  # fmt: skip
         assert done.returncode == 0, done.stderr

@@ -1,0 +1,205 @@
+"""Handlers of the learning verbs: train, export, reproduce, sweep, figures."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import load_toml, with_overrides
+from qnav.options import config_text, settings_from_args
+from qnav.sim.config import WorldConfig, load_world
+from qnav.sim.evaluate import EvalSettings, RandomAgent
+from qnav.sim.evaluate import evaluate as run_evaluation
+
+if TYPE_CHECKING:
+    from qnav.training.study import Engine, RunSpec, StudySettings
+
+
+def train(args: argparse.Namespace) -> int:
+    """Train (or resume) one run."""
+    from qnav.training.config import preset
+    from qnav.training.run import train as run_training
+
+    world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
+    settings = preset(args.preset, world)
+    if args.train_config is not None:
+        settings = with_overrides(settings, load_toml(args.train_config).get("train", {}))
+    settings = settings_from_args(settings, args, assignments=args.train_assignments)
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
+    run_dir = args.run_dir or Path("runs") / world.name / (
+        f"{settings.model}-seed{settings.seed}-{args.preset}"
+        + ("" if settings.relabel == "paper" else f"-{settings.relabel}")
+    )
+    print(f"run folder: {run_dir}")
+    # The decisive-state gauge comes from the lab (it needs the oracle planner): the shell hands
+    # it to the run, which knows only the protocol (training.validation.Gauge).
+    from qnav.lab.gauge import training_gauge
+
+    gauge = training_gauge(world, settings, progress=not args.quiet)
+    results = run_training(world, settings, run_dir, progress=not args.quiet, gauge=gauge)
+    test = results["test"]
+    print(
+        f"test ({test['episodes']} episodes of up to 500 steps): success {test['success']:.3f}, "
+        f"collision {test['collision']:.3f}, unfinished {test['unfinished']:.3f}"
+    )
+    print(f"wrote {run_dir}/results.json, progress.csv, success.png, model.pt")
+    return 0
+
+
+def export(args: argparse.Namespace) -> int:
+    """A run's network as one ONNX policy file, tested and stamped with its results."""
+    from qnav.training.export import AGREEMENT_KEY, export_run, reexport_file
+
+    default_episodes = 200 if args.run.suffix != ".onnx" or args.weights else 0
+    episodes = default_episodes if args.eval_episodes is None else args.eval_episodes
+    if args.run.suffix == ".onnx":
+        if args.output is None:
+            raise ConfigError("re-exporting a policy file needs -o FILE.onnx (it may be the same)")
+        output = args.output
+        contract = reexport_file(
+            args.run,
+            output,
+            eval_episodes=episodes,
+            weight_type=args.weights,
+            progress=not args.quiet,
+        )
+    else:
+        output = args.output or args.run / "policy.onnx"
+        contract = export_run(
+            args.run,
+            output,
+            eval_episodes=episodes,
+            weight_type=args.weights or "float32",
+            progress=not args.quiet,
+        )
+    print(
+        f"wrote {output} ({output.stat().st_size / 1e6:.1f} MB, {contract.weight_type} weights "
+        "inside)"
+    )
+    print(
+        f"  {contract.model_kind}, {contract.scenario}, window {contract.window_length}, "
+        f"{contract.num_beams} beams, period {contract.control_period_s} s"
+    )
+    if contract.evaluation:
+        e = contract.evaluation
+        print(
+            f"  this file under the test protocol ({int(e['episodes'])} episodes): success "
+            f"{e['success']:.3f}, collision {e['collision']:.3f}, unfinished {e['unfinished']:.3f}"
+        )
+        if AGREEMENT_KEY in e:
+            print(f"  its decisions agree with the float32 network's in {e[AGREEMENT_KEY]:.2%}")
+    return 0
+
+
+def reproduce(args: argparse.Namespace) -> int:
+    """Run the study's missing runs, then write docs/results.md."""
+    from qnav.sim import paper
+    from qnav.sim.config import scenario
+    from qnav.training.study import ablation_plan, parse_seeds, plan, results_markdown
+
+    scenarios, models, seeds = _study_axes(args)
+    specs = plan(scenarios, models, seeds)
+    if args.ablation:
+        ablation_seeds = parse_seeds(args.ablation_seeds, "--ablation-seeds")
+        specs += [s for s in ablation_plan(ablation_seeds) if s.scenario in scenarios]
+    if not args.tables_only:
+        _run_study(args, specs)
+    random_rows = {}
+    for name in paper.RANDOM:
+        result = run_evaluation(
+            scenario(name),
+            RandomAgent(250, seed=1),
+            EvalSettings(episodes=1000, num_worlds=250),
+            progress=False,
+        )
+        random_rows[name] = asdict(result)
+    args.docs.parent.mkdir(parents=True, exist_ok=True)
+    args.docs.write_text(results_markdown(args.results_dir, random_rows))
+    print(f"wrote {args.docs}")
+    return 0
+
+
+def _study_axes(
+    args: argparse.Namespace,
+) -> tuple[tuple[str, ...], tuple[str, ...], tuple[int, ...]]:
+    """The scenarios, models and seeds a study's options name (`reproduce` and `sweep`)."""
+    from qnav.training.study import MODELS, SCENARIOS, parse_choices, parse_seeds
+
+    return (
+        parse_choices("--scenarios", args.scenarios, SCENARIOS),
+        parse_choices("--models", args.models, MODELS),
+        parse_seeds(args.seeds),
+    )
+
+
+def _run_study(
+    args: argparse.Namespace, specs: list[RunSpec], common: tuple[str, ...] = ()
+) -> None:
+    """Train the study's missing runs with the engine, threads, jobs and budget its options ask
+    for (`qnav reproduce` and `qnav sweep` alike)."""
+    from qnav.training.study import run_study
+
+    budget = None if args.time_budget_min is None else args.time_budget_min * 60
+    run_study(
+        specs,
+        args.runs_dir,
+        results_root=args.results_dir,
+        jobs=args.jobs,
+        threads=_threads(args),
+        preset=args.preset,
+        time_budget_s=budget,
+        common=common,
+        engine=_engine(args),
+    )
+
+
+def _threads(args: argparse.Namespace) -> int | None:
+    """Torch threads per run: as given; else on Ray 2 (the fast preset's, sized for any node),
+    else the local runner shares this machine's cores among its jobs (None)."""
+    if args.threads is not None or args.engine == "local":
+        return int(args.threads) if args.threads is not None else None
+    return 2
+
+
+def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | None:
+    """The engine a study's options ask for: None for the local runner, else Ray's."""
+    from qnav.options import given_settings
+
+    if args.engine == "local":
+        given = sorted(given_settings(args))
+        if given:
+            options = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise ConfigError(f"{options} {'needs' if len(given) == 1 else 'need'} --engine ray")
+        return None
+    from qnav.training.cluster import ClusterSettings, RayEngine, parse_address
+
+    settings = settings_from_args(ClusterSettings(), args)
+    if settings.address is not None:
+        parse_address(settings.address)  # a malformed one is named before anything else
+    return lambda study: RayEngine(args.runs_dir, study, settings)
+
+
+def sweep(args: argparse.Namespace) -> int:
+    """Train every point of a settings grid, then print each run's test figures."""
+    from qnav.training.study import parse_grid, sweep_plan, sweep_table
+
+    grid = parse_grid(args.grid)
+    specs = sweep_plan(*_study_axes(args), grid)
+    _run_study(args, specs, common=tuple(args.common))
+    print(sweep_table(specs, args.results_dir))
+    return 0
+
+
+def figures(args: argparse.Namespace) -> int:
+    """Action maps and trajectories of a training run, as PNG."""
+    from qnav.training.figures import write_figures
+
+    for path in write_figures(args.run, args.out):
+        print(f"wrote {path}")
+    return 0

@@ -1,0 +1,162 @@
+"""Handlers of the car's verbs: controller, bridge, calibrate-car, fake-vehicle, sim-car,
+health. The daemons themselves live in their packages and take typed settings."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+from qnav.options import config_text
+
+if TYPE_CHECKING:
+    from qnav.firmware_bridge.settings import BridgeSettings
+
+LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s %(message)s"
+
+
+def controller(args: argparse.Namespace) -> int:
+    """`qnav controller`: the onboard daemon until SIGINT or SIGTERM."""
+    from qnav.controller.config import load_config
+    from qnav.controller.daemon import build, commented_config, serve
+
+    if args.print_config:
+        sys.stdout.write(commented_config())
+        return 0
+    config = load_config(args.config, args.assignments)
+    if args.policy is not None:
+        config = replace(config, controller=replace(config.controller, policy=str(args.policy)))
+    logging.basicConfig(
+        level=config.controller.log_level.upper(),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    serve(build(config))
+    return 0
+
+
+def _bridge_settings(args: argparse.Namespace) -> BridgeSettings:
+    """The bridge's settings: its --config file, then each --set."""
+    from qnav.contracts.settings import parse_assignments, with_overrides
+    from qnav.firmware_bridge.settings import load_settings
+
+    settings = load_settings(args.config)
+    if args.assignments:
+        settings = with_overrides(settings, parse_assignments(args.assignments))
+    return settings
+
+
+def bridge(args: argparse.Namespace) -> int:
+    """`qnav bridge`: the firmware bridge until SIGINT or SIGTERM."""
+    from qnav.firmware_bridge.daemon import serve
+
+    settings = _bridge_settings(args)
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()), format=LOG_FORMAT)
+    serve(settings)
+    return 0
+
+
+def calibrate_car(args: argparse.Namespace) -> int:
+    """`qnav calibrate-car`: fit the bridge's speed and turn-rate scales on the car."""
+    from qnav.firmware_bridge.calibrate import (
+        CalibrationAbortedError,
+        measure_scales,
+        output_section,
+    )
+
+    try:
+        result = measure_scales(
+            _bridge_settings(args), max_distance_m=args.max_distance_m, wait_s=args.wait_s
+        )
+    except CalibrationAbortedError as error:
+        print(f"qnav calibrate-car: aborted: {error}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    for r in result["runs"]:
+        print(
+            f"# throttle {r['throttle']:+.2f} steering {r['steering']:+.2f}: "
+            f"{r['forward_mps']:+.3f} m/s, {r['turn_rate_radps']:+.3f} rad/s"
+        )
+    print(
+        output_section(
+            result["speed_at_full_throttle_mps"], result["turn_rate_at_full_steering_radps"]
+        ),
+        end="",
+    )
+    return 0
+
+
+def fake_vehicle(args: argparse.Namespace) -> int:
+    """`qnav fake-vehicle`: the MAVLink test vehicle until SIGINT or SIGTERM."""
+    from qnav.simcar.mavlink_vehicle import load_vehicle_settings, serve
+
+    assignments = list(args.assignments)
+    if args.connection:
+        assignments.append(f'connection="{args.connection}"')
+    if args.signing_key_file:
+        assignments.append(f'signing_key_file="{args.signing_key_file}"')
+    settings = load_vehicle_settings(args.config, assignments)
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()), format=LOG_FORMAT)
+    serve(settings, args.pose_period_s)
+    return 0
+
+
+def sim_car(args: argparse.Namespace) -> int:
+    """`qnav sim-car`: the simulator as the car, until its episodes are done or SIGTERM."""
+    from qnav.contracts.daemon import stop_on_signals
+    from qnav.contracts.transport import ZenohSettings
+    from qnav.options import given_settings, settings_from_args
+    from qnav.sim.config import load_world
+    from qnav.simcar.car import SimCar, SimCarSettings, summary, write_log
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    settings = settings_from_args(SimCarSettings(), args)
+    if settings.firmware_connection and "start_timeout_s" not in given_settings(args):
+        # An autopilot boots, finds GPS and arms in tens of seconds.
+        settings = replace(settings, start_timeout_s=180.0)
+    if args.print_config:
+        print(config_text(settings), end="")
+        return 0
+    zenoh = ZenohSettings(
+        listen=tuple(args.listen or ()),
+        connect=tuple(args.connect or ()),
+        namespace=args.namespace or "",
+    )
+    car = SimCar(world, settings, zenoh)
+
+    def report(entry: Any) -> None:
+        print(f"episode {entry.episode}: {entry.outcome}, {entry.steps} steps", flush=True)
+
+    with stop_on_signals() as stop:
+        episodes = car.run(stop, progress=report)
+    if args.log:
+        write_log(episodes, args.log)
+    print(json.dumps(summary(episodes)), flush=True)
+    return 0
+
+
+def health(args: argparse.Namespace) -> int:
+    """`qnav health`: 0 while the daemon's loop beats (a container HEALTHCHECK), 1 otherwise."""
+    import sys
+
+    from qnav.contracts.health import HEALTH_FILE_ENV, check_health, health_path
+
+    path = args.file or health_path()
+    if path is None:
+        print(f"qnav health: give --file or set {HEALTH_FILE_ENV}", file=sys.stderr)
+        return 2
+    healthy, explanation = check_health(path, args.max_age_s)
+    print(f"{'healthy' if healthy else 'unhealthy'}: {explanation}")
+    return 0 if healthy else 1

@@ -1,0 +1,206 @@
+"""Handlers of the simulator's verbs: scenarios, eval, render."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict
+from typing import cast
+
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.motion import IncrementDynamics
+from qnav.contracts.settings import to_markdown
+from qnav.options import config_text, settings_from_args
+from qnav.sim.config import SCENARIOS, WorldConfig, load_world, scenario
+from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
+from qnav.sim.evaluate import evaluate as run_evaluation
+
+
+def _world(args: argparse.Namespace) -> WorldConfig:
+    return load_world(args.scenario, args.world_config, args.assignments)
+
+
+def scenarios(args: argparse.Namespace) -> int:
+    """Print one line per built-in scenario, or (--reference) every world setting."""
+    if args.reference:
+        sys.stdout.write(settings_reference())
+        return 0
+    print(f"{'scenario':<22} {'dynamics':<10} {'obstacles':>9} {'lidar':>6}")
+    for name, config in SCENARIOS.items():
+        dynamics = "increment" if isinstance(config.dynamics, IncrementDynamics) else "inertia"
+        lidar = str(config.lidar.num_beams) if config.lidar else "none"
+        print(f"{name:<22} {dynamics:<10} {config.obstacles.count:>9} {lidar:>6}")
+    return 0
+
+
+def settings_reference() -> str:
+    """The text of docs/settings.md, generated from the settings classes."""
+    increment = to_markdown(scenario("walls-increment")).splitlines()
+    dynamics_rows = [row for row in increment[2:] if row.startswith("| `dynamics")]
+    return "\n".join(
+        [
+            "# World settings",
+            "",
+            "Every setting of the simulator, with its value in the `obstacles-inertia` scenario.",
+            "The other scenarios differ only in `name`, `obstacles.count` (0 in the walls-only",
+            "scenarios), `dynamics` (below) and `lidar` (none in the `toycar-*` variants).",
+            "Print any scenario's settings as a commented TOML file with",
+            "`qnav eval --scenario NAME --print-config`, edit it and pass it back with",
+            "`--world-config FILE`, or change one value with `--set section.field=value`.",
+            "",
+            "Generated from the settings classes by `make docs`; a test fails when it is stale.",
+            "",
+            to_markdown(scenario("obstacles-inertia")),
+            "Increment dynamics (`walls-increment`, `obstacles-increment`, `toycar-increment`):",
+            "",
+            *increment[:2],
+            *dynamics_rows,
+            "",
+        ]
+    )
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    """The paper's test protocol with the random agent or a trained policy."""
+    eval_settings = settings_from_args(EvalSettings(), args)
+    seed = eval_settings.seed
+    worlds = min(eval_settings.num_worlds, eval_settings.episodes)
+    agent: Agent
+    if args.policy is not None and args.policy.suffix == ".onnx":
+        from qnav.controller.policy import Expectation, PolicyRuntime
+
+        probe = PolicyRuntime(args.policy, backend=args.backend)
+        world = load_world(
+            args.scenario or probe.contract.scenario, args.world_config, args.assignments
+        )
+        expect = Expectation(
+            num_beams=world.lidar.num_beams if world.lidar else 0,
+            control_period_s=world.control_period_s,
+        )
+        runtime = PolicyRuntime(
+            args.policy, backend=args.backend, num_streams=worlds, expect=expect
+        )
+        agent = StreamPolicyAgent(runtime, worlds, args.random_action_prob, seed=seed)
+        label = f"policy file {args.policy} ({args.backend})"
+    elif args.policy is None:
+        world = load_world(args.scenario or "walls-inertia", args.world_config, args.assignments)
+        agent, label = (
+            (RandomAgent(worlds, seed=seed), "random agent")
+            if args.agent == "random"
+            else (GoToTargetAgent(), "go-to-target baseline")
+            if args.agent == "goto"
+            else (RandomAgent(worlds, seed=seed), "oracle planner (knows the future)")
+        )
+    else:
+        from qnav.training.agent import policy_agent
+        from qnav.training.policy import load_network
+
+        network, run = load_network(args.policy)
+        world = (
+            load_world(args.scenario, args.world_config, args.assignments)
+            if args.scenario
+            else run.world
+        )
+        agent = policy_agent(
+            network,
+            world,
+            worlds,
+            run.train.window,
+            epsilon=args.random_action_prob,
+            hold_steps=1,
+            seed=seed,
+        )
+        label = f"{run.train.model} policy {args.policy}"
+    if args.print_config:
+        print(config_text(world, markdown=args.markdown), end="")
+        return 0
+    planner = args.policy is None and args.agent == "oracle"
+    if args.state_error and not planner:
+        raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
+    if args.tracker and not planner:
+        raise ConfigError("--tracker is for --agent oracle (with --policy, use --lookahead)")
+    if args.state_error and args.tracker:
+        raise ConfigError("--state-error and --tracker are two views of the state: choose one")
+    looking = args.lookahead != "off"
+    if looking and (args.policy is None or args.random_action_prob):
+        raise ConfigError(
+            "--lookahead runs beside a greedy policy: give --policy, no random actions"
+        )
+    if args.range_noise_m and not (args.tracker or looking):
+        raise ConfigError(
+            "--range-noise-m is the noise the tracker reads: give --tracker or --lookahead"
+        )
+    if args.range_noise_m < 0:
+        raise ConfigError(
+            f"--range-noise-m = {args.range_noise_m} is out of range: allowed [0, inf)"
+        )
+    shield = None
+    if looking:
+        from qnav.controller.lookahead import LookaheadSettings
+        from qnav.controller.perception import TrackerSettings
+        from qnav.tracking import LookaheadAgent, QAgent
+
+        shield = agent = LookaheadAgent(
+            cast(QAgent, agent),  # --policy gave a StreamPolicyAgent or a TorchAgent
+            world,
+            worlds,
+            tracker=TrackerSettings(),
+            lookahead=LookaheadSettings(mode=args.lookahead),
+            range_noise_m=args.range_noise_m,
+            seed=seed,
+        )
+        label += f", the controller's look ahead in {args.lookahead} mode"
+    if args.random_action_prob:
+        label += f" with {args.random_action_prob:.0%} random actions"
+    if planner and args.tracker:
+        from qnav.controller.perception import TrackerSettings
+        from qnav.lab.tracking import run_perceiving_oracle
+
+        label += ", planning on the onboard tracker's estimate"
+        result = run_perceiving_oracle(
+            world,
+            eval_settings,
+            TrackerSettings(),
+            range_noise_m=args.range_noise_m,
+            progress=not args.json,
+        )
+    elif planner:
+        from qnav.lab.oracle import PERCEPTION_LEVELS, run_oracle
+
+        error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
+        if error is not None:
+            label += f", planning on a {args.state_error} estimate of the state"
+        result = run_oracle(world, eval_settings, state_error=error, progress=not args.json)
+    else:
+        result = run_evaluation(world, agent, eval_settings, progress=not args.json)
+    if args.json:
+        print(json.dumps({k: v for k, v in asdict(result).items() if k != "mean_steps"}))
+        return 0
+    steps = eval_settings.max_episode_steps
+    print(f"{world.name}, {label}, {result.episodes} episodes of up to {steps} steps")
+    for name in ("success", "collision", "unfinished"):
+        value = getattr(result, name)
+        print(f"  {name:<11} {value:.3f} +- {result.standard_error(value):.3f}")
+    print(f"  mean length {result.mean_steps:.1f} steps")
+    if shield is not None:
+        print(f"  overruled  {shield.overruled_share:.3f} of the policy's decisions")
+    return 0
+
+
+def render(args: argparse.Namespace) -> int:
+    """Draw one episode to PNG and GIF."""
+    from qnav.sim.render import render_episode
+
+    config = _world(args)
+    png, gif = render_episode(
+        config,
+        RandomAgent(1, seed=args.seed),
+        args.out,
+        seed=args.seed,
+        episode=args.episode,
+        rays=args.rays,
+        max_steps=args.max_steps,
+    )
+    print(f"wrote {png}\nwrote {gif}")
+    return 0
