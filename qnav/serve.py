@@ -150,26 +150,14 @@ def best_weights(run: Path) -> Path | None:
 
 def export_best(run: Path, episodes: int) -> Path:
     """Export the run's keep-best weights to RUN/policy.onnx and test the file (`episodes`
-    of the test protocol); the file appears only once whole and tested (needs torch)."""
-    import torch
+    of the test protocol); the file appears only once whole and tested (needs qnav[train])."""
+    from qnav.training.export import export_run
 
-    from qnav.training.export import evaluate_file, export_onnx, policy_contract
-    from qnav.training.policy import make_network
-    from qnav.training.run_folder import read_settings, source_commit
-
-    settings = read_settings(run)
     weights = best_weights(run)
     if weights is None:
         raise ConfigError(f"{run} has neither model.pt nor best.pt to export")
-    network = make_network(settings.world, settings.train)
-    network.load_state_dict(torch.load(weights, weights_only=False, map_location="cpu")["online"])
-    network.eval()
-    contract = policy_contract(
-        network, settings.world, settings.train.window, str(run), source_commit()
-    )
     partial = run / (EXPORTED_NAME + ".partial")
-    export_onnx(network, contract, partial)
-    evaluate_file(partial, settings.world, episodes=episodes, backend="onnxruntime", progress=False)
+    export_run(run, partial, eval_episodes=episodes, progress=False, weights=weights)
     partial.replace(run / EXPORTED_NAME)
     return run / EXPORTED_NAME
 

@@ -237,13 +237,14 @@ def export_run(
     backend: str = "onnxruntime",
     weight_type: str = "float32",
     progress: bool = True,
+    weights: Path | None = None,
 ) -> PolicyContract:
-    """Export a training run's network to `output` (weights in `weight_type`), then test the
-    file itself and record it."""
+    """Export a training run's network (from `weights`, by default its final one) to `output`
+    (weights in `weight_type`), then test the file itself and record it."""
     from qnav.training.policy import load_network
     from qnav.training.run_folder import source_commit
 
-    network, run = load_network(run_dir)
+    network, run = load_network(run_dir, weights)
     results_path = run_dir / "results.json"
     commit = json.loads(results_path.read_text()).get("commit", "") if results_path.exists() else ""
     contract = policy_contract(

@@ -22,15 +22,18 @@ def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
     return QNetwork(settings.model, beams, settings.hidden_size)
 
 
-def load_network(run_dir: Path) -> tuple[QNetwork, RunSettings]:
-    """The run's final network (model.pt), or its latest checkpoint if it has not finished."""
+def load_network(run_dir: Path, weights: Path | None = None) -> tuple[QNetwork, RunSettings]:
+    """The run's network from `weights` (a file of the run's); by default its final network
+    (model.pt), or its latest checkpoint if it has not finished."""
     settings = read_settings(run_dir)
     network = make_network(settings.world, settings.train)
-    for name, key in (("model.pt", "online"), ("checkpoint.pt", "online")):
-        path = run_dir / name
+    candidates = [weights] if weights else [run_dir / "model.pt", run_dir / "checkpoint.pt"]
+    for path in candidates:
         if path.exists():
             saved = torch.load(path, weights_only=False, map_location="cpu")
-            network.load_state_dict(saved[key])
+            network.load_state_dict(saved["online"])
             network.eval()
             return network, settings
+    if weights:
+        raise ConfigError(f"{weights} does not exist: nothing to load")
     raise ConfigError(f"{run_dir} has neither model.pt nor checkpoint.pt: nothing to load")
