@@ -42,15 +42,6 @@ ONLY_LAZILY: dict[str, frozenset[str]] = {
 }
 """Folder -> what it may import only inside a function (or under `if TYPE_CHECKING:`)."""
 
-BREACHES: frozenset[tuple[str, str]] = frozenset(
-    {
-        # Both break a rule of issue 22 today and are reported there; fix, then delete the entry.
-        ("training/study.py", "qnav.cli"),  # execute() runs `qnav train` through the shell
-    }
-)
-"""(file, import) pairs that break the table today, each listed so that no new one slips in
-beside them; the test fails once one is gone, so the entry goes with its fix."""
-
 
 @dataclass(frozen=True)
 class Import:
@@ -153,10 +144,7 @@ def test_every_module_imports_only_what_its_folders_row_allows() -> None:
         for path in _folder_files(folder)
         for breach in _breaches(folder, _imports_of(path))
     }
-    new = sorted(str(b) for b in found if (b.path, b.name) not in BREACHES)
-    assert not new, "imports the layering table forbids:\n" + "\n".join(new)
-    gone = BREACHES - {(b.path, b.name) for b in found}
-    assert not gone, f"fixed, so delete from BREACHES: {sorted(gone)}"
+    assert not found, "imports the layering table forbids:\n" + "\n".join(sorted(map(str, found)))
 
 
 def test_every_import_of_ours_is_absolute_so_the_scan_sees_it() -> None:

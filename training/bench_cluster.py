@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from qnav.training.cluster import ClusterSettings, RayEngine, import_ray
-from qnav.training.study import RunSpec, StudySettings, run_study
+from qnav.training.study import Command, RunSpec, StudySettings, run_study
 
 BENCH_SPECS = [RunSpec("walls-inertia", "recurrent", seed) for seed in range(4)]
 """The fixed study: four runs, one torch thread each."""
@@ -45,7 +45,7 @@ def warm_worker() -> int:
     return os.getpid()
 
 
-def time_study(workers: int, root: Path) -> float:
+def time_study(workers: int, root: Path, command: Command) -> float:
     """Seconds the fixed study takes on a local Ray instance with `workers` CPUs."""
     study_engine: list[RayEngine] = []
     settings = ClusterSettings(local_cpus=workers)
@@ -54,7 +54,7 @@ def time_study(workers: int, root: Path) -> float:
         return study_engine[0]
 
     study = StudySettings(threads=1, common=BENCH_SETTINGS)
-    study_engine.append(RayEngine(root / "runs", study, settings))
+    study_engine.append(RayEngine(root / "runs", study, settings, command))
     try:
         warm = study_engine[0].ray.remote(num_cpus=1)(warm_worker)
         pids = study_engine[0].ray.get([warm.remote() for _ in range(workers)])
@@ -79,14 +79,15 @@ def time_study(workers: int, root: Path) -> float:
     return elapsed
 
 
-def run(repeats: int = 3) -> dict[str, Any]:
-    """Time the fixed study on 1 and on 2 workers, `repeats` times each, alternating."""
+def run(command: Command, repeats: int = 3) -> dict[str, Any]:
+    """Time the fixed study on 1 and on 2 workers, `repeats` times each, alternating; each run
+    is `command`'s `qnav train` (the shell's `qnav.cli.main`)."""
     times: dict[int, list[float]] = {1: [], 2: []}
     load_before = os.getloadavg()[0]
     for _ in range(repeats):
         for workers in (1, 2):
             with tempfile.TemporaryDirectory(prefix="qnav-bench-cluster-") as folder:
-                times[workers].append(time_study(workers, Path(folder)))
+                times[workers].append(time_study(workers, Path(folder), command))
     medians = {w: float(np.median(t)) for w, t in times.items()}
     return {
         "runs": len(BENCH_SPECS),

@@ -23,7 +23,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from qnav.contracts.errors import ConfigError
-from qnav.training.study import Outcome, RunSpec, StudySettings, execute
+from qnav.training.study import Command, Outcome, RunSpec, StudySettings, execute
 
 RAY_MISSING = (
     "--engine ray needs Ray, an optional extra: pip install '.[cluster]' "
@@ -180,6 +180,7 @@ class RunStore:
 
 
 def train_task(
+    command: Command,
     spec: RunSpec,
     run_dir: str,
     study: StudySettings,
@@ -195,7 +196,7 @@ def train_task(
 
     node = str(ray.get_runtime_context().get_node_id())
     if store is None:
-        return execute(spec, Path(run_dir), study), node
+        return execute(spec, Path(run_dir), study, command), node
     local = Path(scratch_dir or tempfile.gettempdir()) / "qnav-runs" / node[:12] / spec.name
     if not (local / "checkpoint.pt").exists():
         write_files(local, ray.get(store.get.remote(spec.name)))
@@ -214,7 +215,7 @@ def train_task(
     sender = threading.Thread(target=keep_sending, name="qnav-run-sync", daemon=True)
     sender.start()
     try:
-        result = execute(spec, local, study)
+        result = execute(spec, local, study, command)
     finally:
         stop.set()
         sender.join()
@@ -229,6 +230,8 @@ class RayEngine:
     run_root: Path
     study: StudySettings
     settings: ClusterSettings
+    command: Command
+    """The `qnav` command line in process (`qnav.cli.main`), which each task runs `train` with."""
     ray: Any = None
     task: Any = None
     store: Any = None
@@ -300,6 +303,7 @@ class RayEngine:
             num_cpus=self.study.threads, max_retries=self.settings.max_retries, name=spec.name
         )
         ref = task.remote(
+            self.command,
             spec,
             str(self.run_dir(spec)),
             self.study,

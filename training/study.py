@@ -254,12 +254,15 @@ def train_argv(spec: RunSpec, run_dir: Path, study: StudySettings) -> list[str]:
     return ["train", "--quiet", *options]
 
 
-def execute(spec: RunSpec, run_dir: Path, study: StudySettings) -> dict[str, Any]:
+Command = Callable[[list[str]], int]
+"""The `qnav` command line run in this process (`qnav.cli.main`), handed in by the shell:
+training imports nothing of the shell."""
+
+
+def execute(spec: RunSpec, run_dir: Path, study: StudySettings, command: Command) -> dict[str, Any]:
     """Train (or resume) one run in this process and return its result record: what a Ray
     task does (the local runner starts the same `qnav train` as a process of its own)."""
-    from qnav.cli import main
-
-    code = main(train_argv(spec, run_dir, study))
+    code = command(train_argv(spec, run_dir, study))
     if code != 0:
         raise RuntimeError(f"qnav train of {spec.name} exited {code}")
     return record(spec, run_dir)

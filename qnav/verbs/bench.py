@@ -109,11 +109,12 @@ def bench_controller(args: argparse.Namespace) -> int:
 
 def bench_cluster(args: argparse.Namespace) -> int:
     """`qnav bench cluster`: a small fixed study on 1 Ray worker, then on 2."""
+    from qnav.cli import main
     from qnav.training.bench_cluster import format_report, run
 
     if args.repeats < 1:
         raise ConfigError(f"--repeats = {args.repeats}: give at least 1")
-    report = run(args.repeats)
+    report = run(main, args.repeats)
     print(json.dumps(report) if args.json else format_report(report))
     return 0
 

@@ -177,12 +177,13 @@ def _engine(args: argparse.Namespace) -> Callable[[StudySettings], Engine] | Non
             options = ", ".join("--" + name.replace("_", "-") for name in given)
             raise ConfigError(f"{options} {'needs' if len(given) == 1 else 'need'} --engine ray")
         return None
+    from qnav.cli import main
     from qnav.training.cluster import ClusterSettings, RayEngine, parse_address
 
     settings = settings_from_args(ClusterSettings(), args)
     if settings.address is not None:
         parse_address(settings.address)  # a malformed one is named before anything else
-    return lambda study: RayEngine(args.runs_dir, study, settings)
+    return lambda study: RayEngine(args.runs_dir, study, settings, main)
 
 
 def sweep(args: argparse.Namespace) -> int:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from qnav.cli import main
 from qnav.contracts.errors import ConfigError
 from qnav.training.cluster import (
     ClusterSettings,
@@ -230,7 +231,7 @@ def test_without_ray_the_ray_engine_says_to_install_the_cluster_extra(
     specs = sweep_plan(("walls-inertia",), ("recurrent",), (0,), ())
 
     def ray_engine(study: StudySettings) -> RayEngine:
-        return RayEngine(tmp_path / "runs", study, ClusterSettings())
+        return RayEngine(tmp_path / "runs", study, ClusterSettings(), main)
 
     with pytest.raises(ConfigError, match=r"pip install '\.\[cluster\]'"):
         run_study(specs, tmp_path / "runs", results_root=tmp_path / "results", engine=ray_engine)

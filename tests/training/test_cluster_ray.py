@@ -24,6 +24,7 @@ ray = pytest.importorskip(
     "ray", reason="Ray is not installed: `make test-cluster` installs the [cluster] extra"
 )
 
+from qnav.cli import main  # noqa: E402
 from qnav.contracts.daemon import free_port  # noqa: E402
 from qnav.training.cluster import ClusterSettings, RayEngine  # noqa: E402
 from qnav.training.study import RunSpec, StudySettings, run_progress, run_study  # noqa: E402
@@ -100,7 +101,7 @@ def _engine_factory(
     runs: Path, settings: ClusterSettings, engines: list[RayEngine]
 ) -> Callable[[StudySettings], RayEngine]:
     def make(study: StudySettings) -> RayEngine:
-        engines.append(RayEngine(runs, study, settings))
+        engines.append(RayEngine(runs, study, settings, main))
         return engines[-1]
 
     return make
