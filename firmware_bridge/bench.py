@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -28,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from qnav.contracts.daemon import free_port, stop_on_signals
+from qnav.contracts.daemon import free_port, stop_on_signals, stop_process
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
@@ -162,7 +161,7 @@ def bench(args: argparse.Namespace) -> int:
         try:
             latencies_ms, stops_ms = _measure(args, settings, vehicle, publisher, joined)
         finally:
-            _terminate(bridge)
+            stop_process(bridge)
             states.undeclare()
         floor_ms: list[float] = []
         if args.baseline:
@@ -170,7 +169,7 @@ def bench(args: argparse.Namespace) -> int:
             try:
                 floor_ms = _measure_echo(args.commands, vehicle, zenoh.declare_publisher(ECHO_KEY))
             finally:
-                _terminate(echo)
+                stop_process(echo)
         vehicle.socket.close()
     report = {
         "p50_ms": round(float(np.percentile(latencies_ms, 50)), 4),
@@ -271,15 +270,6 @@ def _spawn(module: str, *args: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
         [sys.executable, "-m", module, *args], env={**os.environ, "PYTHONUNBUFFERED": "1"}
     )
-
-
-def _terminate(process: subprocess.Popen[bytes]) -> None:
-    process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
 
 
 def _echo(zenoh_port: int, udp_port: int) -> None:

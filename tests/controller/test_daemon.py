@@ -10,14 +10,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from qnav.contracts import wire
-from qnav.contracts.daemon import free_port
 from qnav.contracts.health import HEALTH_FILE_ENV
 from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.settings import to_toml
@@ -89,11 +88,6 @@ def reason_is(*reasons: str) -> Callable[[dict[str, Any]], bool]:
     return lambda status: status["reason"] in reasons
 
 
-@pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
-
-
 def start_daemon(tmp_path: Path, config: DaemonConfig) -> subprocess.Popen[str]:
     """`qnav controller` as a user starts it, beating into tmp_path/health.json."""
     path = tmp_path / "controller.toml"
@@ -105,6 +99,20 @@ def start_daemon(tmp_path: Path, config: DaemonConfig) -> subprocess.Popen[str]:
         text=True,
         env={**os.environ, HEALTH_FILE_ENV: str(tmp_path / "health.json")},
     )
+
+
+def stop_sends_stop(daemon: subprocess.Popen[str], number: int, listener: Listener) -> str:
+    """Send `number` (SIGTERM, SIGINT) to the running daemon: it must exit cleanly with a stop
+    published on the way out (status reason `shutdown`) as its last command; its stderr."""
+    before = listener.mark()
+    daemon.send_signal(number)
+    _, stderr = daemon.communicate(timeout=20)
+    assert daemon.returncode == 0, stderr
+    listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
+    time.sleep(0.1)
+    with listener.lock:
+        assert listener.commands[-1] == wire.STOP
+    return stderr
 
 
 def qnav_health(path: Path) -> subprocess.CompletedProcess[str]:
@@ -125,17 +133,6 @@ def start_feeder(endpoint: str, *options: str) -> subprocess.Popen[str]:
     assert feeder.stdout is not None
     assert feeder.stdout.readline().strip() == "ready"
     return feeder
-
-
-@pytest.fixture
-def processes() -> Iterator[list[subprocess.Popen[str]]]:
-    """Processes to kill if a test fails before it ends them."""
-    started: list[subprocess.Popen[str]] = []
-    yield started
-    for process in started:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
 
 
 def action_commands(policy: Path) -> set[tuple[float, float]]:
@@ -222,14 +219,7 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         listener.wait_for(reason_is("policy"))
 
         # SIGTERM while driving: a stop goes out before the process ends.
-        before = listener.mark()
-        daemon.send_signal(signal.SIGTERM)
-        _, stderr = daemon.communicate(timeout=20)
-        assert daemon.returncode == 0, stderr
-        listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
-        time.sleep(0.1)
-        with listener.lock:
-            assert listener.commands[-1] == wire.STOP
+        stderr = stop_sends_stop(daemon, signal.SIGTERM, listener)
         assert "scan refused" in stderr and "pose refused" in stderr
         stopped = qnav_health(tmp_path / "health.json")
         assert stopped.returncode == 1, "a stopped daemon is unhealthy"
@@ -260,14 +250,7 @@ def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_
         assert driving["scan_stamp_s"] is None
         assert driving["target_distance_m"] == pytest.approx(7.0 * 2**0.5)
 
-        before = listener.mark()
-        daemon.send_signal(signal.SIGINT)
-        _, stderr = daemon.communicate(timeout=20)
-        assert daemon.returncode == 0, stderr
-        listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
-        time.sleep(0.1)
-        with listener.lock:
-            assert listener.commands[-1] == wire.STOP
+        stop_sends_stop(daemon, signal.SIGINT, listener)
     finally:
         listener.session.close()
 
