@@ -1,0 +1,24 @@
+"""The smallest training settings that still go through every stage of a run (rounds,
+evaluations during training, the final test, the gauge), for the tests that train: seconds each.
+A test changes what it needs with `dataclasses.replace`."""
+
+from dataclasses import replace
+
+from qnav.training.config import FAST
+
+TINY = replace(
+    FAST,
+    episodes=8,
+    hidden_size=8,
+    parallel_worlds=4,
+    iterations_per_episode=1,
+    batch_size=8,
+    eval_every_episodes=4,
+    eval_episodes=2,
+    final_eval_episodes=2,
+    max_episode_steps=30,
+    warmup_episodes=2,
+    threads=1,
+    gauge_episodes=4,
+)
+"""Two rounds of 4 worlds, an evaluation of 2 episodes after each, a 2-episode test."""
