@@ -43,9 +43,12 @@ class RateLimitedLog:
         self._held: dict[str, int] = {}
         self._lock = threading.Lock()
 
-    def warning(self, kind: str, message: str, now: float | None = None) -> bool:
+    def warning(
+        self, kind: str, message: str, now: float | None = None, *, exc_info: bool = False
+    ) -> bool:
         """Log `message` unless one of this `kind` was logged less than an interval ago (then
-        count it); True if it was logged."""
+        count it); True if it was logged. `exc_info`: with the traceback of the exception being
+        handled."""
         now = self._clock() if now is None else now
         with self._lock:
             last = self._last_s.get(kind)
@@ -55,7 +58,7 @@ class RateLimitedLog:
             self._last_s[kind] = now
             held = self._held.pop(kind, 0)
         suffix = f" ({held} more since the last warning)" if held else ""
-        self.logger.warning("%s%s", message, suffix)
+        self.logger.warning("%s%s", message, suffix, exc_info=exc_info)
         return True
 
 

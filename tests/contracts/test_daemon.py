@@ -50,6 +50,20 @@ def test_without_a_time_the_log_reads_its_clock(caplog: pytest.LogCaptureFixture
     assert [r.message for r in caplog.records] == ["first", "again (1 more since the last warning)"]
 
 
+def test_a_warning_may_carry_the_traceback_of_the_exception_being_handled(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    bounded = RateLimitedLog(logging.getLogger("test.trace"), interval_s=5.0)
+    with caplog.at_level(logging.WARNING, "test.trace"):
+        for now in (0.0, 1.0):
+            try:
+                raise OSError("disk full")
+            except OSError:
+                bounded.warning("write", "cannot write", now, exc_info=True)
+    (record,) = caplog.records
+    assert record.exc_info is not None and record.exc_info[0] is OSError
+
+
 @pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_sets_the_stop_event_and_the_old_handler_comes_back(
     number: signal.Signals, caplog: pytest.LogCaptureFixture

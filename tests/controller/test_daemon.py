@@ -88,17 +88,22 @@ def reason_is(*reasons: str) -> Callable[[dict[str, Any]], bool]:
     return lambda status: status["reason"] in reasons
 
 
-def start_daemon(tmp_path: Path, config: DaemonConfig) -> subprocess.Popen[str]:
-    """`qnav controller` as a user starts it, beating into tmp_path/health.json."""
+def start_daemon(
+    tmp_path: Path, config: DaemonConfig, processes: list[subprocess.Popen[Any]]
+) -> subprocess.Popen[str]:
+    """`qnav controller` as a user starts it, beating into tmp_path/health.json; added to
+    `processes` (the fixture that kills what a failed test left running)."""
     path = tmp_path / "controller.toml"
     path.write_text(to_toml(config))
-    return subprocess.Popen(
+    daemon = subprocess.Popen(
         [QNAV, "controller", "--config", str(path)],
         cwd=ROOT,
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, HEALTH_FILE_ENV: str(tmp_path / "health.json")},
     )
+    processes.append(daemon)
+    return daemon
 
 
 def stop_sends_stop(daemon: subprocess.Popen[str], number: int, listener: Listener) -> str:
@@ -122,7 +127,11 @@ def qnav_health(path: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def start_feeder(endpoint: str, *options: str) -> subprocess.Popen[str]:
+def start_feeder(
+    processes: list[subprocess.Popen[Any]], endpoint: str, *options: str
+) -> subprocess.Popen[str]:
+    """The sensors (`tests.controller.feeder`), once they say they are ready; added to
+    `processes`."""
     feeder = subprocess.Popen(
         [sys.executable, "-m", "tests.controller.feeder", endpoint, *options],
         cwd=ROOT,
@@ -130,6 +139,7 @@ def start_feeder(endpoint: str, *options: str) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         text=True,
     )
+    processes.append(feeder)
     assert feeder.stdout is not None
     assert feeder.stdout.readline().strip() == "ready"
     return feeder
@@ -152,16 +162,14 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         safety=SafetySettings(frame_id="map"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
     )
-    daemon = start_daemon(tmp_path, config)
-    processes.append(daemon)
+    daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)
     try:
         first = listener.wait_for(lambda s: True, timeout=30)
         assert first["reason"] == "no_scan"
         assert listener.commands[0] == wire.STOP
 
-        feeder = start_feeder(endpoint)
-        processes.append(feeder)
+        feeder = start_feeder(processes, endpoint)
         assert feeder.stdin is not None
         driving = listener.wait_for(reason_is("policy"))
         assert driving["action"] in ("forward", "left", "right")
@@ -239,13 +247,12 @@ def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_
         safety=SafetySettings(target_kind="point"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=(), namespace="car1"),
     )
-    daemon = start_daemon(tmp_path, config)
-    processes.append(daemon)
+    daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint, namespace="car1")
     try:
         assert listener.wait_for(lambda s: True, timeout=30)["reason"] == "no_pose"
-        feeder = start_feeder(endpoint, "--namespace", "car1", "--beams", "0", "--target", "point")
-        processes.append(feeder)
+        options = ("--namespace", "car1", "--beams", "0", "--target", "point")
+        start_feeder(processes, endpoint, *options)
         driving = listener.wait_for(reason_is("policy"))
         assert driving["scan_stamp_s"] is None
         assert driving["target_distance_m"] == pytest.approx(7.0 * 2**0.5)
@@ -268,13 +275,11 @@ def test_the_scan_triggered_daemon_stops_the_car_when_scans_stop_coming(
         controller=ControllerSettings(policy=str(policy), trigger="scan"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
     )
-    daemon = start_daemon(tmp_path, config)
-    processes.append(daemon)
+    daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)
     try:
         listener.wait_for(lambda s: True, timeout=30)
-        feeder = start_feeder(endpoint)
-        processes.append(feeder)
+        feeder = start_feeder(processes, endpoint)
         assert feeder.stdin is not None
         driving = listener.wait_for(reason_is("policy"))
         assert driving["loop"]["trigger"] == "scan"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -493,12 +494,13 @@ def test_a_slow_or_garbage_server_never_stops_the_car_running_its_policy(
 
 
 def test_qnav_controller_takes_the_policy_qnav_serve_announces_with_keys_from_qnav_keys(
-    tmp_path: Path, endpoint: str, policies: tuple[Path, Path]
+    tmp_path: Path,
+    endpoint: str,
+    policies: tuple[Path, Path],
+    processes: list[subprocess.Popen[Any]],
 ) -> None:
     """The commands as a user runs them, each its own process; settings paths relative to the
     settings file."""
-    import subprocess
-
     from tests.controller.test_daemon import QNAV, ROOT, start_daemon
 
     old, new = policies
@@ -514,7 +516,7 @@ def test_qnav_controller_takes_the_policy_qnav_serve_announces_with_keys_from_qn
         ),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
     )
-    daemon = start_daemon(tmp_path, config)
+    daemon = start_daemon(tmp_path, config, processes)
     server = subprocess.Popen(
         [QNAV, "serve", str(new), "--key", str(tmp_path / "keys" / "policy-signing.key"),
          "--connect", endpoint, "--poll-s", "0.2", "--announce-interval-s", "0.3"],
