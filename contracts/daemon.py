@@ -1,4 +1,5 @@
-"""What every daemon needs, written once: a rate-limited warning log, stop on signals, a port.
+"""What every daemon needs, written once: a rate-limited warning log, stop on signals, a port,
+and ending a child process in order (SIGTERM, then SIGKILL if it hangs).
 
 The onboard daemons (`controller`, `firmware_bridge`) import only `contracts`, so these live
 here; the simulator's processes, the recorder, the policy server and the tests use them too.
@@ -9,12 +10,13 @@ from __future__ import annotations
 import logging
 import signal
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType, TracebackType
-from typing import Self
+from typing import Any, Self
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 """The signals that end a daemon in order (its stops sent, its session closed)."""
@@ -41,9 +43,12 @@ class RateLimitedLog:
         self._held: dict[str, int] = {}
         self._lock = threading.Lock()
 
-    def warning(self, kind: str, message: str, now: float | None = None) -> bool:
+    def warning(
+        self, kind: str, message: str, now: float | None = None, *, exc_info: bool = False
+    ) -> bool:
         """Log `message` unless one of this `kind` was logged less than an interval ago (then
-        count it); True if it was logged."""
+        count it); True if it was logged. `exc_info`: with the traceback of the exception being
+        handled."""
         now = self._clock() if now is None else now
         with self._lock:
             last = self._last_s.get(kind)
@@ -53,7 +58,7 @@ class RateLimitedLog:
             self._last_s[kind] = now
             held = self._held.pop(kind, 0)
         suffix = f" ({held} more since the last warning)" if held else ""
-        self.logger.warning("%s%s", message, suffix)
+        self.logger.warning("%s%s", message, suffix, exc_info=exc_info)
         return True
 
 
@@ -109,3 +114,17 @@ def free_port(kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
     with socket.socket(socket.AF_INET, kind) as probe:
         probe.bind(("127.0.0.1", 0))
         return int(probe.getsockname()[1])
+
+
+def stop_process(process: subprocess.Popen[Any], timeout_s: float = 10.0) -> bool:
+    """SIGTERM `process` and wait for it to end; SIGKILL it if it still runs after `timeout_s`.
+    True if it ended on the SIGTERM (in order, its stops sent); False if it had to be killed.
+    Output it writes to a pipe is read meanwhile (so a full pipe cannot hold it up) and dropped."""
+    process.send_signal(signal.SIGTERM)
+    try:
+        process.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
+        return False
+    return True

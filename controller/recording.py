@@ -31,6 +31,7 @@ from functools import cache
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
+from qnav.contracts.daemon import RateLimitedLog
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.health import Heartbeat
 from qnav.contracts.transport import StoppedError, ZenohSettings, open_session
@@ -368,6 +369,7 @@ def record(
     writer = McapWriter(folder, rotation=settings.rotation)
     topics = [t for t in TOPICS if t.name in settings.topics]
     errors = 0
+    bounded = RateLimitedLog(log)
 
     def subscriber(topic: Topic) -> Any:
         def on_sample(sample: Any) -> None:
@@ -376,8 +378,11 @@ def record(
                 writer.write("/" + topic.name, topic.ros_type, bytes(sample.payload.to_bytes()))
             except Exception:  # a full disk must not kill zenoh's thread silently
                 errors += 1
-                if errors <= 3 or errors % 1000 == 0:
-                    log.exception("cannot write a %s message (%d failures)", topic.name, errors)
+                bounded.warning(
+                    topic.name,
+                    f"cannot write a {topic.name} message ({errors} failures in all)",
+                    exc_info=True,
+                )
 
         return on_sample
 

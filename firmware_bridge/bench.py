@@ -13,7 +13,6 @@ arriving, to be compared with `failsafe.command_timeout_s` + 50 ms.
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -27,7 +26,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from qnav.contracts.daemon import free_port, stop_on_signals
+from qnav.contracts.daemon import free_port, stop_on_signals, stop_process
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
@@ -225,7 +224,7 @@ def measure(
                 timeout_s=timeout_s,
             )
         finally:
-            _terminate(bridge)
+            stop_process(bridge)
             states.undeclare()
         floor_ms: list[float] = []
         if baseline:
@@ -233,7 +232,7 @@ def measure(
             try:
                 floor_ms = _measure_echo(commands, vehicle, zenoh.declare_publisher(ECHO_KEY))
             finally:
-                _terminate(echo)
+                stop_process(echo)
         vehicle.socket.close()
     return BridgeBench(output, timeout_s, tuple(latencies_ms), tuple(stops_ms), tuple(floor_ms))
 
@@ -311,15 +310,6 @@ def _spawn(module: str, *args: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
         [sys.executable, "-m", module, *args], env={**os.environ, "PYTHONUNBUFFERED": "1"}
     )
-
-
-def _terminate(process: subprocess.Popen[bytes]) -> None:
-    process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
 
 
 def _echo(zenoh_port: int, udp_port: int) -> None:

@@ -10,12 +10,12 @@ nothing else can reach them (`network_is_isolated`, `make stack-sitl`: `unshare 
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import subprocess
 import time
 from pathlib import Path
 
+from qnav.contracts.daemon import stop_process
 from qnav.contracts.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -116,10 +116,5 @@ class SitlProcess:
     def stop(self) -> None:
         if self.process is None:
             return
-        self.process.send_signal(signal.SIGTERM)
-        try:
-            self.process.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
+        stop_process(self.process, timeout_s=5.0)
         self.process = None

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+import subprocess
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -20,6 +21,18 @@ PolicyFactory = Callable[..., Path]
 def _private_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
     """Collected gauge states go to a folder of this session, not the user's cache."""
     os.environ["QNAV_CACHE"] = str(tmp_path_factory.mktemp("cache"))
+
+
+@pytest.fixture
+def processes() -> Iterator[list[subprocess.Popen[Any]]]:
+    """Child processes a test starts (it appends them): the ones still running when it ends, a
+    failed test's say, are killed."""
+    started: list[subprocess.Popen[Any]] = []
+    yield started
+    for process in started:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
 
 
 @pytest.fixture(scope="session")

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from qnav.contracts import wire
-from qnav.contracts.daemon import free_port
+from qnav.contracts.daemon import free_port, stop_process
 from qnav.contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.simcar.mavlink_vehicle import MavlinkVehicle
@@ -43,12 +43,7 @@ def _daemon(args: list[str], log: Path) -> subprocess.Popen[bytes]:
 def _stop(process: subprocess.Popen[bytes]) -> float:
     """Send SIGTERM; seconds until the process is gone (it is killed after 10 s)."""
     sent = time.monotonic()
-    process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+    if not stop_process(process, timeout_s=10.0):
         return float("inf")
     return time.monotonic() - sent
 
@@ -74,48 +69,40 @@ def _arguments(daemon: str, endpoint: str, tmp_path: Path, vehicle_port: int) ->
 
 @pytest.mark.parametrize("daemon", ["controller", "record", "bridge"])
 def test_a_daemon_waiting_for_zenoh_stops_within_a_second_of_sigterm(
-    daemon: str, tmp_path: Path, vehicle: MavlinkVehicle
+    daemon: str, tmp_path: Path, vehicle: MavlinkVehicle, processes: list[subprocess.Popen[Any]]
 ) -> None:
     log = tmp_path / f"{daemon}.log"
     port = int(vehicle.settings.connection.rsplit(":", 1)[1])
     process = _daemon(_arguments(daemon, _nobody_listening(), tmp_path, port), log)
-    try:
-        wait_until(
-            lambda: b"waiting until something listens" in log.read_bytes(),
-            timeout_s=60,
-            what=f"{daemon} to start connecting",
-        )
-        time.sleep(0.3)  # well inside zenoh's wait
-        elapsed = _stop(process)
-    finally:
-        if process.poll() is None:
-            process.kill()
+    processes.append(process)
+    wait_until(
+        lambda: b"waiting until something listens" in log.read_bytes(),
+        timeout_s=60,
+        what=f"{daemon} to start connecting",
+    )
+    time.sleep(0.3)  # well inside zenoh's wait
+    elapsed = _stop(process)
     print(f"{daemon}: exited {elapsed:.3f} s after SIGTERM")
     assert process.returncode == 0, log.read_text()
     assert elapsed <= EXIT_LIMIT_S
 
 
 def test_the_bridge_keeps_the_car_stopped_without_zenoh(
-    tmp_path: Path, vehicle: MavlinkVehicle
+    tmp_path: Path, vehicle: MavlinkVehicle, processes: list[subprocess.Popen[Any]]
 ) -> None:
     port = int(vehicle.settings.connection.rsplit(":", 1)[1])
     log = tmp_path / "bridge.log"
     process = _daemon(_arguments("bridge", _nobody_listening(), tmp_path, port), log)
-    try:
-        wait_until(
-            lambda: len(vehicle.received("RC_CHANNELS_OVERRIDE")) >= 3,
-            timeout_s=60,
-            what="neutral overrides from a bridge without zenoh",
-        )
-        assert vehicle.received("HEARTBEAT")
-        overrides = vehicle.received("RC_CHANNELS_OVERRIDE")
-        assert all(
-            (r.fields["chan1_raw"], r.fields["chan3_raw"]) == (1500, 1500) for r in overrides
-        )
-        elapsed = _stop(process)
-    finally:
-        if process.poll() is None:
-            process.kill()
+    processes.append(process)
+    wait_until(
+        lambda: len(vehicle.received("RC_CHANNELS_OVERRIDE")) >= 3,
+        timeout_s=60,
+        what="neutral overrides from a bridge without zenoh",
+    )
+    assert vehicle.received("HEARTBEAT")
+    overrides = vehicle.received("RC_CHANNELS_OVERRIDE")
+    assert all((r.fields["chan1_raw"], r.fields["chan3_raw"]) == (1500, 1500) for r in overrides)
+    elapsed = _stop(process)
     assert process.returncode == 0, log.read_text()
     assert elapsed <= EXIT_LIMIT_S
 
@@ -174,24 +161,13 @@ class _Daemon:
         return elapsed
 
 
-@pytest.fixture
-def started() -> Iterator[list[subprocess.Popen[Any]]]:
-    """Processes a failing test leaves behind are killed."""
-    processes: list[subprocess.Popen[Any]] = []
-    yield processes
-    for process in processes:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-
-
-def _router(state: str, started: list[subprocess.Popen[Any]]) -> tuple[str, Any]:
+def _router(state: str, processes: list[subprocess.Popen[Any]]) -> tuple[str, Any]:
     """An endpoint, and (unless no-router) a hub process listening there."""
     endpoint = _nobody_listening()
     if state == "no-router":
         return endpoint, None
     router = subprocess.Popen([sys.executable, "-c", ROUTER, endpoint], stdout=subprocess.PIPE)
-    started.append(router)
+    processes.append(router)
     assert router.stdout is not None and router.stdout.readline().strip() == b"ready"
     return endpoint, router
 
@@ -219,11 +195,11 @@ def _bring_to(state: str, endpoint: str, router: Any, topic: wire.Topic | None) 
 @pytest.mark.parametrize("state", STATES)
 @pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_the_controller_stops_within_a_second_in_every_state(
-    state: str, number: signal.Signals, started: list[subprocess.Popen[Any]]
+    state: str, number: signal.Signals, processes: list[subprocess.Popen[Any]]
 ) -> None:
-    endpoint, router = _router(state, started)
+    endpoint, router = _router(state, processes)
     controller = _Daemon(_arguments("controller", endpoint, Path(), 0))
-    started.append(controller.popen)
+    processes.append(controller.popen)
     controller.wait_for_line("waiting until something listens")
     _bring_to(state, endpoint, router, wire.CONTROLLER_STATUS)
     elapsed = controller.stop(number, f"controller, {state}")
@@ -234,11 +210,11 @@ def test_the_controller_stops_within_a_second_in_every_state(
 
 @pytest.mark.parametrize("state", STATES)
 def test_the_recorder_stops_within_a_second_in_every_state(
-    state: str, tmp_path: Path, started: list[subprocess.Popen[Any]]
+    state: str, tmp_path: Path, processes: list[subprocess.Popen[Any]]
 ) -> None:
-    endpoint, router = _router(state, started)
+    endpoint, router = _router(state, processes)
     recorder = _Daemon(_arguments("record", endpoint, tmp_path, 0))
-    started.append(recorder.popen)
+    processes.append(recorder.popen)
     recorder.wait_for_line("waiting until something listens")
     if state != "no-router":
         recorder.wait_for_line("recording ")  # its session is open
@@ -263,9 +239,9 @@ def test_the_bridge_sends_neutral_and_disarms_then_stops_within_a_second_in_ever
     state: str,
     number: signal.Signals,
     vehicle: MavlinkVehicle,
-    started: list[subprocess.Popen[Any]],
+    processes: list[subprocess.Popen[Any]],
 ) -> None:
-    endpoint, router = _router(state, started)
+    endpoint, router = _router(state, processes)
     port = int(vehicle.settings.connection.rsplit(":", 1)[1])
     bridge = _Daemon(
         [
@@ -275,7 +251,7 @@ def test_the_bridge_sends_neutral_and_disarms_then_stops_within_a_second_in_ever
             "--set", "failsafe.stop_period_s=2.0",
         ]
     )  # fmt: skip
-    started.append(bridge.popen)
+    processes.append(bridge.popen)
     # With or without zenoh, the vehicle side runs: link up, armed, neutral only.
     wait_until(lambda: vehicle.armed, 60, "the bridge to arm the vehicle")
     assert set(_overrides(vehicle, -1.0)) == {NEUTRAL}

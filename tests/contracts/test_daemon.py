@@ -1,4 +1,5 @@
-"""The daemons' shared parts: the rate-limited log, stopping on signals, a free port."""
+"""The daemons' shared parts: the rate-limited log, stopping on signals, a free port, ending a
+child process."""
 
 from __future__ import annotations
 
@@ -6,11 +7,20 @@ import logging
 import os
 import signal
 import socket
+import subprocess
+import sys
 import threading
+import time
 
 import pytest
 
-from qnav.contracts.daemon import RateLimitedLog, Service, free_port, stop_on_signals
+from qnav.contracts.daemon import (
+    RateLimitedLog,
+    Service,
+    free_port,
+    stop_on_signals,
+    stop_process,
+)
 
 
 def test_malformed_input_warnings_are_logged_at_a_bounded_rate(
@@ -40,6 +50,20 @@ def test_without_a_time_the_log_reads_its_clock(caplog: pytest.LogCaptureFixture
     assert [r.message for r in caplog.records] == ["first", "again (1 more since the last warning)"]
 
 
+def test_a_warning_may_carry_the_traceback_of_the_exception_being_handled(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    bounded = RateLimitedLog(logging.getLogger("test.trace"), interval_s=5.0)
+    with caplog.at_level(logging.WARNING, "test.trace"):
+        for now in (0.0, 1.0):
+            try:
+                raise OSError("disk full")
+            except OSError:
+                bounded.warning("write", "cannot write", now, exc_info=True)
+    (record,) = caplog.records
+    assert record.exc_info is not None and record.exc_info[0] is OSError
+
+
 @pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_sets_the_stop_event_and_the_old_handler_comes_back(
     number: signal.Signals, caplog: pytest.LogCaptureFixture
@@ -61,6 +85,34 @@ def test_a_free_port_can_be_bound_for_tcp_and_udp() -> None:
         with socket.socket(socket.AF_INET, kind) as sock:
             sock.bind(("127.0.0.1", port))
             assert sock.getsockname()[1] == port
+
+
+def _python(code: str) -> subprocess.Popen[bytes]:
+    """A child Python running `code`, once it has printed that it is ready."""
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    assert child.stdout is not None and child.stdout.readline() == b"ready\n"
+    return child
+
+
+def test_a_child_that_ends_on_sigterm_is_stopped_in_order_and_one_that_hangs_is_killed() -> None:
+    obeys = _python(
+        "import signal, sys, time\n"
+        "signal.signal(signal.SIGTERM, lambda *_: sys.exit(3))\n"
+        "print('ready', flush=True)\n"
+        "time.sleep(60)"
+    )
+    assert stop_process(obeys, timeout_s=10.0)
+    assert obeys.returncode == 3  # its own handler ran
+    hangs = _python(
+        "import signal, time\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "print('ready', flush=True)\n"
+        "time.sleep(60)"
+    )
+    started = time.monotonic()
+    assert not stop_process(hangs, timeout_s=0.5)
+    assert hangs.returncode == -signal.SIGKILL
+    assert time.monotonic() - started < 10.0
 
 
 def test_a_service_in_a_with_block_is_started_and_closed_even_on_an_error() -> None:

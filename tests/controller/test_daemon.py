@@ -10,14 +10,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from qnav.contracts import wire
-from qnav.contracts.daemon import free_port
 from qnav.contracts.health import HEALTH_FILE_ENV
 from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.settings import to_toml
@@ -89,22 +88,36 @@ def reason_is(*reasons: str) -> Callable[[dict[str, Any]], bool]:
     return lambda status: status["reason"] in reasons
 
 
-@pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
-
-
-def start_daemon(tmp_path: Path, config: DaemonConfig) -> subprocess.Popen[str]:
-    """`qnav controller` as a user starts it, beating into tmp_path/health.json."""
+def start_daemon(
+    tmp_path: Path, config: DaemonConfig, processes: list[subprocess.Popen[Any]]
+) -> subprocess.Popen[str]:
+    """`qnav controller` as a user starts it, beating into tmp_path/health.json; added to
+    `processes` (the fixture that kills what a failed test left running)."""
     path = tmp_path / "controller.toml"
     path.write_text(to_toml(config))
-    return subprocess.Popen(
+    daemon = subprocess.Popen(
         [QNAV, "controller", "--config", str(path)],
         cwd=ROOT,
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, HEALTH_FILE_ENV: str(tmp_path / "health.json")},
     )
+    processes.append(daemon)
+    return daemon
+
+
+def stop_sends_stop(daemon: subprocess.Popen[str], number: int, listener: Listener) -> str:
+    """Send `number` (SIGTERM, SIGINT) to the running daemon: it must exit cleanly with a stop
+    published on the way out (status reason `shutdown`) as its last command; its stderr."""
+    before = listener.mark()
+    daemon.send_signal(number)
+    _, stderr = daemon.communicate(timeout=20)
+    assert daemon.returncode == 0, stderr
+    listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
+    time.sleep(0.1)
+    with listener.lock:
+        assert listener.commands[-1] == wire.STOP
+    return stderr
 
 
 def qnav_health(path: Path) -> subprocess.CompletedProcess[str]:
@@ -114,7 +127,11 @@ def qnav_health(path: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def start_feeder(endpoint: str, *options: str) -> subprocess.Popen[str]:
+def start_feeder(
+    processes: list[subprocess.Popen[Any]], endpoint: str, *options: str
+) -> subprocess.Popen[str]:
+    """The sensors (`tests.controller.feeder`), once they say they are ready; added to
+    `processes`."""
     feeder = subprocess.Popen(
         [sys.executable, "-m", "tests.controller.feeder", endpoint, *options],
         cwd=ROOT,
@@ -122,20 +139,10 @@ def start_feeder(endpoint: str, *options: str) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         text=True,
     )
+    processes.append(feeder)
     assert feeder.stdout is not None
     assert feeder.stdout.readline().strip() == "ready"
     return feeder
-
-
-@pytest.fixture
-def processes() -> Iterator[list[subprocess.Popen[str]]]:
-    """Processes to kill if a test fails before it ends them."""
-    started: list[subprocess.Popen[str]] = []
-    yield started
-    for process in started:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
 
 
 def action_commands(policy: Path) -> set[tuple[float, float]]:
@@ -155,16 +162,14 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         safety=SafetySettings(frame_id="map"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
     )
-    daemon = start_daemon(tmp_path, config)
-    processes.append(daemon)
+    daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)
     try:
         first = listener.wait_for(lambda s: True, timeout=30)
         assert first["reason"] == "no_scan"
         assert listener.commands[0] == wire.STOP
 
-        feeder = start_feeder(endpoint)
-        processes.append(feeder)
+        feeder = start_feeder(processes, endpoint)
         assert feeder.stdin is not None
         driving = listener.wait_for(reason_is("policy"))
         assert driving["action"] in ("forward", "left", "right")
@@ -222,14 +227,7 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         listener.wait_for(reason_is("policy"))
 
         # SIGTERM while driving: a stop goes out before the process ends.
-        before = listener.mark()
-        daemon.send_signal(signal.SIGTERM)
-        _, stderr = daemon.communicate(timeout=20)
-        assert daemon.returncode == 0, stderr
-        listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
-        time.sleep(0.1)
-        with listener.lock:
-            assert listener.commands[-1] == wire.STOP
+        stderr = stop_sends_stop(daemon, signal.SIGTERM, listener)
         assert "scan refused" in stderr and "pose refused" in stderr
         stopped = qnav_health(tmp_path / "health.json")
         assert stopped.returncode == 1, "a stopped daemon is unhealthy"
@@ -249,25 +247,17 @@ def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_
         safety=SafetySettings(target_kind="point"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=(), namespace="car1"),
     )
-    daemon = start_daemon(tmp_path, config)
-    processes.append(daemon)
+    daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint, namespace="car1")
     try:
         assert listener.wait_for(lambda s: True, timeout=30)["reason"] == "no_pose"
-        feeder = start_feeder(endpoint, "--namespace", "car1", "--beams", "0", "--target", "point")
-        processes.append(feeder)
+        options = ("--namespace", "car1", "--beams", "0", "--target", "point")
+        start_feeder(processes, endpoint, *options)
         driving = listener.wait_for(reason_is("policy"))
         assert driving["scan_stamp_s"] is None
         assert driving["target_distance_m"] == pytest.approx(7.0 * 2**0.5)
 
-        before = listener.mark()
-        daemon.send_signal(signal.SIGINT)
-        _, stderr = daemon.communicate(timeout=20)
-        assert daemon.returncode == 0, stderr
-        listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
-        time.sleep(0.1)
-        with listener.lock:
-            assert listener.commands[-1] == wire.STOP
+        stop_sends_stop(daemon, signal.SIGINT, listener)
     finally:
         listener.session.close()
 
@@ -285,13 +275,11 @@ def test_the_scan_triggered_daemon_stops_the_car_when_scans_stop_coming(
         controller=ControllerSettings(policy=str(policy), trigger="scan"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
     )
-    daemon = start_daemon(tmp_path, config)
-    processes.append(daemon)
+    daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)
     try:
         listener.wait_for(lambda s: True, timeout=30)
-        feeder = start_feeder(endpoint)
-        processes.append(feeder)
+        feeder = start_feeder(processes, endpoint)
         assert feeder.stdin is not None
         driving = listener.wait_for(reason_is("policy"))
         assert driving["loop"]["trigger"] == "scan"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 
 from qnav.contracts import delivery, wire
-from qnav.contracts.daemon import free_port
+from qnav.contracts.daemon import stop_process
 from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.controller.config import (
@@ -115,10 +116,17 @@ class Car:
         with self.listener.lock:
             return list(self.listener.statuses[since:])
 
+    def come_to_rest(self) -> dict[str, Any]:
+        """Put the target where the car is and wait for it to report it reached: the car is at
+        rest, where a verified policy comes in at once. That status."""
+        self.sensors.target = HERE
+        return self.listener.wait_for(lambda s: s["reason"] == "target_reached", timeout=30)
+
 
 @pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
+def policies(make_policy: PolicyFactory) -> tuple[Path, Path]:
+    """(old, new): two policies for the same car, with different weights."""
+    return make_policy(seed=0), make_policy(seed=1)
 
 
 @pytest.fixture
@@ -198,12 +206,12 @@ def start_server(endpoint: str) -> Iterator[Callable[..., None]]:
 
 def test_a_delivered_policy_is_swapped_in_at_the_next_stop_and_decides_from_then_on(
     tmp_path: Path,
-    make_policy: PolicyFactory,
+    policies: tuple[Path, Path],
     keys: tuple[Path, Path],
     start_car: Callable[..., Car],
     start_server: Callable[..., None],
 ) -> None:
-    old, new = make_policy(seed=0), make_policy(seed=1)
+    old, new = policies
     served = tmp_path / "served"
     served.mkdir()
     car = start_car(old)
@@ -277,16 +285,15 @@ def test_a_delivered_policy_is_swapped_in_at_the_next_stop_and_decides_from_then
 
 def test_a_car_with_no_server_reachable_drives_on_its_local_file_and_takes_a_late_servers_policy(
     tmp_path: Path,
-    make_policy: PolicyFactory,
+    policies: tuple[Path, Path],
     keys: tuple[Path, Path],
     start_car: Callable[..., Car],
     start_server: Callable[..., None],
 ) -> None:
-    old, new = make_policy(seed=0), make_policy(seed=1)
+    old, new = policies
     car = start_car(old)
-    car.sensors.target = HERE  # at rest: a verified policy would come in at once
     listener = car.listener
-    at_rest = listener.wait_for(lambda s: s["reason"] == "target_reached", timeout=30)
+    at_rest = car.come_to_rest()
     assert at_rest["policy_version"] == delivery.version_of_file(old)
     assert at_rest["delivery"]["announced"] is None
     car.sensors.target = FAR
@@ -375,14 +382,13 @@ def test_a_bad_delivery_is_refused_with_the_old_policy_still_driving(  # noqa: P
     fault: str,
     tmp_path: Path,
     endpoint: str,
-    make_policy: PolicyFactory,
+    policies: tuple[Path, Path],
     keys: tuple[Path, Path],
     start_car: Callable[..., Car],
 ) -> None:
-    old, new = make_policy(seed=0), make_policy(seed=1)
+    old, new = policies
     car = start_car(old)
-    car.sensors.target = HERE  # at rest all along: a policy that passed would come in at once
-    car.listener.wait_for(lambda s: s["reason"] == "target_reached", timeout=30)
+    car.come_to_rest()  # at rest all along: a policy that passed would come in at once
     data = new.read_bytes()
     chunks = math.ceil(len(data) / 16384)
     assert chunks >= 4
@@ -424,8 +430,7 @@ def test_an_incompatible_contract_is_refused_unfetched_with_the_old_policy_still
     old, other_car = make_policy(seed=0), make_policy("walls-increment", seed=1)
     assert contract_of(other_car).dynamics != contract_of(old).dynamics
     car = start_car(old)
-    car.sensors.target = HERE
-    car.listener.wait_for(lambda s: s["reason"] == "target_reached", timeout=30)
+    car.come_to_rest()
     start_server((other_car,), keys[0])
     refusal = refused_and_old_still_drives(car, old, "this car runs")
     assert "contract" in refusal["delivery"]["last_refusal"]
@@ -434,11 +439,11 @@ def test_an_incompatible_contract_is_refused_unfetched_with_the_old_policy_still
 
 def test_a_slow_or_garbage_server_never_stops_the_car_running_its_policy(
     endpoint: str,
-    make_policy: PolicyFactory,
+    policies: tuple[Path, Path],
     keys: tuple[Path, Path],
     start_car: Callable[..., Car],
 ) -> None:
-    old, new = make_policy(seed=0), make_policy(seed=1)
+    old, new = policies
     car = start_car(old, chunk_timeout_s=0.5, retry_interval_s=0.0)
     listener = car.listener
     listener.wait_for(lambda s: s["reason"] == "policy", timeout=30)
@@ -489,15 +494,16 @@ def test_a_slow_or_garbage_server_never_stops_the_car_running_its_policy(
 
 
 def test_qnav_controller_takes_the_policy_qnav_serve_announces_with_keys_from_qnav_keys(
-    tmp_path: Path, endpoint: str, make_policy: PolicyFactory
+    tmp_path: Path,
+    endpoint: str,
+    policies: tuple[Path, Path],
+    processes: list[subprocess.Popen[Any]],
 ) -> None:
     """The commands as a user runs them, each its own process; settings paths relative to the
     settings file."""
-    import subprocess
-
     from tests.controller.test_daemon import QNAV, ROOT, start_daemon
 
-    old, new = make_policy(seed=0), make_policy(seed=1)
+    old, new = policies
     made = subprocess.run(
         [QNAV, "keys", str(tmp_path / "keys")], capture_output=True, text=True, check=False
     )
@@ -510,7 +516,7 @@ def test_qnav_controller_takes_the_policy_qnav_serve_announces_with_keys_from_qn
         ),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
     )
-    daemon = start_daemon(tmp_path, config)
+    daemon = start_daemon(tmp_path, config, processes)
     server = subprocess.Popen(
         [QNAV, "serve", str(new), "--key", str(tmp_path / "keys" / "policy-signing.key"),
          "--connect", endpoint, "--poll-s", "0.2", "--announce-interval-s", "0.3"],
@@ -532,10 +538,5 @@ def test_qnav_controller_takes_the_policy_qnav_serve_announces_with_keys_from_qn
         sensors.close()
         listener.session.close()
         for process in (server, daemon):
-            process.terminate()
-            try:
-                process.communicate(timeout=30)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.communicate()
+            stop_process(process, timeout_s=30.0)
     assert daemon.returncode == 0 and server.returncode == 0

@@ -66,6 +66,43 @@ def wait_until(condition: Callable[[], T], timeout_s: float = 5.0, what: str = "
         time.sleep(0.01)
 
 
+class StateLog:
+    """The vehicle states (JSON) a test's zenoh session hears, in order; `on_sample` is the
+    subscriber's callback."""
+
+    def __init__(self) -> None:
+        self.states: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+
+    def on_sample(self, sample: Any) -> None:
+        state = decode_json_msg(sample.payload.to_bytes())
+        with self._lock:
+            self.states.append(state)
+
+    def newest(self) -> dict[str, Any]:
+        """The newest state ({} before the first)."""
+        with self._lock:
+            return self.states[-1] if self.states else {}
+
+
+def keep_commanding(
+    command: Callable[[float, float], None],
+    linear_mps: float,
+    angular_radps: float,
+    seconds: float,
+    period_s: float,
+) -> float:
+    """`command(linear_mps, angular_radps)` every `period_s` for `seconds`, as a controller
+    publishes; the time (time.monotonic) of the last one."""
+    end = time.monotonic() + seconds
+    while True:
+        command(linear_mps, angular_radps)
+        sent = time.monotonic()
+        if sent >= end:
+            return sent
+        time.sleep(period_s)
+
+
 def merged(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
     """Nested dict merge (update wins)."""
     out = dict(base)
@@ -86,9 +123,8 @@ class Rig:
     bridge: Bridge | None
     zenoh_port: int
     mavlink_port: int
-    states: list[dict[str, Any]] = field(default_factory=list)
+    heard: StateLog = field(default_factory=StateLog)
     _publishers: dict[str, Any] = field(default_factory=dict)
-    _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def publish(self, topic_key: str, payload: bytes) -> None:
         """Put a payload on a key (publishers are declared once per key)."""
@@ -102,13 +138,7 @@ class Rig:
 
     def drive(self, linear_mps: float, angular_radps: float, seconds: float) -> float:
         """Publish a command every 50 ms for `seconds`; the time of the last one."""
-        end = time.monotonic() + seconds
-        while True:
-            self.command(linear_mps, angular_radps)
-            sent = time.monotonic()
-            if sent >= end:
-                return sent
-            time.sleep(0.05)
+        return keep_commanding(self.command, linear_mps, angular_radps, seconds, period_s=0.05)
 
     def request(self, value: dict[str, Any]) -> None:
         """Publish a vehicle request (JSON in a std_msgs/String)."""
@@ -121,12 +151,7 @@ class Rig:
 
     def state(self) -> dict[str, Any]:
         """The newest vehicle state seen on zenoh ({} before the first)."""
-        with self._lock:
-            return self.states[-1] if self.states else {}
-
-    def on_state(self, sample: Any) -> None:
-        with self._lock:
-            self.states.append(decode_json_msg(sample.payload.to_bytes()))
+        return self.heard.newest()
 
     def counters(self) -> dict[str, int]:
         """The in-process bridge's counters."""
@@ -180,7 +205,7 @@ def start_rig(
     )
     car = stack.enter_context(MavlinkVehicle(vehicle_settings(mavlink_port, **(vehicle or {}))))
     rig = Rig(session, car, None, zenoh_port, mavlink_port)
-    subscriber = session.declare_subscriber(key(VEHICLE_STATE), rig.on_state)
+    subscriber = session.declare_subscriber(key(VEHICLE_STATE), rig.heard.on_sample)
     stack.callback(subscriber.undeclare)
     if start_bridge:
         rig.bridge = stack.enter_context(

@@ -20,6 +20,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,7 @@ import numpy as np
 import pytest
 
 from qnav.contracts import delivery, wire
-from qnav.contracts.daemon import free_port
+from qnav.contracts.daemon import free_port, stop_process
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.simcar.mavlink_vehicle import MavlinkVehicle
 from tests.contracts.malformed import enables_motion, payloads
@@ -83,6 +84,40 @@ def _fuzz(session: Any, keys: dict[wire.Topic, str], count: int) -> dict[str, in
     return sent
 
 
+@dataclass(frozen=True)
+class Flood:
+    """One fuzz run against a live daemon."""
+
+    sent: dict[str, int]
+    """Payloads sent, per topic name."""
+    rss_mb: tuple[float, float]
+    """The daemon's resident memory before and after, in MB."""
+    started_s: float
+    """When the run began (time.monotonic)."""
+
+    def usage(self) -> dict[str, Any]:
+        """The report's memory and duration fields."""
+        return {
+            "rss_mb": [round(mb, 1) for mb in self.rss_mb],
+            "seconds": round(time.monotonic() - self.started_s, 1),
+        }
+
+
+def _flood(
+    process: subprocess.Popen[bytes], session: Any, keys: dict[wire.Topic, str], count: int
+) -> Flood:
+    """`_fuzz` a running daemon: it must live through it (and a second more for the backlog)
+    with its memory bounded."""
+    rss_before = _rss_mb(process.pid)
+    started = time.monotonic()
+    sent = _fuzz(session, keys, count)
+    time.sleep(1.0)
+    assert process.poll() is None, "the daemon died"
+    rss_after = _rss_mb(process.pid)
+    assert rss_after - rss_before < RSS_GROWTH_LIMIT_MB
+    return Flood(sent, (rss_before, rss_after), started)
+
+
 def _valid_scan() -> bytes:
     ranges = np.full(720, 6.0, dtype=np.float32)
     return wire.encode_scan_msg(
@@ -121,19 +156,13 @@ def test_no_malformed_payload_moves_or_releases_the_controller(
     )  # fmt: skip
     try:
         wait_until(lambda: len(statuses) > 3, timeout_s=60, what="controller statuses")
-        rss_before = _rss_mb(process.pid)
-        started = time.monotonic()
-        sent = _fuzz(session, CONTROLLER_KEYS, CONTROLLER_PAYLOADS)
-        time.sleep(1.0)
-        assert process.poll() is None, "the controller died"
-        rss_after = _rss_mb(process.pid)
+        flood = _flood(process, session, CONTROLLER_KEYS, CONTROLLER_PAYLOADS)
         with lock:
             during = list(commands)
             latched = [s["estop"]["latched"] for s in statuses]
             last = statuses[-1]
         assert during and all(c == wire.STOP for c in during)
         assert all(latched), "a malformed payload released the stop"
-        assert rss_after - rss_before < RSS_GROWTH_LIMIT_MB
         malformed = last["counters"]["malformed"] | {
             wire.POLICY_ANNOUNCEMENT.name: last["delivery"]["malformed"]
         }
@@ -160,20 +189,18 @@ def test_no_malformed_payload_moves_or_releases_the_controller(
             pytest.fail("the controller never drove on valid input after the fuzz")
         report = {
             "daemon": "controller",
-            "payloads_sent": sent,
+            "payloads_sent": flood.sent,
             "counted_malformed": malformed,
             "commands_during_fuzz": len(during),
             "non_stop_commands_during_fuzz": 0,
-            "rss_mb": [round(rss_before, 1), round(rss_after, 1)],
-            "seconds": round(time.monotonic() - started, 1),
+            **flood.usage(),
         }
         print(json.dumps(report))
-        assert sum(malformed.values()) >= 0.5 * sum(sent.values())
+        assert sum(malformed.values()) >= 0.5 * sum(flood.sent.values())
     finally:
         for subscriber in subscribers:
             subscriber.undeclare()
-        process.terminate()
-        process.wait(10)
+        stop_process(process)
         log.close()
 
 
@@ -198,17 +225,11 @@ def test_no_malformed_payload_moves_or_arms_through_the_bridge(
                 what="the bridge's neutral overrides",
             )
             time.sleep(1.0)  # zenoh joined
-            rss_before = _rss_mb(process.pid)
-            started = time.monotonic()
-            sent = _fuzz(session, BRIDGE_KEYS, BRIDGE_PAYLOADS)
-            time.sleep(1.0)
-            assert process.poll() is None, "the bridge died"
-            rss_after = _rss_mb(process.pid)
+            flood = _flood(process, session, BRIDGE_KEYS, BRIDGE_PAYLOADS)
             overrides = vehicle.received("RC_CHANNELS_OVERRIDE")
             pwm = {(r.fields["chan1_raw"], r.fields["chan3_raw"]) for r in overrides}
             assert pwm == {(1500, 1500)}, "a malformed payload moved the car"
             assert not vehicle.armed, "a malformed payload armed the car"
-            assert rss_after - rss_before < RSS_GROWTH_LIMIT_MB
             # It still answers valid input.
             command = session.declare_publisher(wire.key(wire.COMMAND))
             seen = len(overrides)
@@ -224,16 +245,14 @@ def test_no_malformed_payload_moves_or_arms_through_the_bridge(
                 json.dumps(
                     {
                         "daemon": "bridge",
-                        "payloads_sent": sent,
+                        "payloads_sent": flood.sent,
                         "overrides_during_fuzz": len(overrides),
                         "non_neutral_overrides_during_fuzz": 0,
                         "armed": False,
-                        "rss_mb": [round(rss_before, 1), round(rss_after, 1)],
-                        "seconds": round(time.monotonic() - started, 1),
+                        **flood.usage(),
                     }
                 )
             )
         finally:
-            process.terminate()
-            process.wait(10)
+            stop_process(process)
             log.close()

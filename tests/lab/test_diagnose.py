@@ -10,23 +10,10 @@ import torch
 
 from qnav.lab.diagnose import _turns_towards_target, diagnose
 from qnav.sim.config import scenario
-from qnav.training.config import FAST
 from qnav.training.policy import load_network
+from tests import tiny_training
 
-TINY = replace(
-    FAST,
-    episodes=8,
-    hidden_size=16,
-    parallel_worlds=4,
-    iterations_per_episode=1,
-    batch_size=8,
-    eval_every_episodes=0,
-    final_eval_episodes=4,
-    max_episode_steps=30,
-    warmup_episodes=2,
-    threads=1,
-    gauge_episodes=4,
-)
+TINY = replace(tiny_training.TINY, hidden_size=16, eval_every_episodes=0, final_eval_episodes=4)
 
 
 @pytest.fixture(scope="module")

@@ -7,24 +7,8 @@ from pathlib import Path
 
 from qnav.lab.gauge import training_gauge
 from qnav.sim.config import scenario
-from qnav.training.config import FAST
 from qnav.training.run import train
-
-TINY = replace(
-    FAST,
-    episodes=8,
-    hidden_size=8,
-    parallel_worlds=4,
-    iterations_per_episode=1,
-    batch_size=8,
-    eval_every_episodes=4,
-    eval_episodes=2,
-    final_eval_episodes=2,
-    max_episode_steps=30,
-    warmup_episodes=2,
-    threads=1,
-    gauge_episodes=4,
-)
+from tests.tiny_training import TINY
 
 
 def test_each_evaluation_in_an_obstacle_world_reports_the_share_of_safe_choices(

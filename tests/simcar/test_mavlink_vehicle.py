@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from qnav.contracts.daemon import free_port
 from qnav.contracts.mavlink import (
     MAV_CMD_COMPONENT_ARM_DISARM,
     MAV_CMD_DO_SET_MODE,
@@ -32,12 +33,6 @@ from qnav.contracts.settings import with_overrides
 from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 IGNORE = 65535
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 class Station:
@@ -95,7 +90,7 @@ def rig() -> Iterator[Callable[..., tuple[MavlinkVehicle, Station]]]:
     def make(
         station_id: int = 255, key: bytes | None = None, **fields: Any
     ) -> tuple[MavlinkVehicle, Station]:
-        port = _free_udp_port()
+        port = free_port(socket.SOCK_DGRAM)
         values = {
             "connection": f"udpin:127.0.0.1:{port}",
             "heartbeat_period_s": 0.05,
@@ -329,7 +324,7 @@ def test_signing_vehicle_refuses_unsigned_commands_and_takes_signed_ones(
 
 
 def test_vehicle_runs_as_a_process_and_exits_on_sigterm() -> None:
-    port = _free_udp_port()
+    port = free_port(socket.SOCK_DGRAM)
     process = subprocess.Popen(
         [
             sys.executable,

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from qnav.contracts.daemon import free_port
 from qnav.contracts.mavlink import (
@@ -40,14 +40,12 @@ from qnav.contracts.wire import (
     VEHICLE_STATE,
     Pose2D,
     Twist2D,
-    decode_json_msg,
     encode_pose_msg,
     encode_twist_msg,
     key,
 )
 from qnav.sitl import HOME, SITL_ENV, SitlProcess
-
-T = TypeVar("T")
+from tests.firmware_bridge.rig import StateLog, keep_commanding, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 OBSERVER_SYSTEM_ID = 250
@@ -77,18 +75,6 @@ def sitl_binary() -> Path | None:
     """The ardurover binary from ARDUPILOT_SITL, or None when it is not set."""
     value = os.environ.get(SITL_ENV, "")
     return Path(value) if value else None
-
-
-def wait_until(condition: Callable[[], T], timeout_s: float, what: str) -> T:
-    """Poll `condition` until it returns something truthy (returned), or fail at the deadline."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
 
 
 @dataclass
@@ -365,32 +351,19 @@ class Zenoh:
         self.session: Any = open_session(
             ZenohSettings(listen=(f"tcp/127.0.0.1:{self.port}",), connect=())
         )
-        self.states: list[dict[str, Any]] = []
-        self._lock = threading.Lock()
-        self._subscriber = self.session.declare_subscriber(key(VEHICLE_STATE), self._on_state)
+        self.heard = StateLog()
+        self._subscriber = self.session.declare_subscriber(key(VEHICLE_STATE), self.heard.on_sample)
         self._publisher = self.session.declare_publisher(key(COMMAND))
 
-    def _on_state(self, sample: Any) -> None:
-        state = decode_json_msg(sample.payload.to_bytes())
-        with self._lock:
-            self.states.append(state)
-
     def state(self) -> dict[str, Any]:
-        with self._lock:
-            return self.states[-1] if self.states else {}
+        return self.heard.newest()
 
     def command(self, linear_mps: float, angular_radps: float) -> None:
         self._publisher.put(encode_twist_msg(Twist2D(linear_mps, angular_radps)))
 
     def drive(self, linear_mps: float, angular_radps: float, seconds: float) -> float:
         """A command every 0.1 s (the controller's rate is 5-10 Hz); the last one's time."""
-        end = time.monotonic() + seconds
-        while True:
-            self.command(linear_mps, angular_radps)
-            sent = time.monotonic()
-            if sent >= end:
-                return sent
-            time.sleep(0.1)
+        return keep_commanding(self.command, linear_mps, angular_radps, seconds, period_s=0.1)
 
     def close(self) -> None:
         self._subscriber.undeclare()

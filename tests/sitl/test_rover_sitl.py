@@ -26,6 +26,7 @@ from qnav.contracts.settings import from_dict
 from qnav.firmware_bridge.calibrate import Calibrator, Pattern
 from qnav.firmware_bridge.settings import BridgeSettings
 from qnav.sitl import HOME
+from tests.firmware_bridge.rig import wait_until
 from tests.sitl.harness import (
     EKF_CONST_POS_MODE,
     EKF_POS_HORIZ_ABS,
@@ -38,7 +39,6 @@ from tests.sitl.harness import (
     Zenoh,
     measure_stop,
     true_pose,
-    wait_until,
 )
 
 pytestmark = pytest.mark.sitl

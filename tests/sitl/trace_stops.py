@@ -26,6 +26,7 @@ from typing import Any
 import pytest
 
 from qnav.contracts.mavlink import mavutil, wrap_pi
+from tests.firmware_bridge.rig import wait_until
 from tests.sitl.harness import (
     OBSERVED,
     BridgeProcess,
@@ -33,7 +34,6 @@ from tests.sitl.harness import (
     Sitl,
     Zenoh,
     measure_stop,
-    wait_until,
 )
 from tests.sitl.test_rover_sitl import OUTPUTS, _armed, _drive_and_check_motion
 

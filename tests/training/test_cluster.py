@@ -2,7 +2,6 @@
 names, skipping finished runs, carrying run files back, and an unreachable --address."""
 
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -11,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from qnav.cli import main
+from qnav.contracts.daemon import free_port
 from qnav.contracts.errors import ConfigError
 from qnav.training.cluster import (
     ClusterSettings,
@@ -182,14 +182,8 @@ def test_addresses_parse_and_a_malformed_one_names_the_option() -> None:
             parse_address(bad)
 
 
-def _closed_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def test_an_unreachable_head_is_named_after_a_bounded_wait(tmp_path: Path) -> None:
-    address = f"127.0.0.1:{_closed_port()}"
+    address = f"127.0.0.1:{free_port()}"
     started = time.monotonic()
     with pytest.raises(ConfigError, match=f"--address {address}: no Ray head answers"):
         check_reachable(address, timeout_s=1.0)
@@ -201,7 +195,7 @@ def test_an_unreachable_head_is_named_after_a_bounded_wait(tmp_path: Path) -> No
 def test_a_study_given_an_unreachable_address_says_so_and_exits_non_zero_without_runs(
     tmp_path: Path,
 ) -> None:
-    address = f"127.0.0.1:{_closed_port()}"
+    address = f"127.0.0.1:{free_port()}"
     done = subprocess.run(
         [sys.executable, "-m", "qnav", "sweep", "--engine", "ray", "--address", address,
          "--connect-timeout-s", "2",

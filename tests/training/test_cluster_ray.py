@@ -26,20 +26,13 @@ ray = pytest.importorskip(
 
 from qnav.cli import main  # noqa: E402
 from qnav.contracts.daemon import free_port  # noqa: E402
+from qnav.training.bench_cluster import SMALL_RUN  # noqa: E402
 from qnav.training.cluster import ClusterSettings, RayEngine  # noqa: E402
 from qnav.training.study import RunSpec, StudySettings, run_progress, run_study  # noqa: E402
 
 pytestmark = pytest.mark.cluster
 
-TINY = (
-    "train.episodes=16",
-    "train.eval_every_episodes=0",
-    "train.final_eval_episodes=8",
-    "train.gauge_episodes=0",
-    "train.hidden_size=32",
-    "train.batch_size=16",
-    "train.iterations_per_episode=2",
-)
+TINY = ("train.episodes=16", *SMALL_RUN)
 """The smallest runs worth the name: two rounds of 8 episodes, an 8-episode test."""
 SPECS = [RunSpec("walls-inertia", "recurrent", seed) for seed in (0, 1)]
 RAY_BIN = Path(sys.executable).with_name("ray")

@@ -7,24 +7,10 @@ from dataclasses import replace
 from pathlib import Path
 
 from qnav.sim.config import scenario
-from qnav.training.config import FAST
 from qnav.training.run import train
+from tests import tiny_training
 
-TINY = replace(
-    FAST,
-    episodes=4,
-    hidden_size=8,
-    parallel_worlds=4,
-    iterations_per_episode=1,
-    batch_size=8,
-    eval_every_episodes=4,
-    eval_episodes=2,
-    final_eval_episodes=2,
-    max_episode_steps=30,
-    warmup_episodes=2,
-    threads=1,
-    gauge_episodes=4,
-)
+TINY = replace(tiny_training.TINY, episodes=4)
 
 
 def test_a_run_without_a_gauge_evaluates_and_leaves_the_decisive_columns_empty(
