@@ -46,9 +46,8 @@ from qnav.training.algorithm import bootstrap_windows, double_dqn_target
 from qnav.training.collect import collect_round
 from qnav.training.episode_log import read_rounds
 from qnav.training.networks import QNetwork, channel_activity
-from qnav.training.policy import load_network
 from qnav.training.replay import Batch, EpisodeReplay
-from qnav.training.run_folder import RunSettings
+from qnav.training.run_folder import RunSettings, load_network
 from qnav.training.sampling import sample
 
 _FRESH_LAYOUT_SEED = 777_777

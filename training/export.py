@@ -241,8 +241,7 @@ def export_run(
 ) -> PolicyContract:
     """Export a training run's network (from `weights`, by default its final one) to `output`
     (weights in `weight_type`), then test the file itself and record it."""
-    from qnav.training.policy import load_network
-    from qnav.training.run_folder import source_commit
+    from qnav.training.run_folder import load_network, source_commit
 
     network, run = load_network(run_dir, weights)
     results_path = run_dir / "results.json"

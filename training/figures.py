@@ -158,7 +158,7 @@ def ring_of_starts(
 
 def write_figures(run_dir: Path, out_dir: Path) -> list[Path]:
     """The action maps (earliest snapshot and final network) and trajectories of a run."""
-    from qnav.training.policy import load_network
+    from qnav.training.run_folder import load_network
 
     network, run = load_network(run_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,8 @@ from torch.nn import functional
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.observation import TARGET_FEATURES
 from qnav.contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
-from qnav.training.config import ModelKind
+from qnav.sim.config import WorldConfig
+from qnav.training.config import ModelKind, TrainSettings
 
 
 def conv_output_length(num_beams: int) -> int:
@@ -246,3 +247,9 @@ def lstm_last_output(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
         hidden, cell = lstm_cell(gates, cell)
     assert hidden is not None
     return hidden
+
+
+def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
+    """The Q-network for this world and these settings (fresh weights)."""
+    beams = world.lidar.num_beams if world.lidar else None
+    return QNetwork(settings.model, beams, settings.hidden_size)

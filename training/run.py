@@ -34,8 +34,7 @@ from qnav.training.algorithm import DoubleDQN
 from qnav.training.collect import collect_round
 from qnav.training.config import TrainSettings
 from qnav.training.episode_log import Episode
-from qnav.training.networks import QNetwork
-from qnav.training.policy import make_network
+from qnav.training.networks import QNetwork, make_network
 from qnav.training.replay import EpisodeReplay
 from qnav.training.run_folder import Progress, RunFolder, RunSettings, source_commit
 from qnav.training.sampling import sample

@@ -31,7 +31,7 @@ from qnav.contracts.settings import from_dict, to_dict, to_toml
 from qnav.sim.config import WorldConfig
 from qnav.training.config import TrainSettings
 from qnav.training.episode_log import Episode, read_rounds, write_round
-from qnav.training.networks import QNetwork
+from qnav.training.networks import QNetwork, make_network
 
 LAST_COMMIT_WITH_EXPERIMENTS = "b8dfe92"
 """The last commit with the learner experiments that changed nothing (`REMOVED_SETTINGS`)."""
@@ -239,3 +239,20 @@ def source_commit() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + ("+dirty" if dirty else "")
+
+
+def load_network(run_dir: Path, weights: Path | None = None) -> tuple[QNetwork, RunSettings]:
+    """The run's network from `weights` (a file of the run's); by default its final network
+    (model.pt), or its latest checkpoint if it has not finished."""
+    settings = read_settings(run_dir)
+    network = make_network(settings.world, settings.train)
+    candidates = [weights] if weights else [run_dir / "model.pt", run_dir / "checkpoint.pt"]
+    for path in candidates:
+        if path.exists():
+            saved = torch.load(path, weights_only=False, map_location="cpu")
+            network.load_state_dict(saved["online"])
+            network.eval()
+            return network, settings
+    if weights:
+        raise ConfigError(f"{weights} does not exist: nothing to load")
+    raise ConfigError(f"{run_dir} has neither model.pt nor checkpoint.pt: nothing to load")

@@ -106,7 +106,7 @@ def gauge(args: argparse.Namespace) -> int:
     for run in args.runs:
         from qnav.lab.diagnose import decisive_report
         from qnav.lab.gauge import decisive_states
-        from qnav.training.policy import load_network
+        from qnav.training.run_folder import load_network
 
         network, settings = load_network(run)
         train = replace(settings.train, gauge_episodes=args.episodes)

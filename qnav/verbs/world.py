@@ -94,7 +94,7 @@ def evaluate(args: argparse.Namespace) -> int:
         )
     else:
         from qnav.training.agent import policy_agent
-        from qnav.training.policy import load_network
+        from qnav.training.run_folder import load_network
 
         network, run = load_network(args.policy)
         world = (

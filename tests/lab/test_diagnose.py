@@ -10,7 +10,7 @@ import torch
 
 from qnav.lab.diagnose import _turns_towards_target, diagnose
 from qnav.sim.config import scenario
-from qnav.training.policy import load_network
+from qnav.training.run_folder import load_network
 from tests import tiny_training
 
 TINY = replace(tiny_training.TINY, hidden_size=16, eval_every_episodes=0, final_eval_episodes=4)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from qnav.sim.config import scenario
 from qnav.training.config import TrainSettings
-from qnav.training.policy import make_network
+from qnav.training.networks import make_network
 from qnav.training.run_folder import RunFolder, RunSettings
 
 TRAINING_LOOP = {
@@ -34,8 +34,8 @@ def _training_modules_after(code: str) -> set[str]:
 
 
 def test_the_loading_and_export_modules_import_no_training_loop() -> None:
-    loaded = _training_modules_after("import qnav.training.policy, qnav.training.export")
-    assert "qnav.training.policy" in loaded and "qnav.training.export" in loaded
+    loaded = _training_modules_after("import qnav.training.run_folder, qnav.training.export")
+    assert "qnav.training.run_folder" in loaded and "qnav.training.export" in loaded
     assert not loaded & TRAINING_LOOP, loaded & TRAINING_LOOP
 
 
@@ -49,5 +49,5 @@ def test_qnav_eval_of_a_run_folder_imports_no_training_loop(tmp_path: Path) -> N
         "from qnav.cli import main\n"
         f"assert main(['eval', '--policy', {str(folder.path)!r}, '--episodes', '2', '--json']) == 0"
     )
-    assert "qnav.training.policy" in loaded  # it did load the network
+    assert "qnav.training.run_folder" in loaded  # it did load the network
     assert not loaded & TRAINING_LOOP, loaded & TRAINING_LOOP
