@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from qnav.cli import build_parser
+from tests.command import run_qnav
 
 
 def _verbs() -> list[str]:
@@ -20,25 +21,15 @@ def _verbs() -> list[str]:
 VERBS = _verbs()
 
 
-def _qnav(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "qnav", *args],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-
-
 @pytest.mark.parametrize("verb", VERBS)
 def test_every_verb_has_help(verb: str) -> None:
-    result = _qnav(verb, "--help")
+    result = run_qnav(verb, "--help")
     assert result.returncode == 0
     assert "usage: qnav" in result.stdout
 
 
 def test_eval_json_prints_one_object_with_the_protocol_fields() -> None:
-    result = _qnav("eval", "--scenario", "walls-increment", "--episodes", "20", "--json")
+    result = run_qnav("eval", "--scenario", "walls-increment", "--episodes", "20", "--json")
     assert result.returncode == 0, result.stderr
     values = json.loads(result.stdout)
     assert set(values) == {"success", "collision", "unfinished", "episodes"}
@@ -46,20 +37,20 @@ def test_eval_json_prints_one_object_with_the_protocol_fields() -> None:
 
 
 def test_bad_setting_exits_with_a_message_naming_it() -> None:
-    result = _qnav("eval", "--scenario", "obstacles-inertia", "--set", "obstacles.count=999")
+    result = run_qnav("eval", "--scenario", "obstacles-inertia", "--set", "obstacles.count=999")
     assert result.returncode == 2
     assert "obstacles.count = 999 is out of range" in result.stderr
     assert "Traceback" not in result.stderr
 
 
 def test_unknown_scenario_exits_with_the_list_of_scenarios() -> None:
-    result = _qnav("eval", "--scenario", "moon")
+    result = run_qnav("eval", "--scenario", "moon")
     assert result.returncode == 2
     assert "unknown scenario 'moon'" in result.stderr
 
 
 def test_bench_sim_json_has_the_documented_shape() -> None:
-    result = _qnav(
+    result = run_qnav(
         "bench", "sim", "--batches", "1,4", "--seconds", "0.05", "--no-scaling", "--json"
     )
     assert result.returncode == 0, result.stderr
@@ -70,7 +61,7 @@ def test_bench_sim_json_has_the_documented_shape() -> None:
 
 
 def test_bench_lookahead_json_times_each_part_of_the_decision() -> None:
-    result = _qnav("bench", "lookahead", "--decisions", "40", "--json")
+    result = run_qnav("bench", "lookahead", "--decisions", "40", "--json")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["decisions"] >= 40
@@ -79,22 +70,22 @@ def test_bench_lookahead_json_times_each_part_of_the_decision() -> None:
 
 
 def test_eval_prints_the_world_as_toml_that_eval_accepts(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    printed = _qnav(
+    printed = run_qnav(
         "eval", "--scenario", "obstacles-increment", "--set", "obstacles.count=2", "--print-config"
     )
     assert printed.returncode == 0
     assert "count = 2" in printed.stdout
     path = tmp_path / "world.toml"
     path.write_text(printed.stdout)
-    result = _qnav("eval", "--world-config", str(path), "--episodes", "5", "--json")
+    result = run_qnav("eval", "--world-config", str(path), "--episodes", "5", "--json")
     assert result.returncode == 0, result.stderr
-    table = _qnav("eval", "--scenario", "obstacles-increment", "--print-config", "--markdown")
+    table = run_qnav("eval", "--scenario", "obstacles-increment", "--print-config", "--markdown")
     assert table.stdout.startswith("| setting | value | meaning |")
 
 
 def test_settings_reference_in_docs_is_current() -> None:
     docs = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
-    printed = _qnav("scenarios", "--reference")
+    printed = run_qnav("scenarios", "--reference")
     assert printed.returncode == 0, printed.stderr
     assert docs.read_text() == printed.stdout, "run `make docs` to regenerate"
 
@@ -125,7 +116,7 @@ def _print_config_argv(verb: str, folder: Path) -> list[str]:
 def test_every_verb_with_settings_prints_them_as_toml(verb: str, tmp_path: Path) -> None:
     import tomllib
 
-    printed = _qnav(*_print_config_argv(verb, tmp_path))
+    printed = run_qnav(*_print_config_argv(verb, tmp_path))
     assert printed.returncode == 0, printed.stderr
     assert len(tomllib.loads(printed.stdout)) >= 1
 
@@ -167,7 +158,7 @@ def test_help_marks_the_verbs_whose_extra_is_missing(tmp_path: Path) -> None:
     lines = {line.split()[0]: line for line in shown.splitlines() if line.startswith("  ")}
     assert "(needs qnav[train])" in lines["train"]
     assert "(needs" not in lines["eval"]
-    full = _qnav("--help").stdout
+    full = run_qnav("--help").stdout
     assert "(needs" not in full  # this install has every extra
     assert "other:" not in full  # every verb sits in one of VERB_GROUPS
     assert "research (lab/" in full
@@ -196,11 +187,11 @@ def test_imitate_help_imports_no_torch(tmp_path: Path) -> None:
 def test_every_daemon_prints_its_settings_with_one_spelling_and_reads_them_back(
     verb: str, tmp_path: Path
 ) -> None:
-    printed = _qnav(verb, "--print-config")
+    printed = run_qnav(verb, "--print-config")
     assert printed.returncode == 0, printed.stderr
     path = tmp_path / "settings.toml"
     path.write_text(printed.stdout)
-    again = _qnav(verb, "--config", str(path), "--print-config")
+    again = run_qnav(verb, "--config", str(path), "--print-config")
     assert again.returncode == 0, again.stderr
     assert again.stdout == printed.stdout
 
@@ -220,7 +211,7 @@ def test_help_lists_every_setting_with_its_value_and_documentation(verb: str, ta
 
     module, name = target.split(":")
     settings = getattr(importlib.import_module(module), name)()
-    shown = _qnav(verb, "--help")
+    shown = run_qnav(verb, "--help")
     assert shown.returncode == 0, shown.stderr
     listing = to_listing(settings)
     assert listing.count(" = ") >= 10

@@ -19,8 +19,8 @@ from qnav.controller.recording import (
     recover,
     write_rosbag_metadata,
 )
+from tests.command import run_qnav
 from tests.controller.test_recording import _pose, _scan
-from tests.test_cli import _qnav
 
 
 def _mcap_messages(path: Path) -> list[tuple[str, int, bytes]]:
@@ -101,11 +101,11 @@ def test_a_killed_recording_is_whole_again_for_both_readers_after_recover(
 def test_qnav_recover_mends_a_folder_and_leaves_complete_files_alone(tmp_path: Path) -> None:
     (path,) = _write_from_threads(tmp_path).files
     untouched = path.read_bytes()
-    result = _qnav("recover", str(tmp_path))
+    result = run_qnav("recover", str(tmp_path))
     assert result.returncode == 0, result.stderr
     assert "complete" in result.stdout and path.read_bytes() == untouched
     path.write_bytes(untouched[: len(untouched) // 2])
-    result = _qnav("recover", str(path))
+    result = run_qnav("recover", str(path))
     assert result.returncode == 0, result.stderr
     assert "recovered" in result.stdout and is_complete(path)
     assert len(_rosbags_messages(tmp_path)) == len(_mcap_messages(path)) > 0

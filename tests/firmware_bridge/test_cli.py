@@ -16,17 +16,8 @@ import pytest
 from qnav.contracts.health import HEALTH_FILE_ENV
 from qnav.contracts.mavlink import MAV_CMD_COMPONENT_ARM_DISARM
 from qnav.contracts.settings import to_toml
+from tests.command import run_qnav
 from tests.firmware_bridge.rig import bridge_settings, start_rig, wait_until
-
-
-def _qnav(*args: str, timeout_s: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "qnav", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        check=False,
-    )
 
 
 @pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
@@ -85,7 +76,7 @@ def test_bridge_process_sends_stop_then_disarms_on_a_signal(
 
 def qnav_health(path: Path) -> str:
     """What `qnav health --file path` prints, as a container's HEALTHCHECK runs it."""
-    done = _qnav("health", "--file", str(path))
+    done = run_qnav("health", "--file", str(path))
     assert done.returncode == (0 if done.stdout.startswith("healthy") else 1), done
     return done.stdout
 
@@ -93,7 +84,7 @@ def qnav_health(path: Path) -> str:
 def test_bridge_refuses_a_bad_setting_with_its_name(tmp_path: Path) -> None:
     config = tmp_path / "bridge.toml"
     config.write_text("[failsafe]\ncommand_timeout_s = -1.0\n")
-    result = _qnav("bridge", "--config", str(config))
+    result = run_qnav("bridge", "--config", str(config))
     assert result.returncode == 2
     assert "failsafe.command_timeout_s = -1.0 is out of range" in result.stderr
     assert "Traceback" not in result.stderr
@@ -103,13 +94,13 @@ def test_bridge_refuses_a_port_it_cannot_open() -> None:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
-        result = _qnav("bridge", "--set", f'mavlink.connection="udpin:127.0.0.1:{port}"')
+        result = run_qnav("bridge", "--set", f'mavlink.connection="udpin:127.0.0.1:{port}"')
     assert result.returncode == 2
     assert "mavlink.connection" in result.stderr and "cannot be opened" in result.stderr
 
 
 def test_bench_bridge_json_has_the_documented_figures() -> None:
-    result = _qnav(
+    result = run_qnav(
         "bench", "bridge", "--commands", "30", "--stops", "1", "--timeout-s", "0.1", "--json"
     )
     assert result.returncode == 0, result.stderr
@@ -121,5 +112,5 @@ def test_bench_bridge_json_has_the_documented_figures() -> None:
 
 @pytest.mark.parametrize("verb", [["bridge"], ["fake-vehicle"], ["bench", "bridge"]])
 def test_bridge_verbs_have_help(verb: list[str]) -> None:
-    result = _qnav(*verb, "--help")
+    result = run_qnav(*verb, "--help")
     assert result.returncode == 0 and "usage: qnav" in result.stdout

@@ -22,7 +22,7 @@ from qnav.lab.decisive import (
 from qnav.lab.oracle import StateError, doomed_actions
 from qnav.sim.config import scenario
 from qnav.sim.world import reset
-from tests.test_cli import _qnav
+from tests.command import run_qnav
 
 SMALL = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6, seed=3)
 
@@ -129,7 +129,7 @@ def test_the_cache_returns_what_was_collected_and_keys_on_the_settings(tmp_path:
 
 def test_qnav_gauge_prints_the_baselines_of_a_world() -> None:
     world = ("--scenario", "obstacles-increment")
-    result = _qnav("lab", "gauge", *world, "--episodes", "10", "--json")
+    result = run_qnav("lab", "gauge", *world, "--episodes", "10", "--json")
     assert result.returncode == 0, result.stderr
     rows = [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
     assert [row["policy"] for row in rows] == [
@@ -143,6 +143,6 @@ def test_qnav_gauge_prints_the_baselines_of_a_world() -> None:
 
 
 def test_qnav_gauge_refuses_a_world_without_moving_obstacles() -> None:
-    result = _qnav("lab", "gauge", "--scenario", "walls-increment")
+    result = run_qnav("lab", "gauge", "--scenario", "walls-increment")
     assert result.returncode != 0
     assert "no moving obstacles" in result.stderr

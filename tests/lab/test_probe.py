@@ -22,7 +22,7 @@ from qnav.lab.probe import (
 )
 from qnav.sim.config import scenario
 from qnav.sim.world import reset
-from tests.test_cli import _qnav
+from tests.command import run_qnav
 
 SMALL_GAUGE = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6)
 SMALL = ProbeSettings(episodes_per_driver=6, epochs=2, batch_size=32, threads=1)
@@ -73,16 +73,16 @@ def test_state_features_are_in_the_robots_frame() -> None:
 def test_a_wrong_probe_setting_names_itself() -> None:
     with pytest.raises(ConfigError, match="epochs"):
         ProbeSettings(epochs=0)
-    result = _qnav("lab", "probe", "--probe-set", "probe.learning_rate=0", "--json")
+    result = run_qnav("lab", "probe", "--probe-set", "probe.learning_rate=0", "--json")
     assert result.returncode != 0
     assert "learning_rate" in result.stderr
-    result = _qnav("lab", "probe", "--probe-set", "probe.inputs=radar", "--json")
+    result = run_qnav("lab", "probe", "--probe-set", "probe.inputs=radar", "--json")
     assert result.returncode != 0
     assert "probe.inputs" in result.stderr
 
 
 def test_qnav_probe_prints_its_settings() -> None:
-    result = _qnav("lab", "probe", "--print-config")
+    result = run_qnav("lab", "probe", "--print-config")
     assert result.returncode == 0, result.stderr
     assert "ordinary_share" in result.stdout
 
@@ -113,9 +113,9 @@ def test_the_perception_probe_reports_the_blind_baseline_then_each_pass() -> Non
 
 
 def test_qnav_probe_perception_names_its_settings() -> None:
-    result = _qnav("lab", "probe", "--perception", "--print-config")
+    result = run_qnav("lab", "probe", "--perception", "--print-config")
     assert result.returncode == 0, result.stderr
     assert "conv_channels" in result.stdout
-    result = _qnav("lab", "probe", "--perception", "--probe-set", "perception.windows=0")
+    result = run_qnav("lab", "probe", "--perception", "--probe-set", "perception.windows=0")
     assert result.returncode != 0
     assert "perception.windows" in result.stderr
