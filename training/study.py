@@ -697,7 +697,10 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         "success (greedy, 100 episodes of up to 200 steps) every "
         + ", ".join(f"{n} episodes ({s})" for s, n in ABLATION_EVAL_EVERY_EPISODES.items())
         + ". Figures per run, in seed order; test success is the mean. '-' = never reached "
-        "within the run.",
+        "within the run. The obstacles-inertia rows were rerun in the re-pinned world "
+        "(2026-12-04), where the blind go-to-target controller scores 0.671 (`qnav eval "
+        "--scenario obstacles-inertia --agent goto --episodes 1000`); the obstacle tables "
+        "above were not.",
         "",
         _row(
             "scenario",
