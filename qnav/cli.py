@@ -67,24 +67,35 @@ def _needs(extras: list[str]) -> str:
     return ", ".join(f"qnav[{extra}]" for extra in extras)
 
 
+def _left_out(needed: str, extras: list[str]) -> str:
+    """The one wording of "this install lacks what that needs, and here is how to get it"."""
+    install = " ".join(f"'qnav[{extra}]'" for extra in extras)
+    return (
+        f"needs {needed}, which this install leaves out (the base install is the car's): "
+        f"pip install {install}"
+    )
+
+
+def _resolve(target: str) -> Any:
+    """The object `module:name`, its module imported now."""
+    module, name = target.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
 def _lazy(target: str) -> Handler:
     """A handler `module:function` imported when called; an optional package missing from this
     install is a ConfigError naming the extra that brings it."""
 
     def run(args: argparse.Namespace) -> int:
-        module, function = target.split(":")
         try:
-            handler: Handler = getattr(importlib.import_module(module), function)
+            handler: Handler = _resolve(target)
             return handler(args)
         except ModuleNotFoundError as error:
             package = (error.name or "").split(".")[0]
             extra = next((e for e, names in EXTRA_MODULES.items() if package in names), None)
             if extra is None:
                 raise
-            raise ConfigError(
-                f"this needs {package}, which this install leaves out (the base install is the "
-                f"car's): pip install 'qnav[{extra}]'"
-            ) from None
+            raise ConfigError(f"this {_left_out(package, [extra])}") from None
 
     return run
 
@@ -163,9 +174,7 @@ class _Parser(argparse.ArgumentParser):
         from qnav.options import add_settings_options
 
         for target, prefix, title, skip in self.generated:
-            module, name = target.split(":")
-            cls = getattr(importlib.import_module(module), name)
-            add_settings_options(self, cls, prefix, title=title, skip=skip)
+            add_settings_options(self, _resolve(target), prefix, title=title, skip=skip)
         self.generated = []
 
     def parse_known_args(  # type: ignore[override]
@@ -196,9 +205,7 @@ def _listing(target: str, intro: str) -> Callable[[], str]:
     def build() -> str:
         from qnav.contracts.settings import to_listing
 
-        module, name = target.split(":")
-        settings = getattr(importlib.import_module(module), name)()
-        return f"{intro}:\n{to_listing(settings)}"
+        return f"{intro}:\n{to_listing(_resolve(target)())}"
 
     return build
 
@@ -1105,12 +1112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     verb = verb_of(args)
     missing = missing_extras(verb)
     if missing:
-        install = " ".join(f"'qnav[{extra}]'" for extra in missing)
-        print(
-            f"qnav {verb}: needs {_needs(missing)}, which this install leaves out (the base "
-            f"install is the car's): pip install {install}",
-            file=sys.stderr,
-        )
+        print(f"qnav {verb}: {_left_out(_needs(missing), missing)}", file=sys.stderr)
         return 2
     try:
         return int(args.handler(args))
