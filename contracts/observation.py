@@ -21,6 +21,19 @@ WINDOW_LENGTH = 5
 TARGET_FEATURES = 3
 """Per-step target features: distance to target, sin and cos of its bearing."""
 
+OBSTACLE_SLOTS = 5
+"""Obstacles a network given obstacle inputs sees per frame, nearest first (the paper's worlds
+hold 5)."""
+OBSTACLE_SLOT_FEATURES = 5
+"""Per obstacle: seen (1) or an empty slot (0), its centre ahead and to the left of the robot,
+and its velocity along the robot's heading and to its left."""
+OBSTACLE_FEATURES = OBSTACLE_SLOTS * OBSTACLE_SLOT_FEATURES
+"""Per-frame obstacle features of a network given obstacle inputs (beyond the paper)."""
+OBSTACLE_POSITION_SCALE_M = 5.0
+"""Obstacle offsets are divided by this (the ranges that matter for a dodge are a few metres)."""
+OBSTACLE_SPEED_SCALE_M_S = 1.0
+"""Obstacle velocities are divided by this."""
+
 
 @dataclass(frozen=True)
 class LidarSpec:
@@ -116,6 +129,45 @@ def encode_target(features: NDArray[np.floating], max_range_m: float) -> NDArray
     encoded = np.array(features, dtype=np.float32, copy=True)
     encoded[..., 0] /= np.float32(max_range_m)
     return encoded
+
+
+def obstacle_features(
+    pose: NDArray[np.floating],
+    obstacle_xy: NDArray[np.floating],
+    obstacle_velocity: NDArray[np.floating],
+) -> NDArray[np.float32]:
+    """Encoded obstacle inputs (..., OBSTACLE_FEATURES) for poses (..., 3) among obstacles
+    (..., M, 2) with velocities (..., M, 2), all in the room's frame.
+
+    The nearest `OBSTACLE_SLOTS` obstacles, nearest first, each as (1, ahead, left, forward
+    speed, leftward speed) in the robot's frame, scaled by `OBSTACLE_POSITION_SCALE_M` and
+    `OBSTACLE_SPEED_SCALE_M_S`; empty slots (fewer obstacles) are all zero. In simulation the
+    obstacles are the world's own; on the car they are the onboard tracker's estimate.
+    """
+    pose = np.asarray(pose, dtype=np.float64)
+    xy = np.asarray(obstacle_xy, dtype=np.float64)
+    velocity = np.asarray(obstacle_velocity, dtype=np.float64)
+    cos_h, sin_h = np.cos(pose[..., 2])[..., None], np.sin(pose[..., 2])[..., None]
+    delta = xy - pose[..., None, :2]
+    ahead = cos_h * delta[..., 0] + sin_h * delta[..., 1]
+    left = -sin_h * delta[..., 0] + cos_h * delta[..., 1]
+    forward = cos_h * velocity[..., 0] + sin_h * velocity[..., 1]
+    leftward = -sin_h * velocity[..., 0] + cos_h * velocity[..., 1]
+    slots = np.stack(
+        [
+            np.ones_like(ahead),
+            ahead / OBSTACLE_POSITION_SCALE_M,
+            left / OBSTACLE_POSITION_SCALE_M,
+            forward / OBSTACLE_SPEED_SCALE_M_S,
+            leftward / OBSTACLE_SPEED_SCALE_M_S,
+        ],
+        axis=-1,
+    )  # (..., M, OBSTACLE_SLOT_FEATURES)
+    order = np.argsort(np.hypot(ahead, left), axis=-1, kind="stable")[..., :OBSTACLE_SLOTS]
+    nearest = np.take_along_axis(slots, order[..., None], axis=-2)
+    encoded = np.zeros((*pose.shape[:-1], OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES), np.float32)
+    encoded[..., : nearest.shape[-2], :] = nearest
+    return encoded.reshape(*pose.shape[:-1], OBSTACLE_FEATURES)
 
 
 def encode_frame(

@@ -28,7 +28,12 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from qnav.contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from qnav.contracts.observation import (
+    OBSTACLE_FEATURES,
+    FrameWindow,
+    distance_scale_m,
+    encode_frame,
+)
 from qnav.contracts.settings import check_range, to_toml
 from qnav.lab.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
 from qnav.sim.config import WorldConfig
@@ -76,6 +81,9 @@ class DecisiveStates(NamedTuple):
 
     windows: NDArray[np.float32]
     """(K, k, F) the last k encoded frames (scan and target features), oldest first."""
+    obstacle_windows: NDArray[np.float32]
+    """(K, k, OBSTACLE_FEATURES) the encoded obstacles of the same frames, for networks given
+    obstacle inputs (`contracts.observation.obstacle_features`)."""
     collide_share: NDArray[np.float32]
     """(K, A) the share of the planner's continuations after each action that collide (1 where
     doomed): how close to doom each action is."""
@@ -106,10 +114,18 @@ class DecisiveStates(NamedTuple):
             world = WorldState(*(data[f"world_{name}"] for name in WorldState._fields))
             return cls(**{name: data[name] for name in cls._fields if name != "world"}, world=world)
 
+    def policy_windows(self, obstacle_inputs: bool) -> NDArray[np.float32]:
+        """(K, k, F) the windows a network sees: with the obstacles appended to each frame, for a
+        network given obstacle inputs."""
+        if not obstacle_inputs:
+            return self.windows
+        return np.concatenate([self.windows, self.obstacle_windows], axis=-1)
+
     def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> DecisiveStates:
         """The states `keep` selects (a mask or indices), with the visit counts unchanged."""
         return self._replace(
             windows=self.windows[keep],
+            obstacle_windows=self.obstacle_windows[keep],
             collide_share=self.collide_share[keep],
             world=take_rows(self.world, np.arange(len(self.doomed))[keep]),
             driver=self.driver[keep],
@@ -130,10 +146,11 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
         *found, seen = _drive_and_keep(config, settings, act, index, progress)
         parts.append(found)
         visited.append(seen)
-    windows, share, world, driver = zip(*parts, strict=True)
+    windows, obstacle_windows, share, world, driver = zip(*parts, strict=True)
     collide_share = np.concatenate(share)
     return DecisiveStates(
         windows=np.concatenate(windows),
+        obstacle_windows=np.concatenate(obstacle_windows),
         collide_share=collide_share,
         world=WorldState(*(np.concatenate(column) for column in zip(*world, strict=True))),
         driver=np.concatenate(driver),
@@ -141,8 +158,9 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
     )
 
 
-_FORMAT = "2"
-"""Version of the cached file's layout (2: collision shares and world states kept)."""
+_FORMAT = "3"
+"""Version of the cached file's layout (2: collision shares and world states kept; 3: the
+obstacles' windows)."""
 
 
 def cache_dir() -> Path:
@@ -180,10 +198,12 @@ def _drive_and_keep(
     act: StateAct,
     index: int,
     progress: bool,
-) -> tuple[NDArray[np.float32], NDArray[np.float32], WorldState, NDArray[np.int8], int]:
+) -> tuple[
+    NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], WorldState, NDArray[np.int8], int
+]:
     max_range_m = distance_scale_m(config.lidar)
     chance = np.random.default_rng([settings.seed, index])
-    windows, shares, worlds = [], [], []
+    windows, obstacle_windows, shares, worlds = [], [], [], []
     visited = 0
     episodes = np.arange(settings.episodes_per_driver, dtype=np.int64)
     batches = np.array_split(episodes, -(-episodes.size // settings.num_worlds))
@@ -191,16 +211,19 @@ def _drive_and_keep(
         state = reset(config, np.full(batch.size, settings.seed), batch)
         observation = observe(config, state)
         window = FrameWindow(batch.size, _frame_size(config), settings.window)
+        obstacle_window = FrameWindow(batch.size, OBSTACLE_FEATURES, settings.window)
         running = np.arange(batch.size)
         for _ in range(settings.max_episode_steps):
             frames = window.advance(
                 encode_frame(observation.scan_m, observation.target_features(), max_range_m)
             )
+            seen = obstacle_window.advance(observation.obstacle_features())
             share = collision_shares(config, state)
             keep = is_decisive(share == 1.0)
             if settings.ordinary_share:
                 keep |= chance.random(keep.size) < settings.ordinary_share
             windows.append(frames[keep].copy())
+            obstacle_windows.append(seen[keep].copy())
             shares.append(share[keep].astype(np.float32))
             worlds.append(take_rows(state, np.flatnonzero(keep)))
             visited += running.size
@@ -210,12 +233,14 @@ def _drive_and_keep(
                 break
             running = running[going]
             state, observation = take_rows(state, going), take_rows(observation, going)
-            window.frames = window.frames[going]
-            window.fresh = window.fresh[going]
+            for kept in (window, obstacle_window):
+                kept.frames = kept.frames[going]
+                kept.fresh = kept.fresh[going]
     count = sum(len(w) for w in windows)
     world = WorldState(*(np.concatenate(column) for column in zip(*worlds, strict=True)))
     return (
         np.concatenate(windows),
+        np.concatenate(obstacle_windows),
         np.concatenate(shares),
         world,
         np.full(count, index, dtype=np.int8),

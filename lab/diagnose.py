@@ -87,7 +87,7 @@ class DecisiveReport:
 def decisive_report(network: QNetwork, states: DecisiveStates) -> DecisiveReport:
     """Score the network's greedy choices on the decisive states."""
     network.eval()
-    mine = score(states, greedy_actions(network, states.windows))
+    mine = score(states, greedy_actions(network, states.policy_windows(network.obstacle_inputs)))
     return DecisiveReport(
         safe=mine.safe,
         balanced=mine.balanced,

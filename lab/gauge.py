@@ -40,7 +40,10 @@ class DecisiveGauge:
     def __call__(self, network: QNetwork) -> GaugeScore:
         if self._decisive is None:
             self._decisive = decisive_states(self.world, self.settings, self.progress)
-        judged = score(self._decisive, greedy_actions(network, self._decisive.windows))
+        judged = score(
+            self._decisive,
+            greedy_actions(network, self._decisive.policy_windows(network.obstacle_inputs)),
+        )
         return GaugeScore(safe=judged.safe, balanced=judged.balanced)
 
 

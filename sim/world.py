@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import Outcome, move_obstacles, outcome, step_robot
-from qnav.contracts.observation import target_features
+from qnav.contracts.observation import obstacle_features, target_features
 from qnav.sim import rng
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import cast_lidar, clearance
@@ -64,10 +64,18 @@ class Observation(NamedTuple):
     """(N, B) lidar ranges in metres, +inf for no return; None without a lidar."""
     clearance_m: F64
     """(N,) distance to the nearest surface (the paper's closest lidar reading d_l)."""
+    obstacle_xy: F64
+    """(N, M, 2) obstacle centres, as the onboard tracker reports them (here exact)."""
+    obstacle_velocity: F64
+    """(N, M, 2) obstacle velocities, as the onboard tracker reports them (here exact)."""
 
     def target_features(self) -> F64:
         """(N, 3) distance to target and sin, cos of its bearing."""
         return target_features(self.pose, self.target_xy)
+
+    def obstacle_features(self) -> NDArray[np.float32]:
+        """(N, OBSTACLE_FEATURES) the encoded obstacle inputs (`contracts.observation`)."""
+        return obstacle_features(self.pose, self.obstacle_xy, self.obstacle_velocity)
 
 
 class Transition(NamedTuple):
@@ -165,7 +173,9 @@ def observe(config: WorldConfig, state: WorldState) -> Observation:
     if config.lidar is not None:
         scan = cast_lidar(state.pose, config.lidar, config.arena, state.obstacle_xy, radius)
     gap = clearance(state.pose[:, :2], config.arena, state.obstacle_xy, radius)
-    return Observation(state.pose, state.target_xy, scan, gap)
+    return Observation(
+        state.pose, state.target_xy, scan, gap, state.obstacle_xy, state.obstacle_velocity
+    )
 
 
 def step(

@@ -14,9 +14,15 @@ from qnav.sim.world import Observation
 from qnav.training.networks import QNetwork
 
 
-def observation_frames(observation: Observation, max_range_m: float) -> NDArray[np.float32]:
-    """Encoded frames (N, F) of a batch of observations."""
-    return encode_frame(observation.scan_m, observation.target_features(), max_range_m)
+def observation_frames(
+    observation: Observation, max_range_m: float, obstacle_inputs: bool = False
+) -> NDArray[np.float32]:
+    """Encoded frames (N, F) of a batch of observations (with the obstacles, for a network
+    given obstacle inputs)."""
+    frames = encode_frame(observation.scan_m, observation.target_features(), max_range_m)
+    if not obstacle_inputs:
+        return frames
+    return np.concatenate([frames, observation.obstacle_features()], axis=-1)
 
 
 def greedy_actions(
@@ -61,7 +67,9 @@ class TorchAgent:
         self.exploration.start(worlds)
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
-        windows = self.window.advance(observation_frames(observation, self.max_range_m))
+        windows = self.window.advance(
+            observation_frames(observation, self.max_range_m, self.network.obstacle_inputs)
+        )
         with torch.no_grad():
             device = next(self.network.parameters()).device
             q = self.network(torch.from_numpy(windows).to(device)).cpu().numpy()

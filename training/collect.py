@@ -42,6 +42,7 @@ def collect_round(
         [observation.clearance_m],
         [],
     )
+    obstacle_xy, obstacle_velocity = [observation.obstacle_xy], [observation.obstacle_velocity]
     length = np.zeros(n, dtype=np.int64)
     ending = np.full(n, Outcome.RUNNING, dtype=np.int64)
     active = np.ones(n, dtype=bool)
@@ -56,6 +57,8 @@ def collect_round(
         poses.append(observation.pose)
         scans.append(observation.scan_m)
         clearances.append(observation.clearance_m)
+        obstacle_xy.append(observation.obstacle_xy)
+        obstacle_velocity.append(observation.obstacle_velocity)
         actions.append(recorded)
         length[active] += 1
         done = (transition.terminated | transition.truncated) & active
@@ -63,6 +66,7 @@ def collect_round(
         active &= ~done
     pose, clearance, act = np.stack(poses), np.stack(clearances), np.stack(actions)
     scan = None if config.lidar is None else np.stack(scans)  # type: ignore[arg-type]
+    centres, velocities = np.stack(obstacle_xy), np.stack(obstacle_velocity)
     return [
         Episode(
             pose=pose[: length[i] + 1, i],
@@ -71,6 +75,8 @@ def collect_round(
             action=act[: length[i], i],
             target_xy=state.target_xy[i],
             outcome=int(ending[i]),
+            obstacle_xy=centres[: length[i] + 1, i],
+            obstacle_velocity=velocities[: length[i] + 1, i],
         )
         for i in range(n)
     ]

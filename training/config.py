@@ -72,7 +72,11 @@ class TrainSettings:
     """Importance-weight exponent at the first iteration, annealed linearly to 1 at the last."""
     obstacle_redraw_probability: float = 0.0
     """Chance that a sampled transition sees freshly drawn obstacles along its stored path
-    instead of the episode's own (`training.sampling.redraw_obstacles`; paper: none)."""
+    instead of the episode's own (`training.sampling.redraw_obstacles_in_windows`; paper: none)."""
+    obstacle_inputs: bool = False
+    """Give the network the nearest obstacles' positions and velocities beside the lidar, as
+    the onboard tracker estimates them (exact in simulation; `contracts.observation.
+    obstacle_features`; paper: the lidar alone)."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512

@@ -7,7 +7,7 @@ does not exist.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +28,10 @@ class Episode(NamedTuple):
     """(2,) the episode's own target."""
     outcome: int
     """How it ended (sim.task.Outcome; RUNNING = truncated)."""
+    obstacle_xy: NDArray[np.float64] | None = None
+    """(T + 1, M, 2) obstacle centres at each observation (None: not kept)."""
+    obstacle_velocity: NDArray[np.float64] | None = None
+    """(T + 1, M, 2) obstacle velocities at each observation (None: not kept)."""
 
 
 def write_round(folder: Path, round_index: int, episodes: list[Episode]) -> Path:
@@ -36,18 +40,23 @@ def write_round(folder: Path, round_index: int, episodes: list[Episode]) -> Path
     path = folder / f"round-{round_index:06d}.npz"
     partial = folder / f".round-{round_index:06d}.partial.npz"
     has_scan = episodes[0].scan_m is not None
-    np.savez(
-        partial,
-        lengths=np.array([e.action.size for e in episodes]),
-        pose=np.concatenate([e.pose for e in episodes]),
-        scan=np.concatenate([e.scan_m for e in episodes if e.scan_m is not None])
+    arrays: dict[str, NDArray[Any]] = {
+        "lengths": np.array([e.action.size for e in episodes]),
+        "pose": np.concatenate([e.pose for e in episodes]),
+        "scan": np.concatenate([e.scan_m for e in episodes if e.scan_m is not None])
         if has_scan
         else np.zeros((0, 0), np.float32),
-        clearance=np.concatenate([e.clearance_m for e in episodes]),
-        action=np.concatenate([e.action for e in episodes]),
-        target=np.stack([e.target_xy for e in episodes]),
-        outcome=np.array([e.outcome for e in episodes]),
-    )
+        "clearance": np.concatenate([e.clearance_m for e in episodes]),
+        "action": np.concatenate([e.action for e in episodes]),
+        "target": np.stack([e.target_xy for e in episodes]),
+        "outcome": np.array([e.outcome for e in episodes]),
+    }
+    centres = [e.obstacle_xy for e in episodes if e.obstacle_xy is not None]
+    velocities = [e.obstacle_velocity for e in episodes if e.obstacle_velocity is not None]
+    if len(centres) == len(velocities) == len(episodes):
+        arrays["obstacle_xy"] = np.concatenate(centres)
+        arrays["obstacle_velocity"] = np.concatenate(velocities)
+    np.savez(partial, **arrays)  # type: ignore[arg-type]  # (numpy's stub types **kwds as its allow_pickle)
     partial.replace(path)
     return path
 
@@ -61,6 +70,8 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
             frame_ends = np.cumsum(lengths + 1)
             action_ends = np.cumsum(lengths)
             has_scan = data["scan"].size > 0
+            # Rounds written before obstacles were kept (2026-12-04) have none.
+            has_obstacles = "obstacle_xy" in data
             # Rounds written while demonstrations existed (up to commit b8dfe92) also hold a
             # `demonstrated` flag per episode: runs that used them cannot resume
             # (`training.run_folder.read_settings`), and the flag is ignored.
@@ -75,6 +86,10 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
                         action=data["action"][action_ends[i] - length : action_ends[i]],
                         target_xy=data["target"][i],
                         outcome=int(data["outcome"][i]),
+                        obstacle_xy=data["obstacle_xy"][frames] if has_obstacles else None,
+                        obstacle_velocity=(
+                            data["obstacle_velocity"][frames] if has_obstacles else None
+                        ),
                     )
                 )
             rounds.append(episodes)

@@ -2,7 +2,8 @@
 
 Input: a window of encoded frames (N, k, F) from `contracts.observation.encode_frame`, each
 frame the scaled scan (B values, absent for the toy car) followed by the scaled target features
-(3 values). Output: Q values (N, 3).
+(3 values) and, for a network given obstacle inputs (beyond the paper), the encoded obstacles
+(`contracts.observation.obstacle_features`). Output: Q values (N, 3).
 
 `StreamingQNetwork` is the same network as the onboard runtime steps it (and as it is exported):
 the newest frame and the k-1 partial windows in progress in, the Q values of the window that
@@ -18,7 +19,7 @@ from torch import Tensor, nn
 from torch.nn import functional
 
 from qnav.contracts.actions import NUM_ACTIONS
-from qnav.contracts.observation import TARGET_FEATURES
+from qnav.contracts.observation import OBSTACLE_FEATURES, TARGET_FEATURES
 from qnav.contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
 from qnav.sim.config import WorldConfig
 from qnav.training.config import ModelKind, TrainSettings
@@ -87,13 +88,17 @@ class QNetwork(nn.Module):
         kind: ModelKind,
         num_beams: int | None,
         hidden_size: int = 512,
+        obstacle_inputs: bool = False,
     ) -> None:
         super().__init__()
         self.kind: ModelKind = kind
         self.num_beams = num_beams or 0
         self.hidden_size = hidden_size
+        self.obstacle_inputs = obstacle_inputs
         self.encoder = LidarEncoder(num_beams) if num_beams else None
-        self.feature_size = (self.encoder.output_size if self.encoder else 0) + TARGET_FEATURES
+        self.feature_size = (
+            (self.encoder.output_size if self.encoder else 0) + self.frame_size - self.num_beams
+        )
         self.lstm = (
             nn.LSTM(self.feature_size, hidden_size, batch_first=True)
             if kind == "recurrent"
@@ -107,7 +112,7 @@ class QNetwork(nn.Module):
     @property
     def frame_size(self) -> int:
         """Values per input frame."""
-        return self.num_beams + TARGET_FEATURES
+        return self.num_beams + TARGET_FEATURES + (OBSTACLE_FEATURES if self.obstacle_inputs else 0)
 
     def frame_features(self, frames: Tensor) -> Tensor:
         """(N, T, F) frames -> (N, T, D) features; the encoder runs once per frame."""
@@ -177,7 +182,7 @@ class StreamingQNetwork(nn.Module):
 
 def frame_features(encoder: LidarEncoder | None, num_beams: int, frames: Tensor) -> Tensor:
     """(N, T, F) frames -> (N, T, D) features: each frame's scan through the encoder, followed
-    by its target features."""
+    by the rest of the frame (target features, and obstacles where given)."""
     if encoder is None:
         return frames
     n, t, _ = frames.shape
@@ -252,4 +257,4 @@ def lstm_last_output(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
 def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
     """The Q-network for this world and these settings (fresh weights)."""
     beams = world.lidar.num_beams if world.lidar else None
-    return QNetwork(settings.model, beams, settings.hidden_size)
+    return QNetwork(settings.model, beams, settings.hidden_size, settings.obstacle_inputs)

@@ -19,7 +19,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.motion import Outcome, outcome
-from qnav.contracts.observation import distance_scale_m, encode_scan, encode_target, target_features
+from qnav.contracts.observation import (
+    OBSTACLE_FEATURES,
+    distance_scale_m,
+    encode_scan,
+    encode_target,
+    obstacle_features,
+    target_features,
+)
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import cast_lidar, clearance
 from qnav.sim.task import reward
@@ -48,12 +55,27 @@ class Batch(NamedTuple):
     """(N,) importance weights of a prioritized sample (None: uniform, all 1)."""
 
 
+class Seen(NamedTuple):
+    """What the frames of sampled windows (N, k + n) saw: the stored episode's, or re-drawn."""
+
+    scans: NDArray[np.float32]
+    """(N, k + n, B) encoded scans."""
+    clearances: NDArray[np.float64]
+    """(N, k + n) exact clearances."""
+    obstacles: NDArray[np.float32] | None
+    """(N, k + n, OBSTACLE_FEATURES) encoded obstacles (None: the network is not given them)."""
+
+
 class EpisodeReplay:
     """All frames of all episodes in flat arrays, with per-frame episode bounds."""
 
-    def __init__(self, config: WorldConfig, capacity_frames: int, window: int) -> None:
+    def __init__(
+        self, config: WorldConfig, capacity_frames: int, window: int, obstacle_inputs: bool = False
+    ) -> None:
         self.config = config
         self.window = window
+        self.obstacle_inputs = obstacle_inputs
+        """Frames end with the encoded obstacles (`contracts.observation.obstacle_features`)."""
         self.num_beams = config.lidar.num_beams if config.lidar else 0
         self.max_range_m = distance_scale_m(config.lidar)
         self.pose = np.zeros((capacity_frames, 3))
@@ -68,6 +90,9 @@ class EpisodeReplay:
             (capacity_frames if self.has_obstacles else 0, self.num_beams), dtype=np.float32
         )
         self.walls_clearance = np.zeros(capacity_frames if self.has_obstacles else 0)
+        self.obstacles = np.zeros(
+            (capacity_frames if self.obstacle_inputs else 0, OBSTACLE_FEATURES), dtype=np.float32
+        )
         self.first = np.zeros(capacity_frames, dtype=np.int64)
         self.last = np.zeros(capacity_frames, dtype=np.int64)
         # Proportional priorities (Schaul et al. 2016): a stored step's last |TD error|, the
@@ -101,6 +126,12 @@ class EpisodeReplay:
                 )
             self.walls_clearance[span] = clearance(
                 episode.pose[:, :2], self.config.arena, no_obstacles, 0.0
+            )
+        if self.obstacle_inputs:
+            if episode.obstacle_xy is None or episode.obstacle_velocity is None:
+                raise ValueError("obstacle inputs need episodes that kept their obstacles")
+            self.obstacles[span] = obstacle_features(
+                episode.pose, episode.obstacle_xy, episode.obstacle_velocity
             )
         self.action[self.size : self.size + frames - 1] = episode.action
         self.own_target[span] = episode.target_xy
@@ -140,7 +171,7 @@ class EpisodeReplay:
         n_step: int = 1,
         gamma: float = 0.97,
         *,
-        seen: tuple[NDArray[np.float32], NDArray[np.float64]] | None = None,
+        seen: Seen | None = None,
     ) -> Batch:
         """The transitions leaving frames `now`, with the given targets (N, 2).
 
@@ -148,18 +179,22 @@ class EpisodeReplay:
         target, stopping early where the target is reached, a collision happens or the stored
         episode ends; the bootstrap window ends where it stopped. `seen` replaces the stored
         encoded scans (N, k + n, B) and clearances (N, k + n) of the windows (`window_index`),
-        e.g. with re-drawn obstacles (`training.sampling`).
+        e.g. with re-drawn obstacles (`training.sampling`), and with them the encoded obstacles.
         """
         k = self.window
         frame_index = self.window_index(now, n_step)
-        scans, clearances = (
-            (self.scan[frame_index], self.clearance[frame_index]) if seen is None else seen
-        )
+        if seen is None:
+            seen = Seen(self.scan[frame_index], self.clearance[frame_index], None)
+            if self.obstacle_inputs:
+                seen = seen._replace(obstacles=self.obstacles[frame_index])
+        scans, clearances = seen.scans, seen.clearances
         features = target_features(self.pose[frame_index], target[:, None, :])
-        encoded_target = encode_target(features, self.max_range_m)
-        frames = (
-            np.concatenate([scans, encoded_target], axis=-1) if self.num_beams else encoded_target
-        )
+        parts = [scans] if self.num_beams else []
+        parts.append(encode_target(features, self.max_range_m))
+        if self.obstacle_inputs:
+            assert seen.obstacles is not None
+            parts.append(seen.obstacles)
+        frames = np.concatenate(parts, axis=-1)
         radius = self.config.robot_radius_m
         ahead = clearances[:, k:]  # frames t+1 .. t+n
         distance = features[:, k:, 0]

@@ -113,7 +113,7 @@ def _resume(
         dqn.load_state_dict(saved)
         state = Progress(**saved["progress"])
     capacity = settings.episodes * (settings.max_episode_steps + 1)
-    replay = EpisodeReplay(world, capacity, settings.window)
+    replay = EpisodeReplay(world, capacity, settings.window, settings.obstacle_inputs)
     logged = folder.rounds()
     for episodes in logged:
         for episode in episodes:

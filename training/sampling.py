@@ -9,7 +9,7 @@ its buffer. A batch is drawn in three steps, each a strategy of its own:
 2. each step's target (`Relabel`): fresh in the arena (the paper), around the robot (local), a
    position reached later (hindsight), or the episode's own;
 3. each step's obstacles: the episode's own, or, with a probability, fresh ones moving along
-   the stored path (`redraw_obstacles`).
+   the stored path (`redraw_obstacles_in_windows`).
 
 The reward and termination are then recomputed for that target and those obstacles
 (`EpisodeReplay.transitions_at`).
@@ -21,11 +21,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.motion import move_obstacles
+from qnav.contracts.observation import obstacle_features
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import add_circles_to_scan
 from qnav.sim.world import obstacle_speeds, targets_around
 from qnav.training.config import Relabel
-from qnav.training.replay import Batch, EpisodeReplay
+from qnav.training.replay import Batch, EpisodeReplay, Seen
 
 _LOCAL_CANDIDATES = 64
 """Candidates per local target (as in the simulator's spawn)."""
@@ -111,44 +112,31 @@ def redraw_obstacles_in_windows(
     n_step: int,
     redraw: NDArray[np.bool_],
     rng: np.random.Generator,
-) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
-    """Encoded scans (N, k + n, B) and clearances (N, k + n) of the transitions' windows, with
-    fresh obstacles where `redraw` (N,) is true and the stored ones elsewhere."""
+) -> Seen:
+    """What the transitions' windows (N, k + n) see, with fresh obstacles where `redraw` (N,)
+    is true and the stored ones elsewhere."""
     frame_index = replay.window_index(now, n_step)
     scans, clearances = replay.scan[frame_index], replay.clearance[frame_index]
+    obstacles = replay.obstacles[frame_index] if replay.obstacle_inputs else None
     rows = np.flatnonzero(redraw)
-    scans[rows], clearances[rows] = redraw_obstacles(
+    pose = replay.pose[frame_index[rows]]
+    centres, velocities = draw_obstacle_paths(
         replay.config,
-        replay.pose[frame_index[rows]],
+        pose,
         np.diff(frame_index[rows], axis=1) > 0,
-        replay.walls_scan[frame_index[rows]],
-        replay.walls_clearance[frame_index[rows]],
         history=replay.window,
         rng=rng,
     )
-    return scans, clearances
-
-
-def redraw_obstacles(
-    config: WorldConfig,
-    pose: NDArray[np.float64],
-    moving: NDArray[np.bool_],
-    walls_scan: NDArray[np.float32],
-    walls_clearance: NDArray[np.float64],
-    *,
-    history: int,
-    rng: np.random.Generator,
-) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
-    """Encoded scans (N, T, B) and clearances (N, T) along stored robot paths (N, T, 3), with
-    fresh obstacles (`draw_obstacle_paths`) in place of the episode's own.
-
-    The obstacles never react to the robot, so its stored path is as possible among any other
-    obstacles as among those it met: like the paper's re-drawn targets, a fresh set per sample
-    lets one stored step teach about many layouts. `walls_scan` and `walls_clearance` are what
-    the stored poses see without obstacles.
-    """
-    centres = draw_obstacle_paths(config, pose, moving, history=history, rng=rng)
-    return view_with_obstacles(config, pose, centres, walls_scan, walls_clearance)
+    scans[rows], clearances[rows] = view_with_obstacles(
+        replay.config,
+        pose,
+        centres,
+        replay.walls_scan[frame_index[rows]],
+        replay.walls_clearance[frame_index[rows]],
+    )
+    if obstacles is not None:
+        obstacles[rows] = obstacle_features(pose, centres, velocities)
+    return Seen(scans, clearances, obstacles)
 
 
 def draw_obstacle_paths(
@@ -158,8 +146,12 @@ def draw_obstacle_paths(
     *,
     history: int,
     rng: np.random.Generator,
-) -> NDArray[np.float64]:
-    """Fresh obstacle centres (N, T, M, 2) along robot paths (N, T, 3).
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Fresh obstacle centres and velocities (N, T, M, 2) along robot paths (N, T, 3).
+
+    The obstacles never react to the robot, so its stored path is as possible among any other
+    obstacles as among those it met: like the paper's re-drawn targets, a fresh set per sample
+    lets one stored step teach about many layouts.
 
     Each obstacle starts at a uniform position in the arena with a uniform heading and the
     simulator's speed law, and moves by the simulator's own `move_obstacles`, one control period
@@ -178,30 +170,31 @@ def draw_obstacle_paths(
     # speed from the simulator's law; only one of them is kept).
     speed = obstacle_speeds(config, rng.random((n, m, 1, _SPEED_CANDIDATES, 2)))
     velocity = np.stack([np.cos(heading), np.sin(heading)], axis=-1) * speed[..., None]
-    path = [xy]
+    path = [(xy, velocity)]
     for step in range(frames - 1):
         if step + 1 == history:
-            xy, velocity, path = _first_clear_candidate(config, pose, xy, velocity, path)
+            path = _first_clear_candidate(config, pose, path)
+            xy, velocity = path[-1]
         moved, turned = move_obstacles(xy, velocity, radius, size, config.control_period_s)
         advance = moving[:, step, None, None, None]
         xy, velocity = np.where(advance, moved, xy), np.where(advance, turned, velocity)
-        path.append(xy)
+        path.append((xy, velocity))
     if len(path) <= history:
-        _, _, path = _first_clear_candidate(config, pose, xy, velocity, path)
-    return np.stack(path, axis=1)[:, :, :, 0]
+        path = _first_clear_candidate(config, pose, path)
+    centres = np.stack([frame for frame, _ in path], axis=1)[:, :, :, 0]
+    velocities = np.stack([frame for _, frame in path], axis=1)[:, :, :, 0]
+    return centres, velocities
 
 
-def _first_clear_candidate(
-    config: WorldConfig,
-    pose: NDArray[np.float64],
-    xy: NDArray[np.float64],
-    velocity: NDArray[np.float64],
-    path: list[NDArray[np.float64]],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], list[NDArray[np.float64]]]:
-    """Keep, of each obstacle's candidates (N, M, C, 2), the first whose path so far stays clear
-    of the robot (else the first): its position, velocity and path, with C = 1."""
+Path = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
+"""Obstacle centres and velocities (N, M, C, 2) per frame, for C candidate paths."""
+
+
+def _first_clear_candidate(config: WorldConfig, pose: NDArray[np.float64], path: Path) -> Path:
+    """Keep, of each obstacle's candidate paths, the first that stays clear of the robot so
+    far (else the first): the path with C = 1."""
     history = len(path)
-    centres = np.stack(path, axis=1)  # (N, history, M, C, 2)
+    centres = np.stack([frame for frame, _ in path], axis=1)  # (N, history, M, C, 2)
     gap = np.linalg.norm(centres - pose[:, :history, None, None, :2], axis=-1)
     clear = (gap - config.obstacles.radius_m >= config.robot_radius_m).all(axis=1)  # (N, M, C)
     index = np.argmax(clear, axis=2)[:, :, None, None]
@@ -209,7 +202,7 @@ def _first_clear_candidate(
     def keep(array: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.take_along_axis(array, index, axis=2)
 
-    return keep(xy), keep(velocity), [keep(frame) for frame in path]
+    return [(keep(xy), keep(velocity)) for xy, velocity in path]
 
 
 def view_with_obstacles(

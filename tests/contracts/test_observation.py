@@ -5,10 +5,16 @@ import pytest
 from numpy.typing import NDArray
 
 from qnav.contracts.observation import (
+    OBSTACLE_FEATURES,
+    OBSTACLE_POSITION_SCALE_M,
+    OBSTACLE_SLOT_FEATURES,
+    OBSTACLE_SLOTS,
+    OBSTACLE_SPEED_SCALE_M_S,
     FrameWindow,
     LidarSpec,
     encode_scan,
     encode_target,
+    obstacle_features,
     target_features,
     target_features_of,
 )
@@ -119,3 +125,28 @@ def test_a_window_advances_as_per_stream_starts_and_pushes_would() -> None:
                 expected[stream, -1] = frames[stream]
         fresh[:] = False
         np.testing.assert_array_equal(window.advance(frames), expected)
+
+
+def test_obstacles_are_given_nearest_first_in_the_robots_frame() -> None:
+    # Robot at (1, 1) facing +y: +y is ahead, -x is to its left.
+    pose = np.array([1.0, 1.0, math.pi / 2])
+    xy = np.array([[1.0, 4.0], [0.0, 1.0]])  # 3 m ahead; 1 m to the left
+    velocity = np.array([[0.0, -0.5], [0.3, 0.0]])  # coming towards it; moving to its right
+    slots = obstacle_features(pose, xy, velocity).reshape(OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)
+    position, speed = OBSTACLE_POSITION_SCALE_M, OBSTACLE_SPEED_SCALE_M_S
+    np.testing.assert_allclose(
+        slots[0], [1.0, 0.0, 1.0 / position, 0.0, -0.3 / speed], atol=1e-6
+    )  # the nearer one first
+    np.testing.assert_allclose(slots[1], [1.0, 3.0 / position, 0.0, -0.5 / speed, 0.0], atol=1e-6)
+
+
+def test_missing_obstacles_leave_empty_slots_and_extra_ones_are_dropped_farthest_first() -> None:
+    pose = np.zeros((2, 3))
+    none = obstacle_features(pose, np.zeros((2, 0, 2)), np.zeros((2, 0, 2)))
+    assert none.shape == (2, OBSTACLE_FEATURES) and not none.any()
+    many = OBSTACLE_SLOTS + 2
+    xy = np.stack([np.arange(many, 0, -1.0), np.zeros(many)], axis=-1)  # farthest first
+    kept = obstacle_features(np.zeros(3), xy, np.zeros_like(xy)).reshape(OBSTACLE_SLOTS, -1)
+    np.testing.assert_allclose(
+        kept[:, 1], np.arange(1.0, OBSTACLE_SLOTS + 1) / OBSTACLE_POSITION_SCALE_M
+    )

@@ -1,14 +1,21 @@
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from qnav.contracts.observation import encode_scan
+from qnav.contracts.observation import (
+    OBSTACLE_FEATURES,
+    OBSTACLE_POSITION_SCALE_M,
+    OBSTACLE_SLOTS,
+    encode_scan,
+)
 from qnav.sim.config import scenario
 from qnav.sim.evaluate import RandomAgent
 from qnav.sim.geometry import cast_lidar, clearance
 from qnav.sim.world import observe, reset, step
-from qnav.training.episode_log import Episode
+from qnav.training.collect import collect_round
+from qnav.training.episode_log import Episode, read_rounds, write_round
 from qnav.training.replay import EpisodeReplay
 from qnav.training.sampling import draw_obstacle_paths, draw_targets, sample, view_with_obstacles
 
@@ -185,7 +192,9 @@ def test_redrawn_obstacles_move_as_the_simulators_and_never_touch_the_robot_befo
     replay, index = _obstacle_windows()
     moving = np.diff(index, axis=1) > 0
     rng = np.random.default_rng(2)
-    centres = draw_obstacle_paths(OBSTACLES, replay.pose[index], moving, history=5, rng=rng)
+    centres, velocities = draw_obstacle_paths(
+        OBSTACLES, replay.pose[index], moving, history=5, rng=rng
+    )
     radius = OBSTACLES.obstacles.radius_m
     gap = np.linalg.norm(centres - replay.pose[index][:, :, None, :2], axis=-1) - radius
     assert (gap[:, :5] >= OBSTACLES.robot_radius_m).all()
@@ -199,6 +208,9 @@ def test_redrawn_obstacles_move_as_the_simulators_and_never_touch_the_robot_befo
         clean = ~bounced.any(-1)
         assert (speed[clean] >= OBSTACLES.obstacles.speed_min_mps - 1e-9).all()
         assert (speed[clean] <= OBSTACLES.obstacles.speed_max_mps + 1e-9).all()
+        # The velocity kept with each frame is the one it moves on by (away from the walls).
+        step_by_velocity = velocities[:, t] * OBSTACLES.control_period_s
+        np.testing.assert_allclose(step_xy[~still][clean], step_by_velocity[~still][clean])
 
 
 def test_redrawn_obstacles_give_the_scans_and_clearances_the_simulator_computes() -> None:
@@ -206,7 +218,7 @@ def test_redrawn_obstacles_give_the_scans_and_clearances_the_simulator_computes(
     replay.add(_obstacle_episode(1))
     index = np.arange(replay.size)[:, None]
     pose = replay.pose[index]
-    centres = draw_obstacle_paths(
+    centres, _ = draw_obstacle_paths(
         OBSTACLES, pose, np.zeros((replay.size, 0), bool), history=1, rng=np.random.default_rng(3)
     )
     scans, gaps = view_with_obstacles(
@@ -234,3 +246,51 @@ def test_sampling_with_redrawn_obstacles_recomputes_collisions_from_the_fresh_ob
     assert not np.array_equal(plain.frames[..., :720], redrawn.frames[..., :720])
     # Targets and actions are those of the same transitions; only the obstacles changed.
     np.testing.assert_array_equal(plain.frames[..., 720:], redrawn.frames[..., 720:])
+
+
+def _replay_with_obstacle_inputs() -> EpisodeReplay:
+    config = replace(OBSTACLES, max_episode_steps=60)
+    agent = RandomAgent(6, seed=0)
+    replay = EpisodeReplay(config, 10_000, window=5, obstacle_inputs=True)
+    for episode in collect_round(config, agent, 0, np.arange(6)):
+        replay.add(episode)
+    return replay
+
+
+def test_obstacle_inputs_follow_each_frame_and_are_those_of_the_obstacles_it_saw() -> None:
+    replay = _replay_with_obstacle_inputs()
+    beams, radius = 720, OBSTACLES.obstacles.radius_m
+    assert OBSTACLES.lidar is not None
+    max_range_m = OBSTACLES.lidar.max_range_m
+    for redraw in (0.0, 1.0):
+        batch = sample(
+            replay,
+            256,
+            np.random.default_rng(1),
+            "none",
+            n_step=3,
+            obstacle_redraw_probability=redraw,
+        )
+        assert batch.frames.shape[-1] == beams + 3 + OBSTACLE_FEATURES
+        slots = batch.frames[..., beams + 3 :].reshape(*batch.frames.shape[:2], OBSTACLE_SLOTS, -1)
+        # The nearest obstacle's surface is as far as the scan's nearest return, unless a wall
+        # is nearer: the obstacle inputs and the scan saw the same obstacles.
+        nearest_m = np.hypot(slots[..., 0, 1], slots[..., 0, 2]) * OBSTACLE_POSITION_SCALE_M
+        surface_m = nearest_m - radius
+        scan_m = batch.frames[..., :beams].min(axis=-1) * max_range_m
+        apart = surface_m > 0.0  # (a robot inside an obstacle reads 0)
+        assert (scan_m[apart] <= surface_m[apart] + 0.02).all()
+        near = surface_m < 1.0  # near an obstacle a wall is seldom nearer still
+        assert near.sum() > 20
+        assert np.mean(np.abs(scan_m - surface_m)[near] < 0.02) > 0.9
+
+
+def test_collected_episodes_keep_their_obstacles_through_the_round_files(tmp_path: Path) -> None:
+    config = replace(OBSTACLES, max_episode_steps=20)
+    episodes = collect_round(config, RandomAgent(3, seed=0), 0, np.arange(3))
+    write_round(tmp_path, 0, episodes)
+    (read,) = read_rounds(tmp_path)
+    for before, after in zip(episodes, read, strict=True):
+        assert after.obstacle_xy is not None and before.obstacle_xy is not None
+        np.testing.assert_array_equal(before.obstacle_xy, after.obstacle_xy)
+        np.testing.assert_array_equal(before.obstacle_velocity, after.obstacle_velocity)
