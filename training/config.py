@@ -76,7 +76,8 @@ class TrainSettings:
     obstacle_inputs: bool = False
     """Give the network the nearest obstacles' positions and velocities beside the lidar, as
     the onboard tracker estimates them (exact in simulation; `contracts.observation.
-    obstacle_features`; paper: the lidar alone)."""
+    obstacle_features`; paper: the lidar alone). Lifts the decisive-state gauge, not success
+    (docs/learner.md, "Perception given"); policy files cannot carry it yet."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
