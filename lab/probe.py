@@ -24,7 +24,14 @@ from tqdm import tqdm
 
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.observation import TARGET_FEATURES, FrameWindow, distance_scale_m, encode_frame
+from qnav.contracts.observation import (
+    OBSTACLE_SLOT_FEATURES,
+    OBSTACLE_SLOTS,
+    TARGET_FEATURES,
+    FrameWindow,
+    distance_scale_m,
+    encode_frame,
+)
 from qnav.contracts.policy_file import CONV_CHANNELS
 from qnav.contracts.settings import check_range
 from qnav.lab.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
@@ -57,10 +64,11 @@ class ProbeSettings:
     """Adam's learning rate."""
     decisive_weight: float = 3.0
     """Weight of a decisive window's loss against an ordinary one's."""
-    inputs: Literal["lidar", "state"] = "lidar"
-    """What the fitted network sees: "lidar" (the paper's network on the policy's window) or
+    inputs: Literal["lidar", "state", "slots"] = "lidar"
+    """What the fitted network sees: "lidar" (the paper's network on the policy's window),
     "state" (the exact world state, per obstacle, through `ObstacleSetNetwork`): the state
-    probe bounds what the labels teach when perception is perfect."""
+    probe bounds what the labels teach when perception is perfect; or "slots" (the same
+    structure on what a network given obstacle inputs sees, `slot_features`)."""
     label: Literal["doom", "collide_share"] = "doom"
     """What it is fitted to per action: "doom" (0/1: every continuation collides) or
     "collide_share" (the share of continuations that collide, graded)."""
@@ -131,6 +139,19 @@ def state_features(world: WorldState, arena_size_m: float) -> tuple[NDArray[np.f
     return context.astype(np.float32), obstacles.astype(np.float32)
 
 
+def slot_features(states: DecisiveStates) -> tuple[NDArray[np.float32], ...]:
+    """What a network given obstacle inputs sees in its newest frame, split as the state probe's
+    inputs: (context (K, 5), obstacles (K, OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)). Context:
+    the robot's own speed and turn rate (which the car estimates from its poses) and the encoded
+    target; per obstacle, its slot of `contracts.observation.obstacle_features`."""
+    count = len(states.doomed)
+    context = np.concatenate(
+        [states.world.velocity, states.windows[:, -1, -TARGET_FEATURES:]], axis=1
+    )
+    slots = states.obstacle_windows[:, -1].reshape(count, OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)
+    return context.astype(np.float32), np.ascontiguousarray(slots, dtype=np.float32)
+
+
 class ObstacleSetNetwork(torch.nn.Module):
     """Doom from exact state, one source at a time: a network shared by all obstacles gives each
     obstacle's logit of dooming each action, another the walls' from the context alone, and an
@@ -193,12 +214,18 @@ def probe(
     network: torch.nn.Module
     if settings.inputs == "state":
         network = ObstacleSetNetwork()
+    elif settings.inputs == "slots":
+        network = ObstacleSetNetwork(TARGET_FEATURES + 2, OBSTACLE_SLOT_FEATURES)
     else:
         network = QNetwork("recurrent", world.lidar.num_beams if world.lidar is not None else None)
 
     def inputs(states: DecisiveStates) -> tuple[torch.Tensor, ...]:
-        if settings.inputs == "state":
-            features = state_features(states.world, world.arena.size_m)
+        if settings.inputs != "lidar":
+            features = (
+                state_features(states.world, world.arena.size_m)
+                if settings.inputs == "state"
+                else slot_features(states)
+            )
             return tuple(torch.from_numpy(part) for part in features)
         return (torch.from_numpy(states.windows),)
 

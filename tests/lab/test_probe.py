@@ -46,7 +46,8 @@ def test_each_pass_reports_its_fit_and_the_held_out_gauge() -> None:
 
 
 @pytest.mark.parametrize(
-    ("inputs", "label"), [("state", "doom"), ("lidar", "collide_share"), ("state", "collide_share")]
+    ("inputs", "label"),
+    [("state", "doom"), ("lidar", "collide_share"), ("state", "collide_share"), ("slots", "doom")],
 )
 def test_the_probe_fits_exact_state_and_graded_labels_too(inputs: str, label: str) -> None:
     settings = replace(SMALL, inputs=inputs, label=label)  # type: ignore[arg-type]
