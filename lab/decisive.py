@@ -32,7 +32,6 @@ from qnav.contracts.observation import (
     OBSTACLE_FEATURES,
     FrameWindow,
     distance_scale_m,
-    encode_frame,
 )
 from qnav.contracts.settings import check_range, to_toml
 from qnav.lab.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
@@ -202,6 +201,7 @@ def _drive_and_keep(
     NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], WorldState, NDArray[np.int8], int
 ]:
     max_range_m = distance_scale_m(config.lidar)
+    plain = _frame_size(config)  # the scan and the target; the obstacles follow
     chance = np.random.default_rng([settings.seed, index])
     windows, obstacle_windows, shares, worlds = [], [], [], []
     visited = 0
@@ -210,20 +210,16 @@ def _drive_and_keep(
     for batch in tqdm(batches, desc=f"gauge {DRIVERS[index]}", disable=not progress):
         state = reset(config, np.full(batch.size, settings.seed), batch)
         observation = observe(config, state)
-        window = FrameWindow(batch.size, _frame_size(config), settings.window)
-        obstacle_window = FrameWindow(batch.size, OBSTACLE_FEATURES, settings.window)
+        window = FrameWindow(batch.size, plain + OBSTACLE_FEATURES, settings.window)
         running = np.arange(batch.size)
         for _ in range(settings.max_episode_steps):
-            frames = window.advance(
-                encode_frame(observation.scan_m, observation.target_features(), max_range_m)
-            )
-            seen = obstacle_window.advance(observation.obstacle_features())
+            frames = window.advance(observation.frames(max_range_m, obstacle_inputs=True))
             share = collision_shares(config, state)
             keep = is_decisive(share == 1.0)
             if settings.ordinary_share:
                 keep |= chance.random(keep.size) < settings.ordinary_share
-            windows.append(frames[keep].copy())
-            obstacle_windows.append(seen[keep].copy())
+            windows.append(frames[keep, :, :plain])
+            obstacle_windows.append(frames[keep, :, plain:])
             shares.append(share[keep].astype(np.float32))
             worlds.append(take_rows(state, np.flatnonzero(keep)))
             visited += running.size
@@ -233,9 +229,8 @@ def _drive_and_keep(
                 break
             running = running[going]
             state, observation = take_rows(state, going), take_rows(observation, going)
-            for kept in (window, obstacle_window):
-                kept.frames = kept.frames[going]
-                kept.fresh = kept.fresh[going]
+            window.frames = window.frames[going]
+            window.fresh = window.fresh[going]
     count = sum(len(w) for w in windows)
     world = WorldState(*(np.concatenate(column) for column in zip(*worlds, strict=True)))
     return (

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import Outcome, move_obstacles, outcome, step_robot
-from qnav.contracts.observation import obstacle_features, target_features
+from qnav.contracts.observation import encode_frame, obstacle_features, target_features
 from qnav.sim import rng
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import cast_lidar, clearance
@@ -76,6 +76,14 @@ class Observation(NamedTuple):
     def obstacle_features(self) -> NDArray[np.float32]:
         """(N, OBSTACLE_FEATURES) the encoded obstacle inputs (`contracts.observation`)."""
         return obstacle_features(self.pose, self.obstacle_xy, self.obstacle_velocity)
+
+    def frames(self, max_range_m: float, obstacle_inputs: bool = False) -> NDArray[np.float32]:
+        """(N, F) network frames (`contracts.observation.encode_frame`), followed by the encoded
+        obstacles for a network given obstacle inputs."""
+        frames = encode_frame(self.scan_m, self.target_features(), max_range_m)
+        if not obstacle_inputs:
+            return frames
+        return np.concatenate([frames, self.obstacle_features()], axis=-1)
 
 
 class Transition(NamedTuple):

@@ -7,22 +7,11 @@ import torch
 from numpy.typing import NDArray
 
 from qnav.contracts.actions import NUM_ACTIONS
-from qnav.contracts.observation import FrameWindow, distance_scale_m, encode_frame
+from qnav.contracts.observation import FrameWindow, distance_scale_m
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import ExplorationHold
 from qnav.sim.world import Observation
 from qnav.training.networks import QNetwork
-
-
-def observation_frames(
-    observation: Observation, max_range_m: float, obstacle_inputs: bool = False
-) -> NDArray[np.float32]:
-    """Encoded frames (N, F) of a batch of observations (with the obstacles, for a network
-    given obstacle inputs)."""
-    frames = encode_frame(observation.scan_m, observation.target_features(), max_range_m)
-    if not obstacle_inputs:
-        return frames
-    return np.concatenate([frames, observation.obstacle_features()], axis=-1)
 
 
 def greedy_actions(
@@ -68,7 +57,7 @@ class TorchAgent:
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
         windows = self.window.advance(
-            observation_frames(observation, self.max_range_m, self.network.obstacle_inputs)
+            observation.frames(self.max_range_m, self.network.obstacle_inputs)
         )
         with torch.no_grad():
             device = next(self.network.parameters()).device

@@ -16,7 +16,7 @@ from qnav.contracts.motion import Outcome
 from qnav.contracts.observation import distance_scale_m
 from qnav.sim.config import WorldConfig
 from qnav.sim.world import observe, reset, step
-from qnav.training.agent import observation_frames, policy_agent
+from qnav.training.agent import policy_agent
 from qnav.training.networks import QNetwork
 
 _ARROWS = {
@@ -46,9 +46,7 @@ def action_grid(
     state = reset(world, np.zeros(n, np.int64), np.zeros(n, np.int64))
     pose = np.stack([centre + gx.ravel(), centre + gy.ravel(), np.full(n, math.pi / 2)], axis=1)
     state = state._replace(pose=pose, target_xy=np.full((n, 2), centre))
-    frames = observation_frames(
-        observe(world, state), distance_scale_m(world.lidar), network.obstacle_inputs
-    )
+    frames = observe(world, state).frames(distance_scale_m(world.lidar), network.obstacle_inputs)
     with torch.no_grad():
         device = next(network.parameters()).device
         windows = torch.from_numpy(np.repeat(frames[:, None], window, axis=1)).to(device)

@@ -186,11 +186,13 @@ def draw_obstacle_paths(
     return centres, velocities
 
 
-Path = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
+CandidatePaths = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
 """Obstacle centres and velocities (N, M, C, 2) per frame, for C candidate paths."""
 
 
-def _first_clear_candidate(config: WorldConfig, pose: NDArray[np.float64], path: Path) -> Path:
+def _first_clear_candidate(
+    config: WorldConfig, pose: NDArray[np.float64], path: CandidatePaths
+) -> CandidatePaths:
     """Keep, of each obstacle's candidate paths, the first that stays clear of the robot so
     far (else the first): the path with C = 1."""
     history = len(path)
