@@ -8,13 +8,20 @@ states (`lab.decisive`). If it cannot pick safe actions there, no replay scheme 
 weighting on top of RL will teach the same network from the same amount of experience: the
 limit is perception. `qnav lab probe` runs it.
 
+With `probe.shield_episodes`, the fitted network is then put to work where its judgement
+matters: it shields go-to-target on the test protocol (keeping go-to-target's action unless it
+judges that action doomed), beside go-to-target alone and go-to-target shielded by the exact
+labels it was fitted to. That turns a gauge figure into success: how good a doom judgement
+must be before it moves the outcome.
+
 The probe is a diagnostic: nothing in training or the product imports it.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -31,14 +38,15 @@ from qnav.contracts.observation import (
     FrameWindow,
     distance_scale_m,
     encode_frame,
+    encode_target,
 )
 from qnav.contracts.policy_file import CONV_CHANNELS
 from qnav.contracts.settings import check_range
 from qnav.lab.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
-from qnav.lab.oracle import PERCEIVED
+from qnav.lab.oracle import PERCEIVED, collision_shares
 from qnav.sim.config import WorldConfig
-from qnav.sim.evaluate import WanderingGoToTarget
-from qnav.sim.world import BatchedWorld, WorldState, observe
+from qnav.sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget, drive, go_to_target
+from qnav.sim.world import BatchedWorld, Observation, WorldState, observe
 from qnav.training.agent import greedy_actions
 from qnav.training.networks import QNetwork, conv_layers, conv_output_length, lstm_last_output
 
@@ -72,11 +80,21 @@ class ProbeSettings:
     label: Literal["doom", "collide_share"] = "doom"
     """What it is fitted to per action: "doom" (0/1: every continuation collides) or
     "collide_share" (the share of continuations that collide, graded)."""
+    shield_episodes: int = 0
+    """Test-protocol episodes in which the fitted network then shields go-to-target, beside
+    go-to-target alone and shielded by the exact labels (0: no shield test; inputs "state" or
+    "slots" only)."""
     threads: int = 2
     """Torch threads."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes_per_driver", self.episodes_per_driver, 1, 10**7)
+        check_range(self, "shield_episodes", self.shield_episodes, 0, 10**7)
+        if self.shield_episodes and self.inputs == "lidar":
+            raise ConfigError(
+                "probe.shield_episodes needs probe.inputs = state or slots: the shield judges "
+                "each step from the state, without a window of scans"
+            )
         check_range(self, "ordinary_share", self.ordinary_share, 0.0, 1.0)
         check_range(self, "epochs", self.epochs, 1, 10**6)
         check_range(self, "batch_size", self.batch_size, 1, 10**6)
@@ -144,11 +162,22 @@ def slot_features(states: DecisiveStates) -> tuple[NDArray[np.float32], ...]:
     inputs: (context (K, 5), obstacles (K, OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)). Context:
     the robot's own speed and turn rate (which the car estimates from its poses) and the encoded
     target; per obstacle, its slot of `contracts.observation.obstacle_features`."""
-    count = len(states.doomed)
-    context = np.concatenate(
-        [states.world.velocity, states.windows[:, -1, -TARGET_FEATURES:]], axis=1
+    return slot_inputs(
+        states.world.velocity,
+        states.windows[:, -1, -TARGET_FEATURES:],
+        states.obstacle_windows[:, -1],
     )
-    slots = states.obstacle_windows[:, -1].reshape(count, OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)
+
+
+def slot_inputs(
+    velocity: NDArray[np.floating],
+    encoded_target: NDArray[np.floating],
+    obstacles: NDArray[np.floating],
+) -> tuple[NDArray[np.float32], ...]:
+    """`slot_features` from the robot's velocities (K, 2), encoded targets (K, 3) and encoded
+    obstacles (K, OBSTACLE_FEATURES)."""
+    context = np.concatenate([velocity, encoded_target], axis=1)
+    slots = obstacles.reshape(len(context), OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)
     return context.astype(np.float32), np.ascontiguousarray(slots, dtype=np.float32)
 
 
@@ -188,12 +217,21 @@ class ObstacleSetNetwork(torch.nn.Module):
         return log_safe - torch.log(-torch.expm1(log_safe).clamp(max=-1e-6))
 
 
+class Probe(NamedTuple):
+    """A finished fit."""
+
+    history: list[ProbeEpoch]
+    """The fit and the gauge after each pass."""
+    network: torch.nn.Module
+    """The fitted network: logits that each action is safe (in eval mode)."""
+
+
 def probe(
     world: WorldConfig,
     settings: ProbeSettings = ProbeSettings(),
     gauge: GaugeSettings | None = None,
     progress: bool = False,
-) -> list[ProbeEpoch]:
+) -> Probe:
     """Fit a network to doom labels and judge it on the gauge after each pass."""
     gauge = gauge or GaugeSettings()
     torch.set_num_threads(settings.threads)
@@ -264,7 +302,101 @@ def probe(
         history.append(
             ProbeEpoch(epoch, total / len(safe), fit.balanced, judged.safe, judged.balanced)
         )
-    return history
+    return Probe(history, network)
+
+
+class ShieldTest(NamedTuple):
+    """Go-to-target on the test protocol, alone and shielded by two doom judgements."""
+
+    blind: EvalResult
+    """Go-to-target alone (blind to the obstacles)."""
+    fitted: EvalResult
+    """Shielded by the fitted network (`safe_choice`)."""
+    fitted_overruled: float
+    """Share of the fitted shield's decisions that overrule go-to-target."""
+    exact: EvalResult
+    """Shielded by the exact labels the network was fitted to, from the planner's collision
+    shares: doom (every continuation collides; where go-to-target's action is doomed, the least
+    colliding action is taken) or the share itself."""
+    exact_overruled: float
+    """Share of the exact shield's decisions that overrule go-to-target."""
+
+
+def safe_choice(
+    preferred: NDArray[np.int64], safe_probability: NDArray[np.floating]
+) -> NDArray[np.int64]:
+    """(N,) go-to-target's action (N,) where it is judged safe (probability (N, A) above 1/2),
+    else the action judged safest."""
+    rows = np.arange(len(preferred))
+    keep = safe_probability[rows, preferred] > 0.5
+    return np.where(keep, preferred, safe_probability.argmax(axis=1)).astype(np.int64)
+
+
+SafeProbability = Callable[[WorldState, Observation], NDArray[np.floating]]
+"""Each action's probability of being safe (N, A) in each world."""
+
+
+def shield_test(
+    world: WorldConfig,
+    fitted: Probe,
+    settings: ProbeSettings,
+    protocol: EvalSettings | None = None,
+    progress: bool = False,
+) -> ShieldTest:
+    """Go-to-target on the test protocol alone, shielded by the fitted network, and shielded
+    by the exact labels (`ShieldTest`), on the same layouts."""
+    protocol = protocol or EvalSettings(episodes=settings.shield_episodes)
+    max_range_m = distance_scale_m(world.lidar)
+    network = fitted.network
+
+    def fitted_safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
+        if settings.inputs == "state":
+            parts = state_features(state, world.arena.size_m)
+        else:
+            parts = slot_inputs(
+                state.velocity,
+                encode_target(observation.target_features(), max_range_m),
+                observation.obstacle_features(),
+            )
+        with torch.no_grad():
+            logits = network(*(torch.from_numpy(part) for part in parts))
+        return np.asarray(torch.sigmoid(logits).numpy(), dtype=np.float64)
+
+    def exact_safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
+        share = collision_shares(world, state)
+        if settings.label == "collide_share":
+            return 1.0 - share
+        # Above 1/2 exactly where not doomed (a share below 1); the least colliding is safest.
+        return 1.0 - share / 2
+
+    shields: list[SafeProbability | None] = [None, fitted_safety, exact_safety]
+    (blind, _), (with_network, network_overruled), (with_labels, labels_overruled) = (
+        _shielded_go_to_target(world, shield, protocol)
+        for shield in tqdm(shields, desc="shield test", unit="shield", disable=not progress)
+    )
+    return ShieldTest(blind, with_network, network_overruled, with_labels, labels_overruled)
+
+
+def _shielded_go_to_target(
+    world: WorldConfig, safety: SafeProbability | None, protocol: EvalSettings
+) -> tuple[EvalResult, float]:
+    """The protocol's episodes driven by go-to-target under `safety`'s shield (None: none), and
+    the share of decisions it overruled."""
+    decisions = overruled = 0
+
+    def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
+        nonlocal decisions, overruled
+        preferred = go_to_target(observation.target_features())
+        if safety is None:
+            return preferred
+        chosen = safe_choice(preferred, safety(state, observation))
+        decisions += chosen.size
+        overruled += int((chosen != preferred).sum())
+        return chosen
+
+    config = replace(world, max_episode_steps=protocol.max_episode_steps)
+    outcomes, steps = drive(config, protocol.seed, np.arange(protocol.episodes), act)
+    return EvalResult.of_outcomes(outcomes, steps), overruled / max(decisions, 1)
 
 
 @dataclass(frozen=True)

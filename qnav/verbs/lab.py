@@ -16,7 +16,7 @@ from qnav.sim.config import WorldConfig, load_world
 if TYPE_CHECKING:
     from qnav.lab.imitate import ImitationResult
     from qnav.lab.imitation_settings import ImitationSettings
-    from qnav.lab.probe import PerceptionSettings
+    from qnav.lab.probe import PerceptionSettings, ShieldTest
 
 
 def calibrate(args: argparse.Namespace) -> int:
@@ -137,7 +137,7 @@ def gauge(args: argparse.Namespace) -> int:
 def probe(args: argparse.Namespace) -> int:
     """Fit the paper's network to the planner's doom labels and print the gauge after each pass,
     or (--perception) fit it to locate the nearest obstacle and print the median errors."""
-    from qnav.lab.probe import PerceptionSettings, ProbeSettings
+    from qnav.lab.probe import PerceptionSettings, ProbeSettings, shield_test
     from qnav.lab.probe import probe as fit
 
     if args.tracker:
@@ -154,7 +154,8 @@ def probe(args: argparse.Namespace) -> int:
         raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
     if isinstance(settings, PerceptionSettings):
         return _perceive(world, settings, args.json)
-    for epoch in fit(world, settings, progress=not args.json):
+    fitted = fit(world, settings, progress=not args.json)
+    for epoch in fitted.history:
         if args.json:
             print(json.dumps(epoch._asdict()))
         else:
@@ -163,7 +164,42 @@ def probe(args: argparse.Namespace) -> int:
                 f"{epoch.train_balanced:.3f}, gauge safe {epoch.safe:.3f}, "
                 f"balanced {epoch.balanced:.3f} (blind choices 0.500)"
             )
+    if settings.shield_episodes:
+        test = shield_test(world, fitted, settings, progress=not args.json)
+        _print_shield_test(test, args.json)
     return 0
+
+
+def _print_shield_test(test: ShieldTest, as_json: bool) -> None:
+    """The shield test's three rows: success, collisions, and how often the shield overruled."""
+    rows = [
+        ("go-to-target alone", test.blind, 0.0),
+        ("shielded by the fitted network", test.fitted, test.fitted_overruled),
+        ("shielded by the exact labels", test.exact, test.exact_overruled),
+    ]
+    if as_json:
+        print(
+            json.dumps(
+                {
+                    "shield_test": {
+                        label: {
+                            "success": result.success,
+                            "collision": result.collision,
+                            "episodes": result.episodes,
+                            "overruled": overruled,
+                        }
+                        for label, result, overruled in rows
+                    }
+                }
+            )
+        )
+        return
+    print(f"go-to-target on the test protocol, {test.blind.episodes} episodes:")
+    for label, result, overruled in rows:
+        print(
+            f"  {label}: success {result.success:.3f}, collision {result.collision:.3f}, "
+            f"overrules {overruled:.1%} of decisions"
+        )
 
 
 def _probe_set(assignments: list[str], *defaults: Any) -> list[Any]:

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.observation import distance_scale_m
@@ -13,14 +14,18 @@ from qnav.lab.decisive import GaugeSettings, collect
 from qnav.lab.oracle import PERCEIVED
 from qnav.lab.probe import (
     PerceptionSettings,
+    Probe,
     ProbeSettings,
     decisive_only,
     perceive,
     perception_windows,
     probe,
+    safe_choice,
+    shield_test,
     state_features,
 )
 from qnav.sim.config import scenario
+from qnav.sim.evaluate import EvalSettings
 from qnav.sim.world import reset
 from tests.command import run_qnav
 
@@ -38,7 +43,7 @@ def test_an_ordinary_share_keeps_states_where_all_or_no_actions_are_doomed() -> 
 
 
 def test_each_pass_reports_its_fit_and_the_held_out_gauge() -> None:
-    history = probe(scenario("obstacles-increment"), SMALL, SMALL_GAUGE)
+    history = probe(scenario("obstacles-increment"), SMALL, SMALL_GAUGE).history
     assert [epoch.epoch for epoch in history] == [1, 2]
     for epoch in history:
         assert np.isfinite(epoch.loss) and epoch.loss > 0
@@ -51,9 +56,51 @@ def test_each_pass_reports_its_fit_and_the_held_out_gauge() -> None:
 )
 def test_the_probe_fits_exact_state_and_graded_labels_too(inputs: str, label: str) -> None:
     settings = replace(SMALL, inputs=inputs, label=label)  # type: ignore[arg-type]
-    history = probe(scenario("obstacles-increment"), settings, SMALL_GAUGE)
+    history = probe(scenario("obstacles-increment"), settings, SMALL_GAUGE).history
     assert len(history) == 2
     assert all(np.isfinite(epoch.loss) and 0.0 <= epoch.balanced <= 1.0 for epoch in history)
+
+
+def test_a_shield_keeps_go_to_targets_action_where_judged_safe_else_takes_the_safest() -> None:
+    preferred = np.array([0, 1, 2, 2])
+    safe = np.array(
+        [
+            [0.9, 0.1, 0.1],  # judged safe: kept
+            [0.2, 0.4, 0.8],  # judged doomed: the safest instead
+            [0.7, 0.9, 0.51],  # judged safe, although others are safer: kept
+            [0.6, 0.2, 0.5],  # exactly 1/2 is not safe
+        ]
+    )
+    np.testing.assert_array_equal(safe_choice(preferred, safe), [0, 2, 2, 0])
+
+
+class _TrustsEveryAction(torch.nn.Module):
+    def forward(self, context: torch.Tensor, obstacles: torch.Tensor) -> torch.Tensor:
+        return torch.full((len(context), 3), 10.0)
+
+
+SMALL_PROTOCOL = EvalSettings(episodes=12, max_episode_steps=60)
+
+
+def test_a_shield_that_trusts_every_action_is_go_to_target_alone() -> None:
+    world = scenario("obstacles-inertia")
+    settings = replace(SMALL, inputs="slots", shield_episodes=SMALL_PROTOCOL.episodes)
+    test = shield_test(world, Probe([], _TrustsEveryAction()), settings, SMALL_PROTOCOL)
+    assert test.fitted == test.blind and test.fitted_overruled == 0.0
+    assert test.blind.episodes == test.exact.episodes == SMALL_PROTOCOL.episodes
+    # The exact labels overrule go-to-target only where its action is doomed: seldom.
+    assert 0.0 < test.exact_overruled < 0.5
+
+
+def test_a_fitted_network_shields_go_to_target_from_the_state_it_judges() -> None:
+    world = scenario("obstacles-increment")
+    for inputs in ("state", "slots"):
+        settings = replace(SMALL, inputs=inputs, shield_episodes=SMALL_PROTOCOL.episodes)
+        test = shield_test(world, probe(world, settings, SMALL_GAUGE), settings, SMALL_PROTOCOL)
+        for result in (test.blind, test.fitted, test.exact):
+            assert result.episodes == SMALL_PROTOCOL.episodes
+            assert result.success + result.collision + result.unfinished == pytest.approx(1.0)
+        assert 0.0 <= test.fitted_overruled <= 1.0
 
 
 def test_state_features_are_in_the_robots_frame() -> None:
@@ -80,6 +127,8 @@ def test_a_wrong_probe_setting_names_itself() -> None:
     result = run_qnav("lab", "probe", "--probe-set", "probe.inputs=radar", "--json")
     assert result.returncode != 0
     assert "probe.inputs" in result.stderr
+    with pytest.raises(ConfigError, match=r"probe\.shield_episodes"):
+        ProbeSettings(inputs="lidar", shield_episodes=10)
 
 
 def test_qnav_probe_prints_its_settings() -> None:
