@@ -224,6 +224,12 @@ class Probe(NamedTuple):
     """The fit and the gauge after each pass."""
     network: torch.nn.Module
     """The fitted network: logits that each action is safe (in eval mode)."""
+    labelled_states: int = 0
+    """States in the labelled set it was fitted to."""
+    labelled_decisive: int = 0
+    """Decisive states among them."""
+    held_out_decisive: int = 0
+    """Decisive states of the held-out gauge it is judged on."""
 
 
 def probe(
@@ -302,7 +308,13 @@ def probe(
         history.append(
             ProbeEpoch(epoch, total / len(safe), fit.balanced, judged.safe, judged.balanced)
         )
-    return Probe(history, network)
+    return Probe(
+        history,
+        network,
+        labelled_states=len(labelled.doomed),
+        labelled_decisive=len(fitted.doomed),
+        held_out_decisive=int(is_decisive(held_out.doomed).sum()),
+    )
 
 
 class ShieldTest(NamedTuple):

@@ -155,6 +155,19 @@ def probe(args: argparse.Namespace) -> int:
     if isinstance(settings, PerceptionSettings):
         return _perceive(world, settings, args.json)
     fitted = fit(world, settings, progress=not args.json)
+    sizes = {
+        "labelled_states": fitted.labelled_states,
+        "labelled_decisive": fitted.labelled_decisive,
+        "held_out_decisive": fitted.held_out_decisive,
+    }
+    if args.json:
+        print(json.dumps(sizes))
+    else:
+        print(
+            f"fitted to {fitted.labelled_states:,} labelled states "
+            f"({fitted.labelled_decisive:,} decisive); judged on "
+            f"{fitted.held_out_decisive:,} held-out decisive states"
+        )
     for epoch in fitted.history:
         if args.json:
             print(json.dumps(epoch._asdict()))

@@ -43,7 +43,21 @@ def test_an_ordinary_share_keeps_states_where_all_or_no_actions_are_doomed() -> 
 
 
 def test_each_pass_reports_its_fit_and_the_held_out_gauge() -> None:
-    history = probe(scenario("obstacles-increment"), SMALL, SMALL_GAUGE).history
+    fitted = probe(scenario("obstacles-increment"), SMALL, SMALL_GAUGE)
+    labelled = collect(
+        scenario("obstacles-increment"),
+        GaugeSettings(
+            episodes_per_driver=SMALL.episodes_per_driver,
+            max_episode_steps=SMALL_GAUGE.max_episode_steps,
+            seed=SMALL.seed,
+            window=SMALL_GAUGE.window,
+            ordinary_share=SMALL.ordinary_share,
+        ),
+    )
+    assert fitted.labelled_states == len(labelled.doomed)
+    assert fitted.labelled_decisive == len(decisive_only(labelled).doomed) > 0
+    assert fitted.held_out_decisive > 0
+    history = fitted.history
     assert [epoch.epoch for epoch in history] == [1, 2]
     for epoch in history:
         assert np.isfinite(epoch.loss) and epoch.loss > 0
