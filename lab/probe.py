@@ -102,6 +102,17 @@ class ProbeSettings:
         check_range(self, "decisive_weight", self.decisive_weight, 0.0, 1e6)
         check_range(self, "threads", self.threads, 1, 1024)
 
+    def labelled_set(self, gauge: GaugeSettings) -> GaugeSettings:
+        """The labelled set's collection: this probe's episodes, seed and ordinary share, with
+        the gauge's episode length and window."""
+        return GaugeSettings(
+            episodes_per_driver=self.episodes_per_driver,
+            max_episode_steps=gauge.max_episode_steps,
+            seed=self.seed,
+            window=gauge.window,
+            ordinary_share=self.ordinary_share,
+        )
+
 
 class ProbeEpoch(NamedTuple):
     """The fit after one pass over the training set."""
@@ -241,17 +252,7 @@ def probe(
     """Fit a network to doom labels and judge it on the gauge after each pass."""
     gauge = gauge or GaugeSettings()
     torch.set_num_threads(settings.threads)
-    labelled = cached(
-        world,
-        GaugeSettings(
-            episodes_per_driver=settings.episodes_per_driver,
-            max_episode_steps=gauge.max_episode_steps,
-            seed=settings.seed,
-            window=gauge.window,
-            ordinary_share=settings.ordinary_share,
-        ),
-        progress,
-    )
+    labelled = cached(world, settings.labelled_set(gauge), progress)
     held_out = cached(world, gauge, progress)
     fitted = decisive_only(labelled)
     torch.manual_seed(settings.seed)

@@ -44,16 +44,7 @@ def test_an_ordinary_share_keeps_states_where_all_or_no_actions_are_doomed() -> 
 
 def test_each_pass_reports_its_fit_and_the_held_out_gauge() -> None:
     fitted = probe(scenario("obstacles-increment"), SMALL, SMALL_GAUGE)
-    labelled = collect(
-        scenario("obstacles-increment"),
-        GaugeSettings(
-            episodes_per_driver=SMALL.episodes_per_driver,
-            max_episode_steps=SMALL_GAUGE.max_episode_steps,
-            seed=SMALL.seed,
-            window=SMALL_GAUGE.window,
-            ordinary_share=SMALL.ordinary_share,
-        ),
-    )
+    labelled = collect(scenario("obstacles-increment"), SMALL.labelled_set(SMALL_GAUGE))
     assert fitted.labelled_states == len(labelled.doomed)
     assert fitted.labelled_decisive == len(decisive_only(labelled).doomed) > 0
     assert fitted.held_out_decisive > 0
