@@ -243,6 +243,55 @@ class Probe(NamedTuple):
     """Decisive states of the held-out gauge it is judged on."""
 
 
+def doom_network(world: WorldConfig, inputs: str) -> torch.nn.Module:
+    """A fresh network judging each action's doom from `ProbeSettings.inputs`."""
+    if inputs == "state":
+        return ObstacleSetNetwork()
+    if inputs == "slots":
+        return ObstacleSetNetwork(TARGET_FEATURES + 2, OBSTACLE_SLOT_FEATURES)
+    return QNetwork("recurrent", world.lidar.num_beams if world.lidar is not None else None)
+
+
+def fit_doom(
+    network: torch.nn.Module,
+    inputs: tuple[torch.Tensor, ...],
+    collide_share: NDArray[np.floating],
+    settings: ProbeSettings,
+    *,
+    after_epoch: Callable[[int, float], None] | None = None,
+    progress: bool = False,
+) -> None:
+    """Fit `network` (logits that each action is safe) to the labels of the states `inputs`
+    describe (their (K, A) collision shares, as `settings.label` reads them), decisive states
+    weighted by `settings.decisive_weight`; `after_epoch(epoch, mean loss)` is called after each
+    pass with the network in eval mode."""
+    doomed = np.asarray(collide_share == 1.0)
+    unsafe = doomed if settings.label == "doom" else collide_share
+    safe = torch.from_numpy(1.0 - np.asarray(unsafe, dtype=np.float32))
+    weight = torch.from_numpy(
+        np.where(is_decisive(doomed), settings.decisive_weight, 1.0).astype(np.float32)
+    )
+    optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
+    order = np.random.default_rng(settings.seed)
+    for epoch in tqdm(range(1, settings.epochs + 1), desc="fit", disable=not progress):
+        network.train()
+        total = 0.0
+        permutation = order.permutation(len(safe))
+        for start in range(0, len(safe), settings.batch_size):
+            rows = torch.from_numpy(permutation[start : start + settings.batch_size])
+            per_window = torch.nn.functional.binary_cross_entropy_with_logits(
+                network(*(part[rows] for part in inputs)), safe[rows], reduction="none"
+            ).mean(dim=1)
+            loss = (per_window * weight[rows]).sum() / weight[rows].sum()
+            optimizer.zero_grad()
+            loss.backward()  # type: ignore[no-untyped-call]
+            optimizer.step()
+            total += loss.item() * len(rows)
+        network.eval()
+        if after_epoch is not None:
+            after_epoch(epoch, total / len(safe))
+
+
 def probe(
     world: WorldConfig,
     settings: ProbeSettings = ProbeSettings(),
@@ -256,13 +305,7 @@ def probe(
     held_out = cached(world, gauge, progress)
     fitted = decisive_only(labelled)
     torch.manual_seed(settings.seed)
-    network: torch.nn.Module
-    if settings.inputs == "state":
-        network = ObstacleSetNetwork()
-    elif settings.inputs == "slots":
-        network = ObstacleSetNetwork(TARGET_FEATURES + 2, OBSTACLE_SLOT_FEATURES)
-    else:
-        network = QNetwork("recurrent", world.lidar.num_beams if world.lidar is not None else None)
+    network = doom_network(world, settings.inputs)
 
     def inputs(states: DecisiveStates) -> tuple[torch.Tensor, ...]:
         if settings.inputs != "lidar":
@@ -280,35 +323,21 @@ def probe(
         with torch.no_grad():
             return np.asarray(network(*inputs(states)).argmax(dim=1).numpy(), dtype=np.int64)
 
-    optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
-    given = inputs(labelled)
-    unsafe = labelled.doomed if settings.label == "doom" else labelled.collide_share
-    safe = torch.from_numpy(1.0 - np.asarray(unsafe, dtype=np.float32))
-    weight = torch.from_numpy(
-        np.where(is_decisive(labelled.doomed), settings.decisive_weight, 1.0).astype(np.float32)
-    )
-    order = np.random.default_rng(settings.seed)
     history = []
-    for epoch in tqdm(range(1, settings.epochs + 1), desc="probe", disable=not progress):
-        network.train()
-        total = 0.0
-        permutation = order.permutation(len(safe))
-        for start in range(0, len(safe), settings.batch_size):
-            rows = torch.from_numpy(permutation[start : start + settings.batch_size])
-            per_window = torch.nn.functional.binary_cross_entropy_with_logits(
-                network(*(part[rows] for part in given)), safe[rows], reduction="none"
-            ).mean(dim=1)
-            loss = (per_window * weight[rows]).sum() / weight[rows].sum()
-            optimizer.zero_grad()
-            loss.backward()  # type: ignore[no-untyped-call]
-            optimizer.step()
-            total += loss.item() * len(rows)
-        network.eval()
+
+    def judge(epoch: int, loss: float) -> None:
         judged = score(held_out, choices(held_out))
         fit = score(fitted, choices(fitted))
-        history.append(
-            ProbeEpoch(epoch, total / len(safe), fit.balanced, judged.safe, judged.balanced)
-        )
+        history.append(ProbeEpoch(epoch, loss, fit.balanced, judged.safe, judged.balanced))
+
+    fit_doom(
+        network,
+        inputs(labelled),
+        labelled.collide_share,
+        settings,
+        after_epoch=judge,
+        progress=progress,
+    )
     return Probe(
         history,
         network,
@@ -359,21 +388,7 @@ def shield_test(
     """Go-to-target on the test protocol alone, shielded by the fitted network, and shielded
     by the exact labels (`ShieldTest`), on the same layouts."""
     protocol = protocol or EvalSettings(episodes=settings.shield_episodes)
-    max_range_m = distance_scale_m(world.lidar)
-    network = fitted.network
-
-    def fitted_safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
-        if settings.inputs == "state":
-            parts = state_features(state, world.arena.size_m)
-        else:
-            parts = slot_inputs(
-                state.velocity,
-                encode_target(observation.target_features(), max_range_m),
-                observation.obstacle_features(),
-            )
-        with torch.no_grad():
-            logits = network(*(torch.from_numpy(part) for part in parts))
-        return np.asarray(torch.sigmoid(logits).numpy(), dtype=np.float64)
+    fitted_safety = network_safety(world, fitted.network, settings.inputs)
 
     def exact_safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
         share = collision_shares(world, state)
@@ -384,13 +399,38 @@ def shield_test(
 
     shields: list[SafeProbability | None] = [None, fitted_safety, exact_safety]
     (blind, _), (with_network, network_overruled), (with_labels, labels_overruled) = (
-        _shielded_go_to_target(world, shield, protocol)
+        shielded_go_to_target(world, shield, protocol)
         for shield in tqdm(shields, desc="shield test", unit="shield", disable=not progress)
     )
     return ShieldTest(blind, with_network, network_overruled, with_labels, labels_overruled)
 
 
-def _shielded_go_to_target(
+def state_inputs(
+    world: WorldConfig, inputs: str, state: WorldState, observation: Observation
+) -> tuple[NDArray[np.float32], ...]:
+    """What a doom network with `ProbeSettings.inputs` "state" or "slots" sees in each world."""
+    if inputs == "state":
+        return state_features(state, world.arena.size_m)
+    return slot_inputs(
+        state.velocity,
+        encode_target(observation.target_features(), distance_scale_m(world.lidar)),
+        observation.obstacle_features(),
+    )
+
+
+def network_safety(world: WorldConfig, network: torch.nn.Module, inputs: str) -> SafeProbability:
+    """The fitted network's probabilities that each action is safe, as a shield asks them."""
+
+    def safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
+        parts = state_inputs(world, inputs, state, observation)
+        with torch.no_grad():
+            logits = network(*(torch.from_numpy(part) for part in parts))
+        return np.asarray(torch.sigmoid(logits).numpy(), dtype=np.float64)
+
+    return safety
+
+
+def shielded_go_to_target(
     world: WorldConfig, safety: SafeProbability | None, protocol: EvalSettings
 ) -> tuple[EvalResult, float]:
     """The protocol's episodes driven by go-to-target under `safety`'s shield (None: none), and

@@ -471,6 +471,35 @@ def build_parser() -> argparse.ArgumentParser:
     add_print_config(probe)
     _flag(probe, "--json", "print one JSON object per epoch")
 
+    label = _verb(
+        tools,
+        "qnav.verbs.lab:label",
+        "label",
+        help="doom labels spent where the fitted network doubts, in rounds kept in a folder "
+        "(rerun to resume or add rounds)",
+    )
+    label.add_argument(
+        "folder",
+        type=Path,
+        nargs="?",
+        help="folder of the rounds (made, or resumed where it holds some)",
+    )
+    label.add_argument(
+        "--rounds", type=int, default=4, help="doubt-led rounds the folder should hold (4)"
+    )
+    _world_options(label, "obstacles-inertia")
+    _repeated(
+        label,
+        "--probe-set",
+        "probe_assignments",
+        "SECTION.FIELD=VALUE",
+        "change one setting of the fit (probe.FIELD), of the rounds (doubt.FIELD) or of the "
+        "held-out decisive states (gauge.FIELD), e.g. doubt.episodes_per_round=3000 "
+        "(repeatable; `--print-config` lists them)",
+    )
+    add_print_config(label)
+    _flag(label, "--json", "print one JSON object per round")
+
     imitate = _verb(
         tools,
         "qnav.verbs.lab:imitate",

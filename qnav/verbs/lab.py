@@ -183,6 +183,52 @@ def probe(args: argparse.Namespace) -> int:
     return 0
 
 
+def label(args: argparse.Namespace) -> int:
+    """Rounds of doubt-led labelling in a folder, each refitted, gauged and shield-tested."""
+    from qnav.lab.decisive import GaugeSettings
+    from qnav.lab.doubt import LABEL_PROBE, DoubtSettings, run_rounds
+
+    if args.rounds < 0:
+        raise ConfigError(f"--rounds must be 0 or more, not {args.rounds}")
+    probe_settings, doubt, gauge = _probe_set(
+        args.probe_assignments, LABEL_PROBE, DoubtSettings(), GaugeSettings()
+    )
+    if args.print_config:
+        print(config_text(probe_settings, doubt, gauge), end="")
+        return 0
+    if args.folder is None:
+        raise ConfigError("qnav lab label needs a FOLDER for its rounds")
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    reports = run_rounds(
+        world,
+        args.folder,
+        args.rounds,
+        probe=probe_settings,
+        settings=doubt,
+        gauge=gauge,
+        progress=not args.json,
+    )
+    if not args.json:
+        print(
+            f"{world.name}: doubt-led labelling in {args.folder}, up to round {args.rounds} "
+            f"(round 0: the probe's labelled set alone)"
+        )
+    for report in reports:
+        if args.json:
+            print(json.dumps(report._asdict()), flush=True)
+            continue
+        print(
+            f"round {report.round}: labelled {report.labelled:,} of {report.visited:,} visited "
+            f"({report.labelled_decisive:,} decisive); fitted to {report.fitted_states:,} "
+            f"({report.fitted_decisive:,} decisive); gauge safe {report.gauge_safe:.3f}, "
+            f"balanced {report.gauge_balanced:.3f}; shielded go-to-target success "
+            f"{report.shield_success:.3f}, collision {report.shield_collision:.3f}, overrules "
+            f"{report.overruled:.1%}; {report.minutes:.1f} min",
+            flush=True,
+        )
+    return 0
+
+
 def _print_shield_test(test: ShieldTest, as_json: bool) -> None:
     """The shield test's three rows: success, collisions, and how often the shield overruled."""
     rows = [

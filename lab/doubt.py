@@ -1,0 +1,510 @@
+"""Labels spent where the doom network doubts: rounds of drive, choose, label, refit.
+
+The probe (`lab.probe`) shows what a doom judgement is worth: exact doom labels lift the blind
+go-to-target controller past the paper's Table I as a shield, and a fitted network gets there
+only as far as its labelled decisive states take it. Labels are dear (the planner's rollouts,
+about 7 ms a state) and decisive states rare (3 % of driven ones), while driving is nearly free.
+So each round drives go-to-target through many fresh layouts, asks the latest fit how sure it
+is of each action in every visited state, labels only the most doubtful share (where three
+quarters of the decisive states are), refits on everything labelled so far, and measures the
+fit twice: on the gauge's held-out decisive states and as a shield on the test protocol.
+
+Rounds are kept in a folder, one file each, written atomically: a killed run loses at most
+the round under way, and rerunning the command (with more `--rounds`) resumes after the last
+finished one, so rounds add up across sessions. `qnav lab label` runs it. A diagnostic, like
+the probe: nothing in training or the product imports it.
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import check_range, to_toml
+from qnav.lab.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
+from qnav.lab.oracle import collision_shares
+from qnav.lab.probe import (
+    ProbeSettings,
+    SafeProbability,
+    decisive_only,
+    doom_network,
+    fit_doom,
+    network_safety,
+    shielded_go_to_target,
+    slot_features,
+    state_features,
+    state_inputs,
+)
+from qnav.sim import paper
+from qnav.sim.config import WorldConfig
+from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
+from qnav.sim.world import Observation, WorldState, take_rows
+
+LABEL_PROBE = ProbeSettings(inputs="slots", epochs=40, episodes_per_driver=1200)
+"""The fit `qnav lab label` starts from and refits each round: the obstacle-slot network on the
+probe's 1200-episode labelled set, 40 passes (the probe's best measured fit)."""
+
+
+@dataclass(frozen=True)
+class DoubtSettings:
+    """Each round's drive, choice of states to label, and measurement."""
+
+    SECTION = "doubt"
+
+    episodes_per_round: int = 6000
+    """Go-to-target episodes driven each round (fresh layouts every round)."""
+    labelled_share: float = 0.2
+    """Share of each round's visited states labelled by the planner: the most doubtful ones."""
+    ordinary_share: float = 0.3
+    """Share of a round's labelled states that are not decisive kept in the fit beside every
+    decisive one (as the probe's labelled set keeps)."""
+    max_episode_steps: int = 200
+    """Steps of each driven episode at most (the training episodes' length)."""
+    num_worlds: int = 1000
+    """Episodes driven (and labelled) together."""
+    seed: int = 5151
+    """Seed of the driven layouts (apart from training's, the gauge's, the probe's and the
+    test's)."""
+    shield_episodes: int = 1000
+    """Test-protocol episodes of go-to-target shielded by each round's fit (0: gauge only)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "episodes_per_round", self.episodes_per_round, 1, 10**8)
+        check_range(self, "labelled_share", self.labelled_share, 0.0, 1.0, exclusive_low=True)
+        check_range(self, "ordinary_share", self.ordinary_share, 0.0, 1.0)
+        check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
+        check_range(self, "num_worlds", self.num_worlds, 1, 10**6)
+        check_range(self, "shield_episodes", self.shield_episodes, 0, 10**7)
+
+
+class LabelledRound(NamedTuple):
+    """The states one round labelled, with what a doom network sees there."""
+
+    world: WorldState
+    """The true state of each labelled world (K rows)."""
+    context: NDArray[np.float32]
+    """(K, 5) the slot network's context (`lab.probe.slot_inputs`)."""
+    slots: NDArray[np.float32]
+    """(K, OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES) the obstacles' slots."""
+    collide_share: NDArray[np.float64]
+    """(K, A) the share of the planner's continuations after each first action that collide."""
+    visited: int
+    """States visited in the round, labelled or not."""
+
+    def save(self, path: Path) -> None:
+        """Write to an .npz file atomically: a killed run leaves the old file or the new one."""
+        partial = path.with_suffix(".partial.npz")
+        arrays = {name: value for name, value in self._asdict().items() if name != "world"}
+        arrays.update({f"world_{name}": value for name, value in self.world._asdict().items()})
+        np.savez_compressed(partial, **arrays)
+        partial.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> LabelledRound:
+        """Read what `save` wrote."""
+        with np.load(path) as data:
+            world = WorldState(*(data[f"world_{name}"] for name in WorldState._fields))
+            fields = {name: data[name] for name in cls._fields if name != "world"}
+            return cls(**{**fields, "visited": int(fields["visited"])}, world=world)
+
+
+class RoundReport(NamedTuple):
+    """One row of the folder's progress.csv: the labels so far and the fit on them."""
+
+    round: int
+    """0: the probe's labelled set alone; then each doubt-led round."""
+    visited: int
+    """States visited in this round's drive."""
+    labelled: int
+    """States the planner labelled in this round."""
+    labelled_decisive: int
+    """Decisive states among them."""
+    fitted_states: int
+    """States the fit after this round saw (all rounds so far)."""
+    fitted_decisive: int
+    """Decisive states among them."""
+    gauge_safe: float
+    """Share of the gauge's held-out decisive states where the fit's safest action is safe."""
+    gauge_balanced: float
+    """The same averaged over doom patterns (1/2 for any choice blind to the obstacles)."""
+    shield_success: float
+    """Success of go-to-target shielded by the fit on the test protocol (nan: not measured)."""
+    shield_collision: float
+    """Its collision share."""
+    overruled: float
+    """Share of the shielded decisions that overruled go-to-target."""
+    minutes: float
+    """Wall-clock minutes of the round (drive, label, fit, measure)."""
+
+
+def doubt(safe_probability: NDArray[np.floating]) -> NDArray[np.floating]:
+    """(N,) how unsure a judgement (N, A) is in each state: the distance of its least certain
+    action's probability of being safe from 1/2, so smaller is more doubtful."""
+    return np.asarray(np.abs(safe_probability - 0.5).min(axis=1))
+
+
+def most_doubtful(safe_probability: NDArray[np.floating], share: float) -> NDArray[np.intp]:
+    """Indices of the most doubtful `share` of the states (at least one where there are any)."""
+    count = max(1, round(share * len(safe_probability))) if len(safe_probability) else 0
+    return np.argsort(doubt(safe_probability), kind="stable")[:count]
+
+
+def drive_and_label(
+    world: WorldConfig,
+    safety: SafeProbability,
+    settings: DoubtSettings,
+    round_index: int,
+    progress: bool = False,
+) -> LabelledRound:
+    """Round `round_index` (1-based): drive go-to-target through its fresh layouts, keep the most
+    doubtful share of each batch of worlds' visited states, and label those with the planner."""
+    config = replace(world, max_episode_steps=settings.max_episode_steps)
+    first = (round_index - 1) * settings.episodes_per_round
+    batches = [
+        np.arange(start, min(start + settings.num_worlds, first + settings.episodes_per_round))
+        for start in range(first, first + settings.episodes_per_round, settings.num_worlds)
+    ]
+    kept = [
+        _label_batch(world, config, safety, settings, episodes)
+        for episodes in tqdm(
+            batches, desc=f"round {round_index}", unit="batch", disable=not progress
+        )
+    ]
+    return LabelledRound(
+        world=_concatenate_states([part.world for part in kept]),
+        context=np.concatenate([part.context for part in kept]),
+        slots=np.concatenate([part.slots for part in kept]),
+        collide_share=np.concatenate([part.collide_share for part in kept]),
+        visited=sum(part.visited for part in kept),
+    )
+
+
+def _label_batch(
+    world: WorldConfig,
+    config: WorldConfig,
+    safety: SafeProbability,
+    settings: DoubtSettings,
+    episodes: NDArray[np.int64],
+) -> LabelledRound:
+    """One batch of worlds driven together (`config`: the world with the round's episode
+    length), its most doubtful states labelled."""
+    states: list[WorldState] = []
+    inputs: list[tuple[NDArray[np.float32], ...]] = []
+    judged: list[NDArray[np.floating]] = []
+
+    def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
+        states.append(state)
+        inputs.append(state_inputs(world, "slots", state, observation))
+        judged.append(safety(state, observation))
+        return go_to_target(observation.target_features())
+
+    drive(config, settings.seed, episodes, act)
+    visited = _concatenate_states(states)
+    pick = most_doubtful(np.concatenate(judged), settings.labelled_share)
+    chosen = take_rows(visited, pick)
+    return LabelledRound(
+        world=chosen,
+        context=np.concatenate([context for context, _ in inputs])[pick],
+        slots=np.concatenate([slots for _, slots in inputs])[pick],
+        collide_share=collision_shares(world, chosen),
+        visited=len(visited.steps),
+    )
+
+
+def _concatenate_states(states: list[WorldState]) -> WorldState:
+    return WorldState(
+        *(np.concatenate([getattr(s, name) for s in states]) for name in WorldState._fields)
+    )
+
+
+class TrainingSet(NamedTuple):
+    """Everything labelled so far, as the fit sees it."""
+
+    inputs: tuple[torch.Tensor, ...]
+    """The network's inputs per state."""
+    collide_share: NDArray[np.floating]
+    """(K, A) their labels."""
+
+
+def training_set(
+    world: WorldConfig,
+    base_set: GaugeSettings,
+    probe: ProbeSettings,
+    settings: DoubtSettings,
+    rounds: list[LabelledRound],
+) -> TrainingSet:
+    """The probe's labelled set (collected as `base_set` says) and, from each round, its
+    decisive states and a seeded `ordinary_share` of the others."""
+    base = cached(world, base_set)
+    parts = [_features(world, probe, base)]
+    shares: list[NDArray[np.floating]] = [base.collide_share]
+    for index, labelled in enumerate(rounds, start=1):
+        decisive = is_decisive(labelled.collide_share == 1.0)
+        draw = np.random.default_rng([settings.seed, index]).random(len(decisive))
+        keep = decisive | (draw < settings.ordinary_share)
+        parts.append(
+            state_features(take_rows(labelled.world, np.flatnonzero(keep)), world.arena.size_m)
+            if probe.inputs == "state"
+            else (labelled.context[keep], labelled.slots[keep])
+        )
+        shares.append(labelled.collide_share[keep])
+    inputs = tuple(torch.from_numpy(np.concatenate([part[i] for part in parts])) for i in range(2))
+    return TrainingSet(inputs, np.concatenate(shares))
+
+
+class LabelFolder:
+    """A folder of rounds: settings.toml (what the rounds were made with), round-NNN.npz (each
+    round's labels), network.pt (the latest fit), progress.csv (a `RoundReport` per round) and
+    progress.png (success and gauge against labelled decisive states)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def claim(self, settings_text: str) -> None:
+        """Make the folder, or check that its rounds were made with the same settings (resuming
+        with others would mix labels of different worlds or choices)."""
+        written = self.path / "settings.toml"
+        if written.exists():
+            before = written.read_text()
+            if before != settings_text:
+                changed = [
+                    line[1:].strip()
+                    for line in difflib.ndiff(before.splitlines(), settings_text.splitlines())
+                    if line.startswith("+ ") and not line[2:].lstrip().startswith("#")
+                ]
+                raise ConfigError(
+                    f"{self.path} holds rounds made with other settings ({written}); these "
+                    f"differ: {', '.join(changed) or 'comments'}. Resume with the same "
+                    "settings or use a new folder"
+                )
+            return
+        self.path.mkdir(parents=True, exist_ok=True)
+        written.write_text(settings_text)
+
+    def round_path(self, index: int) -> Path:
+        return self.path / f"round-{index:03d}.npz"
+
+    def rounds(self) -> Iterator[LabelledRound]:
+        """The finished rounds, in order (a gap ends them)."""
+        index = 1
+        while self.round_path(index).exists():
+            yield LabelledRound.load(self.round_path(index))
+            index += 1
+
+    def reports(self) -> list[RoundReport]:
+        """The progress.csv rows written so far."""
+        path = self.path / "progress.csv"
+        if not path.exists():
+            return []
+        with path.open() as file:
+            return [
+                RoundReport(
+                    *(
+                        kind(row[name])
+                        for name, kind in zip(RoundReport._fields, _REPORT_KINDS, strict=True)
+                    )
+                )
+                for row in csv.DictReader(file)
+            ]
+
+    def add_report(self, report: RoundReport) -> None:
+        """Append one row (the header first in a new file)."""
+        path = self.path / "progress.csv"
+        new = not path.exists()
+        with path.open("a", newline="") as file:
+            writer = csv.writer(file)
+            if new:
+                writer.writerow(RoundReport._fields)
+            writer.writerow(report)
+
+
+_REPORT_KINDS = (int, int, int, int, int, int, float, float, float, float, float, float)
+
+
+def run_rounds(
+    world: WorldConfig,
+    folder: Path,
+    rounds: int,
+    *,
+    probe: ProbeSettings = LABEL_PROBE,
+    settings: DoubtSettings = DoubtSettings(),
+    gauge: GaugeSettings | None = None,
+    progress: bool = False,
+) -> Iterator[RoundReport]:
+    """Bring `folder` to `rounds` doubt-led rounds (resuming after its last finished one), each
+    refitted and measured; yields the report of every round, those already in the folder first,
+    round 0 being the fit on the probe's labelled set alone (`gauge`: the held-out decisive
+    states, whose episode length and window the labelled set shares)."""
+    if probe.inputs == "lidar":
+        raise ConfigError(
+            "qnav lab label needs probe.inputs = state or slots: the rounds judge each driven "
+            "state from the world, without a window of scans"
+        )
+    if not world.obstacles.count:
+        raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
+    gauge = gauge or GaugeSettings()
+    store = LabelFolder(folder)
+    store.claim(
+        to_toml(world, "world")
+        + to_toml(probe, probe.SECTION)
+        + to_toml(settings, settings.SECTION)
+        + to_toml(gauge, gauge.SECTION)
+    )
+    return _rounds(
+        world, store, rounds, probe=probe, settings=settings, gauge=gauge, progress=progress
+    )
+
+
+def _rounds(
+    world: WorldConfig,
+    store: LabelFolder,
+    rounds: int,
+    *,
+    probe: ProbeSettings,
+    settings: DoubtSettings,
+    gauge: GaugeSettings,
+    progress: bool,
+) -> Iterator[RoundReport]:
+    folder = store.path
+    torch.set_num_threads(probe.threads)
+    held_out = decisive_only(cached(world, gauge, progress))
+    protocol = EvalSettings(episodes=settings.shield_episodes)
+    labelled = list(store.rounds())
+    reports = store.reports()[: len(labelled) + 1]
+    yield from reports
+    network = doom_network(world, probe.inputs)
+    fitted_path = folder / "network.pt"
+    for index in range(len(labelled), rounds + 1):
+        started = time.monotonic()
+        if index > len(labelled):
+            fresh = drive_and_label(
+                world, network_safety(world, network, probe.inputs), settings, index, progress
+            )
+            fresh.save(store.round_path(index))
+            labelled.append(fresh)
+        if index < len(reports) and fitted_path.exists():
+            network.load_state_dict(torch.load(fitted_path))
+            network.eval()
+            continue
+        data = training_set(world, probe.labelled_set(gauge), probe, settings, labelled)
+        torch.manual_seed(probe.seed)
+        network = doom_network(world, probe.inputs)
+        fit_doom(network, data.inputs, data.collide_share, probe, progress=progress)
+        torch.save(network.state_dict(), fitted_path.with_suffix(".partial"))
+        fitted_path.with_suffix(".partial").replace(fitted_path)
+        report = _measure(
+            world,
+            network,
+            probe=probe,
+            held_out=held_out,
+            protocol=protocol,
+            fresh=labelled[index - 1] if index else None,
+            data=data,
+            gauge=gauge,
+        )
+        report = report._replace(round=index, minutes=(time.monotonic() - started) / 60)
+        store.add_report(report)
+        reports.append(report)
+        plot_progress(reports, folder / "progress.png", world.name)
+        yield report
+
+
+def _measure(
+    world: WorldConfig,
+    network: torch.nn.Module,
+    *,
+    probe: ProbeSettings,
+    held_out: DecisiveStates,
+    protocol: EvalSettings,
+    fresh: LabelledRound | None,
+    data: TrainingSet,
+    gauge: GaugeSettings,
+) -> RoundReport:
+    """The fit's gauge and shielded success, with the round's sizes (minutes left 0); for
+    round 0 (`fresh` None) the sizes of the probe's labelled set, every visited state of
+    which was labelled."""
+    with torch.no_grad():
+        logits = network(*(torch.from_numpy(part) for part in _features(world, probe, held_out)))
+    judged = score(held_out, np.asarray(logits.argmax(dim=1).numpy(), dtype=np.int64))
+    if fresh is None:
+        base = cached(world, probe.labelled_set(gauge))
+        visited = labelled = int(base.visited.sum())
+        labelled_decisive = int(is_decisive(base.doomed).sum())
+    else:
+        visited, labelled = fresh.visited, len(fresh.collide_share)
+        labelled_decisive = int(is_decisive(fresh.collide_share == 1.0).sum())
+    shielded: EvalResult | None = None
+    overruled = math.nan
+    if protocol.episodes:
+        shielded, overruled = shielded_go_to_target(
+            world, network_safety(world, network, probe.inputs), protocol
+        )
+    return RoundReport(
+        round=0,
+        visited=visited,
+        labelled=labelled,
+        labelled_decisive=labelled_decisive,
+        fitted_states=len(data.collide_share),
+        fitted_decisive=int(is_decisive(data.collide_share == 1.0).sum()),
+        gauge_safe=judged.safe,
+        gauge_balanced=judged.balanced,
+        shield_success=shielded.success if shielded else math.nan,
+        shield_collision=shielded.collision if shielded else math.nan,
+        overruled=overruled,
+        minutes=0.0,
+    )
+
+
+def _features(
+    world: WorldConfig, probe: ProbeSettings, states: DecisiveStates
+) -> tuple[NDArray[np.float32], ...]:
+    if probe.inputs == "state":
+        return state_features(states.world, world.arena.size_m)
+    return slot_features(states)
+
+
+def plot_progress(reports: list[RoundReport], path: Path, world: str) -> Path:
+    """Shielded success and the gauge against the labelled decisive states fitted to, with the
+    paper's recurrent mean for the scenario where it has one."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(6.4, 6.0), dpi=100)
+    FigureCanvasAgg(figure)
+    success, gauge = figure.subplots(2, 1, sharex=True)
+    decisive = [report.fitted_decisive for report in reports]
+    success.plot(
+        decisive,
+        [report.shield_success for report in reports],
+        marker="o",
+        label="go-to-target shielded by the fit",
+    )
+    if world in paper.RECURRENT:
+        mean = paper.RECURRENT[world][0].success
+        success.axhline(mean, color="tab:red", linestyle="--", label=f"paper, recurrent ({mean})")
+    success.set_ylabel("test success")
+    success.legend(loc="lower right")
+    success.grid(alpha=0.3)
+    success.set_title(f"{world}: labels spent where the doom network doubts")
+    gauge.plot(decisive, [report.gauge_balanced for report in reports], marker="o")
+    gauge.set_ylabel("gauge, balanced")
+    gauge.set_xlabel("labelled decisive states fitted to (round 0: the probe's set)")
+    gauge.set_xscale("log", base=2)
+    gauge.grid(alpha=0.3)
+    figure.tight_layout()
+    partial = path.with_suffix(".partial.png")
+    figure.savefig(partial)
+    partial.replace(path)
+    return path

@@ -1,0 +1,168 @@
+"""Doubt-led labelling: rounds of drive, label the doubtful, refit, kept in a folder that
+resumes."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.errors import ConfigError
+from qnav.lab.decisive import GaugeSettings
+from qnav.lab.doubt import (
+    DoubtSettings,
+    LabelFolder,
+    LabelledRound,
+    RoundReport,
+    drive_and_label,
+    most_doubtful,
+    run_rounds,
+)
+from qnav.lab.probe import ProbeSettings
+from qnav.sim.config import scenario
+from qnav.sim.world import Observation, WorldState
+from tests.command import run_qnav
+
+SMALL_GAUGE = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6)
+SMALL_PROBE = ProbeSettings(
+    inputs="slots", episodes_per_driver=6, epochs=2, batch_size=32, threads=1
+)
+SMALL = DoubtSettings(episodes_per_round=8, num_worlds=4, max_episode_steps=40, shield_episodes=4)
+SMALL_ARGS = (
+    "--scenario",
+    "obstacles-increment",
+    *("--probe-set", "probe.episodes_per_driver=6", "--probe-set", "probe.epochs=2"),
+    *("--probe-set", "probe.batch_size=32", "--probe-set", "probe.threads=1"),
+    *("--probe-set", "doubt.episodes_per_round=8", "--probe-set", "doubt.num_worlds=4"),
+    *("--probe-set", "doubt.max_episode_steps=40", "--probe-set", "doubt.shield_episodes=4"),
+    *("--probe-set", "gauge.episodes_per_driver=6", "--probe-set", "gauge.max_episode_steps=40"),
+    *("--probe-set", "gauge.num_worlds=6"),
+)
+
+
+def test_the_most_doubtful_states_have_an_action_nearest_even_odds() -> None:
+    safe_probability = np.array(
+        [
+            [0.99, 0.01, 0.98],  # sure of every action
+            [0.99, 0.55, 0.02],  # unsure of one
+            [0.70, 0.30, 0.90],
+            [0.50, 0.99, 0.99],  # even odds on one
+        ]
+    )
+    assert most_doubtful(safe_probability, 0.5).tolist() == [3, 1]
+    assert most_doubtful(safe_probability, 0.01).tolist() == [3]
+    assert most_doubtful(safe_probability[:0], 0.5).tolist() == []
+
+
+def test_a_round_labels_its_share_of_the_visited_states_and_reads_back_unchanged(
+    tmp_path: Path,
+) -> None:
+    world = scenario("obstacles-increment")
+
+    def unsure(state: WorldState, observation: Observation) -> NDArray[np.float64]:
+        return np.full((len(state.steps), NUM_ACTIONS), 0.5)
+
+    labelled = drive_and_label(world, unsure, SMALL, round_index=1)
+    batches = SMALL.episodes_per_round // SMALL.num_worlds
+    assert labelled.visited > 0
+    # each batch of worlds keeps its own share, rounded
+    assert abs(len(labelled.collide_share) - SMALL.labelled_share * labelled.visited) <= batches
+    assert labelled.context.shape[0] == labelled.slots.shape[0] == len(labelled.world.steps)
+    assert ((labelled.collide_share >= 0) & (labelled.collide_share <= 1)).all()
+    labelled.save(tmp_path / "round.npz")
+    back = LabelledRound.load(tmp_path / "round.npz")
+    assert back.visited == labelled.visited
+    for name in ("context", "slots", "collide_share"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(labelled, name))
+    for name in labelled.world._fields:
+        np.testing.assert_array_equal(getattr(back.world, name), getattr(labelled.world, name))
+
+
+def _without_minutes(reports: list[RoundReport]) -> list[RoundReport]:
+    return [report._replace(minutes=0.0) for report in reports]
+
+
+def test_a_resumed_folder_holds_the_rounds_of_a_run_straight_through(tmp_path: Path) -> None:
+    world = scenario("obstacles-increment")
+    settings = {"probe": SMALL_PROBE, "settings": SMALL, "gauge": SMALL_GAUGE}
+    straight = list(run_rounds(world, tmp_path / "straight", 2, **settings))  # type: ignore[arg-type]
+    assert [report.round for report in straight] == [0, 1, 2]
+    list(run_rounds(world, tmp_path / "resumed", 1, **settings))  # type: ignore[arg-type]
+    # a run killed while writing round 2 leaves only a partial file behind
+    (tmp_path / "resumed" / "round-002.partial.npz").write_bytes(b"cut short")
+    first_round = (tmp_path / "resumed" / "round-001.npz").stat().st_mtime_ns
+    resumed = list(run_rounds(world, tmp_path / "resumed", 2, **settings))  # type: ignore[arg-type]
+    assert (tmp_path / "resumed" / "round-001.npz").stat().st_mtime_ns == first_round
+    assert _without_minutes(resumed) == _without_minutes(straight)
+    assert _without_minutes(LabelFolder(tmp_path / "resumed").reports()) == _without_minutes(
+        straight
+    )
+    for first, second in zip(
+        LabelFolder(tmp_path / "straight").rounds(),
+        LabelFolder(tmp_path / "resumed").rounds(),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(first.collide_share, second.collide_share)
+    # every decisive state labelled is fitted to; the rounds add up
+    base = straight[0].fitted_decisive
+    for report in straight[1:]:
+        base += report.labelled_decisive
+        assert report.fitted_decisive == base
+    assert straight[2].fitted_states > straight[1].fitted_states > straight[0].fitted_states
+    assert (tmp_path / "straight" / "progress.png").stat().st_size > 0
+
+
+def test_a_folder_refuses_rounds_made_otherwise_and_names_the_setting(tmp_path: Path) -> None:
+    world = scenario("obstacles-increment")
+    list(run_rounds(world, tmp_path, 0, probe=SMALL_PROBE, settings=SMALL, gauge=SMALL_GAUGE))
+    with pytest.raises(ConfigError, match=r"labelled_share = 0\.5"):
+        run_rounds(
+            world,
+            tmp_path,
+            1,
+            probe=SMALL_PROBE,
+            settings=replace(SMALL, labelled_share=0.5),
+            gauge=SMALL_GAUGE,
+        )
+
+
+def test_rounds_judged_from_a_window_of_scans_are_refused_by_name(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"probe\.inputs"):
+        run_rounds(
+            scenario("obstacles-increment"),
+            tmp_path,
+            1,
+            probe=replace(SMALL_PROBE, inputs="lidar"),
+            settings=SMALL,
+            gauge=SMALL_GAUGE,
+        )
+    assert not (tmp_path / "settings.toml").exists()
+
+
+def test_the_command_prints_a_round_per_line_and_resumes(tmp_path: Path) -> None:
+    folder = str(tmp_path / "rounds")
+    first = run_qnav("lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--json")
+    assert first.returncode == 0, first.stderr
+    rounds = [json.loads(line) for line in first.stdout.splitlines()]
+    assert [row["round"] for row in rounds] == [0, 1]
+    again = run_qnav("lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--json")
+    assert again.returncode == 0, again.stderr
+    assert [json.loads(line) for line in again.stdout.splitlines()] == rounds
+    other = run_qnav("lab", "label", folder, *SMALL_ARGS, "--probe-set", "doubt.seed=1")
+    assert other.returncode != 0
+    assert "seed = 1" in other.stderr
+
+
+def test_the_command_lists_its_settings_and_names_a_wrong_one() -> None:
+    listed = run_qnav("lab", "label", "--print-config")
+    assert listed.returncode == 0, listed.stderr
+    for section in ("[probe]", "[doubt]", "[gauge]", "labelled_share = 0.2", 'inputs = "slots"'):
+        assert section in listed.stdout
+    wrong = run_qnav("lab", "label", "somewhere", "--probe-set", "doubt.labelled_share=0")
+    assert wrong.returncode != 0
+    assert "labelled_share" in wrong.stderr
