@@ -22,7 +22,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +37,15 @@ from qnav.contracts.settings import check_range, to_toml
 from qnav.lab.oracle import OracleDriver, StateError, collision_shares, doomed_actions, with_error
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import go_to_target
-from qnav.sim.world import Observation, WorldState, observe, reset, step, take_rows
+from qnav.sim.world import (
+    Observation,
+    WorldState,
+    concatenate_rows,
+    observe,
+    reset,
+    step,
+    take_rows,
+)
 
 StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]
 
@@ -100,18 +108,12 @@ class DecisiveStates(NamedTuple):
 
     def save(self, path: Path) -> None:
         """Write to an .npz file (atomically)."""
-        partial = path.with_suffix(".partial.npz")
-        arrays = {name: value for name, value in self._asdict().items() if name != "world"}
-        arrays.update({f"world_{name}": value for name, value in self.world._asdict().items()})
-        np.savez_compressed(partial, **arrays)
-        partial.replace(path)
+        save_with_world(path, self._asdict())
 
     @classmethod
     def load(cls, path: Path) -> DecisiveStates:
         """Read what `save` wrote."""
-        with np.load(path) as data:
-            world = WorldState(*(data[f"world_{name}"] for name in WorldState._fields))
-            return cls(**{name: data[name] for name in cls._fields if name != "world"}, world=world)
+        return cls(**load_with_world(path))
 
     def policy_windows(self, obstacle_inputs: bool) -> NDArray[np.float32]:
         """(K, k, F) the windows a network sees: with the obstacles appended to each frame, for a
@@ -129,6 +131,26 @@ class DecisiveStates(NamedTuple):
             world=take_rows(self.world, np.arange(len(self.doomed))[keep]),
             driver=self.driver[keep],
         )
+
+
+def save_with_world(path: Path, fields: dict[str, Any]) -> None:
+    """Write arrays by name, one of them (`world`) a `WorldState`, to an .npz file atomically: a
+    run killed while writing leaves the old file or the new one, never half of one."""
+    arrays = {name: value for name, value in fields.items() if name != "world"}
+    arrays.update({f"world_{name}": value for name, value in fields["world"]._asdict().items()})
+    partial = path.with_suffix(".partial.npz")
+    np.savez_compressed(partial, **arrays)
+    partial.replace(path)
+
+
+def load_with_world(path: Path) -> dict[str, Any]:
+    """The arrays `save_with_world` wrote, by name, `world` a `WorldState` again."""
+    with np.load(path) as data:
+        fields: dict[str, Any] = {
+            name: data[name] for name in data.files if not name.startswith("world_")
+        }
+        fields["world"] = WorldState(*(data[f"world_{name}"] for name in WorldState._fields))
+    return fields
 
 
 def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False) -> DecisiveStates:
@@ -151,7 +173,7 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
         windows=np.concatenate(windows),
         obstacle_windows=np.concatenate(obstacle_windows),
         collide_share=collide_share,
-        world=WorldState(*(np.concatenate(column) for column in zip(*world, strict=True))),
+        world=concatenate_rows(world),
         driver=np.concatenate(driver),
         visited=np.array(visited, dtype=np.int64),
     )
@@ -232,7 +254,7 @@ def _drive_and_keep(
             window.frames = window.frames[going]
             window.fresh = window.fresh[going]
     count = sum(len(w) for w in windows)
-    world = WorldState(*(np.concatenate(column) for column in zip(*worlds, strict=True)))
+    world = concatenate_rows(worlds)
     return (
         np.concatenate(windows),
         np.concatenate(obstacle_windows),

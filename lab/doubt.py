@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import math
 import time
 from collections.abc import Iterator
@@ -33,7 +34,15 @@ from tqdm import tqdm
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import check_range, to_toml
-from qnav.lab.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
+from qnav.lab.decisive import (
+    DecisiveStates,
+    GaugeSettings,
+    cached,
+    is_decisive,
+    load_with_world,
+    save_with_world,
+    score,
+)
 from qnav.lab.oracle import collision_shares
 from qnav.lab.probe import (
     ProbeSettings,
@@ -50,7 +59,7 @@ from qnav.lab.probe import (
 from qnav.sim import paper
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
-from qnav.sim.world import Observation, WorldState, take_rows
+from qnav.sim.world import Observation, WorldState, concatenate_rows, take_rows
 
 LABEL_PROBE = ProbeSettings(inputs="slots", epochs=40, episodes_per_driver=1200)
 """The fit `qnav lab label` starts from and refits each round: the obstacle-slot network on the
@@ -104,20 +113,14 @@ class LabelledRound(NamedTuple):
     """States visited in the round, labelled or not."""
 
     def save(self, path: Path) -> None:
-        """Write to an .npz file atomically: a killed run leaves the old file or the new one."""
-        partial = path.with_suffix(".partial.npz")
-        arrays = {name: value for name, value in self._asdict().items() if name != "world"}
-        arrays.update({f"world_{name}": value for name, value in self.world._asdict().items()})
-        np.savez_compressed(partial, **arrays)
-        partial.replace(path)
+        """Write to an .npz file atomically (a killed run leaves the old file or the new one)."""
+        save_with_world(path, self._asdict())
 
     @classmethod
     def load(cls, path: Path) -> LabelledRound:
         """Read what `save` wrote."""
-        with np.load(path) as data:
-            world = WorldState(*(data[f"world_{name}"] for name in WorldState._fields))
-            fields = {name: data[name] for name in cls._fields if name != "world"}
-            return cls(**{**fields, "visited": int(fields["visited"])}, world=world)
+        fields = load_with_world(path)
+        return cls(**{**fields, "visited": int(fields["visited"])})
 
 
 class RoundReport(NamedTuple):
@@ -183,7 +186,7 @@ def drive_and_label(
         )
     ]
     return LabelledRound(
-        world=_concatenate_states([part.world for part in kept]),
+        world=concatenate_rows([part.world for part in kept]),
         context=np.concatenate([part.context for part in kept]),
         slots=np.concatenate([part.slots for part in kept]),
         collide_share=np.concatenate([part.collide_share for part in kept]),
@@ -211,7 +214,7 @@ def _label_batch(
         return go_to_target(observation.target_features())
 
     drive(config, settings.seed, episodes, act)
-    visited = _concatenate_states(states)
+    visited = concatenate_rows(states)
     pick = most_doubtful(np.concatenate(judged), settings.labelled_share)
     chosen = take_rows(visited, pick)
     return LabelledRound(
@@ -220,12 +223,6 @@ def _label_batch(
         slots=np.concatenate([slots for _, slots in inputs])[pick],
         collide_share=collision_shares(world, chosen),
         visited=len(visited.steps),
-    )
-
-
-def _concatenate_states(states: list[WorldState]) -> WorldState:
-    return WorldState(
-        *(np.concatenate([getattr(s, name) for s in states]) for name in WorldState._fields)
     )
 
 
@@ -291,7 +288,7 @@ class LabelFolder:
                 )
             return
         self.path.mkdir(parents=True, exist_ok=True)
-        written.write_text(settings_text)
+        _write_atomically(written, settings_text)
 
     def round_path(self, index: int) -> Path:
         return self.path / f"round-{index:03d}.npz"
@@ -319,15 +316,19 @@ class LabelFolder:
                 for row in csv.DictReader(file)
             ]
 
-    def add_report(self, report: RoundReport) -> None:
-        """Append one row (the header first in a new file)."""
-        path = self.path / "progress.csv"
-        new = not path.exists()
-        with path.open("a", newline="") as file:
-            writer = csv.writer(file)
-            if new:
-                writer.writerow(RoundReport._fields)
-            writer.writerow(report)
+    def write_reports(self, reports: list[RoundReport]) -> None:
+        """Write progress.csv afresh, atomically (a killed run leaves whole rows only)."""
+        text = io.StringIO()
+        writer = csv.writer(text)
+        writer.writerow(RoundReport._fields)
+        writer.writerows(reports)
+        _write_atomically(self.path / "progress.csv", text.getvalue())
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    partial = path.with_suffix(path.suffix + ".partial")
+    partial.write_text(text)
+    partial.replace(path)
 
 
 _REPORT_KINDS = (int, int, int, int, int, int, float, float, float, float, float, float)
@@ -415,8 +416,8 @@ def _rounds(
             gauge=gauge,
         )
         report = report._replace(round=index, minutes=(time.monotonic() - started) / 60)
-        store.add_report(report)
         reports.append(report)
+        store.write_reports(reports)
         plot_progress(reports, folder / "progress.png", world.name)
         yield report
 

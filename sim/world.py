@@ -8,6 +8,7 @@ gymnasium interface.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
@@ -282,6 +283,14 @@ def scatter(whole: Rows, index: NDArray[np.intp], part: Rows) -> Rows:
         merged[index] = rows
         fields.append(merged)
     return type(whole)(*fields)
+
+
+def concatenate_rows(parts: Sequence[Rows]) -> Rows:
+    """The rows of each of `parts` (arrays with one row per world), one after another."""
+    fields: list[Any] = [
+        None if column[0] is None else np.concatenate(column) for column in zip(*parts, strict=True)
+    ]
+    return type(parts[0])(*fields)
 
 
 def take_rows(whole: Rows, index: NDArray[np.intp]) -> Rows:
