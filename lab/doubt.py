@@ -382,6 +382,9 @@ def _rounds(
     torch.set_num_threads(probe.threads)
     held_out = decisive_only(cached(world, gauge, progress))
     protocol = EvalSettings(episodes=settings.shield_episodes)
+    blind = (
+        shielded_go_to_target(world, None, protocol)[0].success if protocol.episodes else math.nan
+    )
     labelled = list(store.rounds())
     reports = store.reports()[: len(labelled) + 1]
     yield from reports
@@ -418,7 +421,7 @@ def _rounds(
         report = report._replace(round=index, minutes=(time.monotonic() - started) / 60)
         reports.append(report)
         store.write_reports(reports)
-        plot_progress(reports, folder / "progress.png", world.name)
+        plot_progress(reports, folder / "progress.png", world.name, blind)
         yield report
 
 
@@ -476,9 +479,12 @@ def _features(
     return slot_features(states)
 
 
-def plot_progress(reports: list[RoundReport], path: Path, world: str) -> Path:
-    """Shielded success and the gauge against the labelled decisive states fitted to, with the
-    paper's recurrent mean for the scenario where it has one."""
+def plot_progress(
+    reports: list[RoundReport], path: Path, world: str, blind_success: float = math.nan
+) -> Path:
+    """Shielded success and the gauge against the labelled decisive states fitted to, beside
+    go-to-target alone (`blind_success`, where measured) and the paper's recurrent mean for the
+    scenario where it has one."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -492,11 +498,15 @@ def plot_progress(reports: list[RoundReport], path: Path, world: str) -> Path:
         marker="o",
         label="go-to-target shielded by the fit",
     )
+    if not math.isnan(blind_success):
+        success.axhline(
+            blind_success, color="0.5", linestyle=":", label=f"go-to-target alone ({blind_success})"
+        )
     if world in paper.RECURRENT:
         mean = paper.RECURRENT[world][0].success
         success.axhline(mean, color="tab:red", linestyle="--", label=f"paper, recurrent ({mean})")
     success.set_ylabel("test success")
-    success.legend(loc="lower right")
+    success.legend(loc="best", fontsize="small")
     success.grid(alpha=0.3)
     success.set_title(f"{world}: labels spent where the doom network doubts")
     gauge.plot(decisive, [report.gauge_balanced for report in reports], marker="o")
