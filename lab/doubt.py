@@ -4,10 +4,12 @@ The probe (`lab.probe`) shows what a doom judgement is worth: exact doom labels 
 go-to-target controller past the paper's Table I as a shield, and a fitted network gets there
 only as far as its labelled decisive states take it. Labels are dear (the planner's rollouts,
 about 7 ms a state) and decisive states rare (3 % of driven ones), while driving is nearly free.
-So each round drives go-to-target through many fresh layouts, asks the latest fit how sure it
-is of each action in every visited state, labels only the most doubtful share (where three
-quarters of the decisive states are), refits on everything labelled so far, and measures the
-fit twice: on the gauge's held-out decisive states and as a shield on the test protocol.
+So each round drives many fresh layouts with go-to-target shielded by the latest fit (the
+states the judgement being improved leads the robot into, as DAgger labels where the learner
+goes), asks the fit how sure it is of each action in every visited state, labels only the most
+doubtful share (where three quarters of the decisive states are), refits on everything labelled
+so far, and measures the fit twice: on the gauge's held-out decisive states and as a shield on
+the test protocol.
 
 Rounds are kept in a folder, one file each, written atomically: a killed run loses at most
 the round under way, and rerunning the command (with more `--rounds`) resumes after the last
@@ -25,7 +27,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -51,6 +53,7 @@ from qnav.lab.probe import (
     doom_network,
     fit_doom,
     network_safety,
+    safe_choice,
     shielded_go_to_target,
     slot_features,
     state_features,
@@ -72,8 +75,11 @@ class DoubtSettings:
 
     SECTION = "doubt"
 
+    driver: Literal["shielded", "go-to-target"] = "shielded"
+    """Who drives each round's episodes: go-to-target shielded by the latest fit (labels where
+    the judgement being improved takes the robot, as DAgger does), or go-to-target alone."""
     episodes_per_round: int = 6000
-    """Go-to-target episodes driven each round (fresh layouts every round)."""
+    """Episodes driven each round (fresh layouts every round)."""
     labelled_share: float = 0.2
     """Share of each round's visited states labelled by the planner: the most doubtful ones."""
     ordinary_share: float = 0.3
@@ -171,8 +177,9 @@ def drive_and_label(
     round_index: int,
     progress: bool = False,
 ) -> LabelledRound:
-    """Round `round_index` (1-based): drive go-to-target through its fresh layouts, keep the most
-    doubtful share of each batch of worlds' visited states, and label those with the planner."""
+    """Round `round_index` (1-based): drive its fresh layouts (`DoubtSettings.driver`), keep the
+    most doubtful share of each batch of worlds' visited states, and label those with the
+    planner."""
     config = replace(world, max_episode_steps=settings.max_episode_steps)
     first = (round_index - 1) * settings.episodes_per_round
     batches = [
@@ -211,7 +218,10 @@ def _label_batch(
         states.append(state)
         inputs.append(state_inputs(world, "slots", state, observation))
         judged.append(safety(state, observation))
-        return go_to_target(observation.target_features())
+        preferred = go_to_target(observation.target_features())
+        return (
+            preferred if settings.driver == "go-to-target" else safe_choice(preferred, judged[-1])
+        )
 
     drive(config, settings.seed, episodes, act)
     visited = concatenate_rows(states)
@@ -274,16 +284,12 @@ class LabelFolder:
         with others would mix labels of different worlds or choices)."""
         written = self.path / "settings.toml"
         if written.exists():
-            before = written.read_text()
-            if before != settings_text:
-                changed = [
-                    line[1:].strip()
-                    for line in difflib.ndiff(before.splitlines(), settings_text.splitlines())
-                    if line.startswith("+ ") and not line[2:].lstrip().startswith("#")
-                ]
+            before, now = _setting_lines(written.read_text()), _setting_lines(settings_text)
+            if before != now:
+                changed = [line[2:] for line in difflib.ndiff(before, now) if line.startswith("+ ")]
                 raise ConfigError(
                     f"{self.path} holds rounds made with other settings ({written}); these "
-                    f"differ: {', '.join(changed) or 'comments'}. Resume with the same "
+                    f"differ: {', '.join(changed) or 'settings removed'}. Resume with the same "
                     "settings or use a new folder"
                 )
             return
@@ -323,6 +329,11 @@ class LabelFolder:
         writer.writerow(RoundReport._fields)
         writer.writerows(reports)
         _write_atomically(self.path / "progress.csv", text.getvalue())
+
+
+def _setting_lines(toml: str) -> list[str]:
+    """The settings of a TOML text, without its comments (which explain, and may be reworded)."""
+    return [line for line in toml.splitlines() if line.strip() and not line.startswith("#")]
 
 
 def _write_atomically(path: Path, text: str) -> None:

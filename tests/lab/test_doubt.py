@@ -166,3 +166,28 @@ def test_the_command_lists_its_settings_and_names_a_wrong_one() -> None:
     wrong = run_qnav("lab", "label", "somewhere", "--probe-set", "doubt.labelled_share=0")
     assert wrong.returncode != 0
     assert "labelled_share" in wrong.stderr
+
+
+def test_a_shielded_round_drives_where_the_judgement_takes_the_robot() -> None:
+    world = scenario("obstacles-increment")
+
+    def only_the_first_action_is_safe(
+        state: WorldState, observation: Observation
+    ) -> NDArray[np.float64]:
+        judged = np.full((len(state.steps), NUM_ACTIONS), 0.2)
+        judged[:, 0] = 0.9
+        return judged
+
+    blind = replace(SMALL, driver="go-to-target")
+    alone = drive_and_label(world, only_the_first_action_is_safe, blind, round_index=1)
+    shielded = drive_and_label(world, only_the_first_action_is_safe, SMALL, round_index=1)
+    # the shield takes the first action wherever go-to-target wanted another: other states
+    assert not np.array_equal(alone.world.pose, shielded.world.pose)
+
+
+def test_reworded_comments_do_not_stop_a_folder_from_resuming(tmp_path: Path) -> None:
+    folder = LabelFolder(tmp_path)
+    folder.claim("# old words\n[doubt]\nseed = 1\n")
+    folder.claim("# new words\n[doubt]\n# more\nseed = 1\n")
+    with pytest.raises(ConfigError, match="seed = 2"):
+        folder.claim("[doubt]\nseed = 2\n")
