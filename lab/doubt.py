@@ -3,7 +3,7 @@
 The probe (`lab.probe`) shows what a doom judgement is worth: exact doom labels lift the blind
 go-to-target controller past the paper's Table I as a shield, and a fitted network gets there
 only as far as its labelled decisive states take it. Labels are dear (the planner's rollouts,
-about 7 ms a state) and decisive states rare (3 % of driven ones), while driving is nearly free.
+about 4 ms a state) and decisive states rare (3 % of driven ones), while driving is nearly free.
 So each round drives many fresh layouts with go-to-target shielded by the latest fit (the
 states the judgement being improved leads the robot into, as DAgger labels where the learner
 goes), asks the fit how sure it is of each action in every visited state, labels only the most
@@ -430,6 +430,7 @@ def _rounds(
             gauge=gauge,
         )
         report = report._replace(round=index, minutes=(time.monotonic() - started) / 60)
+        del reports[index:]  # a report whose fit was lost is replaced, not repeated
         reports.append(report)
         store.write_reports(reports)
         plot_progress(reports, folder / "progress.png", world.name, blind)
