@@ -58,6 +58,7 @@ from qnav.lab.probe import (
     slot_features,
     state_features,
     state_inputs,
+    tracked_safety,
 )
 from qnav.sim import paper
 from qnav.sim.config import WorldConfig
@@ -435,6 +436,43 @@ def _rounds(
         store.write_reports(reports)
         plot_progress(reports, folder / "progress.png", world.name, blind)
         yield report
+
+
+TRACKER_TEST_NOISE_M = 0.02
+"""Range noise of the tracker test's noisy scans (a hobby lidar's, as the tracker's own check)."""
+
+
+class TrackerTest(NamedTuple):
+    """The folder's latest fit shielding go-to-target, from the truth and from the tracker."""
+
+    truth: EvalResult
+    """Its obstacle slots and the robot's velocity from the world's true state."""
+    tracked: EvalResult
+    """The same from the onboard tracker's estimate on exact scans (`lab.probe.tracked_safety`)."""
+    tracked_noisy: EvalResult
+    """The same with `TRACKER_TEST_NOISE_M` of range noise on the scans."""
+
+
+def tracker_test(
+    world: WorldConfig, folder: Path, probe: ProbeSettings, episodes: int
+) -> TrackerTest:
+    """Go-to-target shielded by the folder's latest fit on the first `episodes` test-protocol
+    layouts, the fit seeing the world's truth, then the onboard tracker's estimate (as the
+    car's controller would): does the judgement survive perception?"""
+    if probe.inputs != "slots":
+        raise ConfigError("the tracker test needs probe.inputs = slots (what a car perceives)")
+    fitted_path = folder / "network.pt"
+    if not fitted_path.exists():
+        raise ConfigError(f"{folder} holds no fit yet ({fitted_path}): run a round first")
+    network = doom_network(world, probe.inputs)
+    network.load_state_dict(torch.load(fitted_path))
+    network.eval()
+    protocol = EvalSettings(episodes=episodes)
+    truth, _ = shielded_go_to_target(world, network_safety(world, network, "slots"), protocol)
+    tracked, _ = shielded_go_to_target(world, tracked_safety(world, network), protocol)
+    noisy_safety = tracked_safety(world, network, range_noise_m=TRACKER_TEST_NOISE_M)
+    tracked_noisy, _ = shielded_go_to_target(world, noisy_safety, protocol)
+    return TrackerTest(truth, tracked, tracked_noisy)
 
 
 def _measure(

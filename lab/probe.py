@@ -39,6 +39,7 @@ from qnav.contracts.observation import (
     distance_scale_m,
     encode_frame,
     encode_target,
+    obstacle_features,
 )
 from qnav.contracts.policy_file import CONV_CHANNELS
 from qnav.contracts.settings import check_range
@@ -376,6 +377,51 @@ def safe_choice(
 
 SafeProbability = Callable[[WorldState, Observation], NDArray[np.floating]]
 """Each action's probability of being safe (N, A) in each world."""
+
+
+def tracked_safety(
+    world: WorldConfig, network: torch.nn.Module, range_noise_m: float = 0.0, seed: int = 0
+) -> SafeProbability:
+    """`network_safety` for slot inputs as a car asks it: the robot's velocity and the obstacles'
+    slots come from the onboard tracker (`controller.lookahead.Lookahead`, one per episode, fed
+    the simulated poses and scans, with Gaussian range noise of `range_noise_m` drawn from
+    `seed`), not from the world's truth."""
+    from qnav.controller.lookahead import Lookahead, LookaheadSettings
+    from qnav.controller.perception import TrackerSettings
+    from qnav.tracking import noisy, world_lookahead
+
+    cars: dict[int, Lookahead] = {}
+    max_range_m = distance_scale_m(world.lidar)
+    random = np.random.default_rng(seed)
+
+    def safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
+        assert observation.scan_m is not None  # world_lookahead refuses a world without lidar
+        scans_m = noisy(observation.scan_m, range_noise_m, random)
+        velocity, slots = [], []
+        for row, episode in enumerate(state.episode.tolist()):
+            car = cars.get(episode)
+            if car is None:
+                car = world_lookahead(world, LookaheadSettings(mode="shield"), TrackerSettings())
+                cars[episode] = car
+            time_s = float(state.steps[row]) * world.control_period_s
+            car.observe(time_s, observation.pose[row], time_s, scans_m[row])
+            belief = car.belief(observation.target_xy[row])
+            velocity.append(belief.velocity[0])
+            slots.append(
+                obstacle_features(
+                    belief.pose[0], belief.obstacle_xy[0], belief.obstacle_velocity[0]
+                )
+            )
+        parts = slot_inputs(
+            np.array(velocity),
+            encode_target(observation.target_features(), max_range_m),
+            np.array(slots),
+        )
+        with torch.no_grad():
+            logits = network(*(torch.from_numpy(part) for part in parts))
+        return np.asarray(torch.sigmoid(logits).numpy(), dtype=np.float64)
+
+    return safety
 
 
 def shield_test(

@@ -497,6 +497,13 @@ def build_parser() -> argparse.ArgumentParser:
         "held-out decisive states (gauge.FIELD), e.g. doubt.episodes_per_round=3000 "
         "(repeatable; `--print-config` lists them)",
     )
+    label.add_argument(
+        "--tracker-episodes",
+        type=int,
+        default=0,
+        help="then shield go-to-target with the latest fit on this many test-protocol episodes, "
+        "from the truth and from the onboard tracker's estimate (0: not)",
+    )
     add_print_config(label)
     _flag(label, "--json", "print one JSON object per round")
 

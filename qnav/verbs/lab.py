@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
+from dataclasses import asdict, replace
 from typing import TYPE_CHECKING, Any
 
 from qnav.contracts.errors import ConfigError
@@ -226,6 +226,19 @@ def label(args: argparse.Namespace) -> int:
             f"{report.overruled:.1%}; {report.minutes:.1f} min",
             flush=True,
         )
+    if args.tracker_episodes:
+        from qnav.lab.doubt import TRACKER_TEST_NOISE_M, tracker_test
+
+        test = tracker_test(world, args.folder, probe_settings, args.tracker_episodes)
+        if args.json:
+            print(json.dumps({"tracker_test": {k: asdict(v) for k, v in test._asdict().items()}}))
+        else:
+            print(
+                f"the latest fit shielding go-to-target on {args.tracker_episodes} test-protocol "
+                f"episodes: success {test.truth.success:.3f} from the truth, "
+                f"{test.tracked.success:.3f} from the onboard tracker's estimate, "
+                f"{test.tracked_noisy.success:.3f} with {TRACKER_TEST_NOISE_M} m range noise"
+            )
     return 0
 
 

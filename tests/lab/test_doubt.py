@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from numpy.typing import NDArray
 
 from qnav.contracts.actions import NUM_ACTIONS
@@ -23,8 +24,9 @@ from qnav.lab.doubt import (
     most_doubtful,
     run_rounds,
 )
-from qnav.lab.probe import ProbeSettings
+from qnav.lab.probe import ProbeSettings, network_safety, tracked_safety
 from qnav.sim.config import scenario
+from qnav.sim.evaluate import drive, go_to_target
 from qnav.sim.world import Observation, WorldState
 from tests.command import run_qnav
 
@@ -150,6 +152,12 @@ def test_the_command_prints_a_round_per_line_and_resumes(tmp_path: Path) -> None
     assert first.returncode == 0, first.stderr
     rounds = [json.loads(line) for line in first.stdout.splitlines()]
     assert [row["round"] for row in rounds] == [0, 1]
+    tracked = run_qnav(
+        "lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--tracker-episodes", "2", "--json"
+    )
+    assert tracked.returncode == 0, tracked.stderr
+    test = json.loads(tracked.stdout.splitlines()[-1])["tracker_test"]
+    assert test["truth"]["episodes"] == test["tracked"]["episodes"] == 2
     again = run_qnav("lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--json")
     assert again.returncode == 0, again.stderr
     assert [json.loads(line) for line in again.stdout.splitlines()] == rounds
@@ -191,3 +199,36 @@ def test_reworded_comments_do_not_stop_a_folder_from_resuming(tmp_path: Path) ->
     folder.claim("# new words\n[doubt]\n# more\nseed = 1\n")
     with pytest.raises(ConfigError, match="seed = 2"):
         folder.claim("[doubt]\nseed = 2\n")
+
+
+class _NearestAhead(torch.nn.Module):
+    """Logits that are the nearest obstacle slot's distance ahead: what the network was shown."""
+
+    def forward(self, context: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+        return slots[:, 0, 1:2].expand(-1, NUM_ACTIONS) * 1.0
+
+
+def test_the_tracker_shows_the_fit_the_obstacles_the_truth_shows_it() -> None:
+    world = scenario("obstacles-inertia")
+    network = _NearestAhead()
+    truth = network_safety(world, network, "slots")
+    exact_scans = tracked_safety(world, network)
+    noisy_scans = tracked_safety(world, network, range_noise_m=0.02)
+    seen: list[tuple[NDArray[np.floating], ...]] = []
+
+    def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
+        judged = tuple(
+            safety(state, observation)[:, 0] for safety in (truth, exact_scans, noisy_scans)
+        )
+        if state.steps.min() >= 5:  # the tracker has seen the obstacles move
+            seen.append(judged)
+        return go_to_target(observation.target_features())
+
+    drive(replace(world, max_episode_steps=30), 7, np.arange(4), act)
+    exact, from_exact_scans, from_noisy_scans = (
+        np.concatenate(column) for column in zip(*seen, strict=True)
+    )
+    assert len(exact) > 20
+    # the nearest obstacle, ahead: the tracker finds it where it is, within noise
+    np.testing.assert_allclose(from_exact_scans, exact, atol=1e-3)
+    assert 0 < np.median(np.abs(from_noisy_scans - exact)) < 0.01
