@@ -439,40 +439,73 @@ def _rounds(
 
 
 TRACKER_TEST_NOISE_M = 0.02
-"""Range noise of the tracker test's noisy scans (a hobby lidar's, as the tracker's own check)."""
+"""Range noise of the final test's noisy scans (a hobby lidar's, as the tracker's own check)."""
+
+THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9)
+"""The shield's thresholds the final test chooses among: go-to-target's action is kept where the
+fit's P(safe) exceeds it. A miss (keeping a doomed action) ends the episode, a false alarm costs
+a detour, so a good enough fit wants a threshold above 1/2; how far depends on the fit."""
 
 
-class TrackerTest(NamedTuple):
-    """The folder's latest fit shielding go-to-target, from the truth and from the tracker."""
+class FinalTest(NamedTuple):
+    """The folder's latest fit shielding go-to-target at a threshold chosen on validation
+    layouts, on the test protocol from the truth and from the tracker."""
 
+    validation: dict[float, float]
+    """Success on the validation layouts at each of `THRESHOLDS`."""
+    threshold: float
+    """The best of them there."""
+    half: EvalResult
+    """Test protocol, threshold 1/2, the fit seeing the world's truth (as the rounds measure)."""
     truth: EvalResult
-    """Its obstacle slots and the robot's velocity from the world's true state."""
+    """Test protocol at the chosen threshold, from the world's truth."""
     tracked: EvalResult
     """The same from the onboard tracker's estimate on exact scans (`lab.probe.tracked_safety`)."""
     tracked_noisy: EvalResult
     """The same with `TRACKER_TEST_NOISE_M` of range noise on the scans."""
 
 
-def tracker_test(
-    world: WorldConfig, folder: Path, probe: ProbeSettings, episodes: int
-) -> TrackerTest:
-    """Go-to-target shielded by the folder's latest fit on the first `episodes` test-protocol
-    layouts, the fit seeing the world's truth, then the onboard tracker's estimate (as the
-    car's controller would): does the judgement survive perception?"""
+def final_test(
+    world: WorldConfig,
+    folder: Path,
+    probe: ProbeSettings,
+    settings: DoubtSettings,
+    episodes: int,
+) -> FinalTest:
+    """Go-to-target shielded by the folder's latest fit: the threshold chosen on `episodes`
+    validation layouts (seed `settings.seed + 1`, apart from the rounds' and the test's), then
+    the first `episodes` test-protocol layouts at it, the fit seeing the world's truth, the
+    onboard tracker's estimate (as the car's controller would), and that with noisy scans."""
     if probe.inputs != "slots":
-        raise ConfigError("the tracker test needs probe.inputs = slots (what a car perceives)")
+        raise ConfigError("the final test needs probe.inputs = slots (what a car perceives)")
     fitted_path = folder / "network.pt"
     if not fitted_path.exists():
         raise ConfigError(f"{folder} holds no fit yet ({fitted_path}): run a round first")
     network = doom_network(world, probe.inputs)
     network.load_state_dict(torch.load(fitted_path))
     network.eval()
+    truth = network_safety(world, network, "slots")
+    validation_layouts = EvalSettings(episodes=episodes, seed=settings.seed + 1)
+    validation = {
+        threshold: shielded_go_to_target(world, truth, validation_layouts, threshold)[0].success
+        for threshold in THRESHOLDS
+    }
+    threshold = max(THRESHOLDS, key=lambda t: validation[t])
     protocol = EvalSettings(episodes=episodes)
-    truth, _ = shielded_go_to_target(world, network_safety(world, network, "slots"), protocol)
-    tracked, _ = shielded_go_to_target(world, tracked_safety(world, network), protocol)
-    noisy_safety = tracked_safety(world, network, range_noise_m=TRACKER_TEST_NOISE_M)
-    tracked_noisy, _ = shielded_go_to_target(world, noisy_safety, protocol)
-    return TrackerTest(truth, tracked, tracked_noisy)
+
+    def test(safety: SafeProbability, at: float) -> EvalResult:
+        return shielded_go_to_target(world, safety, protocol, at)[0]
+
+    return FinalTest(
+        validation=validation,
+        threshold=threshold,
+        half=test(truth, 0.5),
+        truth=test(truth, threshold),
+        tracked=test(tracked_safety(world, network), threshold),
+        tracked_noisy=test(
+            tracked_safety(world, network, range_noise_m=TRACKER_TEST_NOISE_M), threshold
+        ),
+    )
 
 
 def _measure(

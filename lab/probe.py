@@ -366,12 +366,14 @@ class ShieldTest(NamedTuple):
 
 
 def safe_choice(
-    preferred: NDArray[np.int64], safe_probability: NDArray[np.floating]
+    preferred: NDArray[np.int64],
+    safe_probability: NDArray[np.floating],
+    threshold: float = 0.5,
 ) -> NDArray[np.int64]:
-    """(N,) go-to-target's action (N,) where it is judged safe (probability (N, A) above 1/2),
-    else the action judged safest."""
+    """(N,) go-to-target's action (N,) where it is judged safe (probability (N, A) above
+    `threshold`), else the action judged safest."""
     rows = np.arange(len(preferred))
-    keep = safe_probability[rows, preferred] > 0.5
+    keep = safe_probability[rows, preferred] > threshold
     return np.where(keep, preferred, safe_probability.argmax(axis=1)).astype(np.int64)
 
 
@@ -477,10 +479,14 @@ def network_safety(world: WorldConfig, network: torch.nn.Module, inputs: str) ->
 
 
 def shielded_go_to_target(
-    world: WorldConfig, safety: SafeProbability | None, protocol: EvalSettings
+    world: WorldConfig,
+    safety: SafeProbability | None,
+    protocol: EvalSettings,
+    threshold: float = 0.5,
 ) -> tuple[EvalResult, float]:
-    """The protocol's episodes driven by go-to-target under `safety`'s shield (None: none), and
-    the share of decisions it overruled."""
+    """The protocol's episodes driven by go-to-target under `safety`'s shield (None: none;
+    go-to-target's action kept where judged safe above `threshold`), and the share of decisions
+    it overruled."""
     decisions = overruled = 0
 
     def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
@@ -488,7 +494,7 @@ def shielded_go_to_target(
         preferred = go_to_target(observation.target_features())
         if safety is None:
             return preferred
-        chosen = safe_choice(preferred, safety(state, observation))
+        chosen = safe_choice(preferred, safety(state, observation), threshold)
         decisions += chosen.size
         overruled += int((chosen != preferred).sum())
         return chosen

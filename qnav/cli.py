@@ -498,11 +498,12 @@ def build_parser() -> argparse.ArgumentParser:
         "(repeatable; `--print-config` lists them)",
     )
     label.add_argument(
-        "--tracker-episodes",
+        "--test-episodes",
         type=int,
         default=0,
-        help="then shield go-to-target with the latest fit on this many test-protocol episodes, "
-        "from the truth and from the onboard tracker's estimate (0: not)",
+        help="then test the latest fit as a shield: its threshold chosen on this many validation "
+        "episodes, then as many test-protocol episodes from the truth and from the onboard "
+        "tracker's estimate (0: not)",
     )
     add_print_config(label)
     _flag(label, "--json", "print one JSON object per round")

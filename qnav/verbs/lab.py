@@ -226,18 +226,36 @@ def label(args: argparse.Namespace) -> int:
             f"{report.overruled:.1%}; {report.minutes:.1f} min",
             flush=True,
         )
-    if args.tracker_episodes:
-        from qnav.lab.doubt import TRACKER_TEST_NOISE_M, tracker_test
+    if args.test_episodes:
+        from qnav.lab.doubt import TRACKER_TEST_NOISE_M, final_test
 
-        test = tracker_test(world, args.folder, probe_settings, args.tracker_episodes)
+        test = final_test(world, args.folder, probe_settings, doubt, args.test_episodes)
+        results = {
+            name: asdict(value)
+            for name, value in test._asdict().items()
+            if name not in ("validation", "threshold")
+        }
         if args.json:
-            print(json.dumps({"tracker_test": {k: asdict(v) for k, v in test._asdict().items()}}))
-        else:
             print(
-                f"the latest fit shielding go-to-target on {args.tracker_episodes} test-protocol "
-                f"episodes: success {test.truth.success:.3f} from the truth, "
-                f"{test.tracked.success:.3f} from the onboard tracker's estimate, "
-                f"{test.tracked_noisy.success:.3f} with {TRACKER_TEST_NOISE_M} m range noise"
+                json.dumps(
+                    {
+                        "final_test": {
+                            "validation": test.validation,
+                            "threshold": test.threshold,
+                            **results,
+                        }
+                    }
+                )
+            )
+        else:
+            chosen = ", ".join(f"{t}: {s:.3f}" for t, s in test.validation.items())
+            print(
+                f"the latest fit shielding go-to-target, {args.test_episodes} episodes each: "
+                f"validation success by threshold {chosen}; chosen {test.threshold}\n"
+                f"  test protocol: {test.half.success:.3f} at 0.5; at {test.threshold}: "
+                f"{test.truth.success:.3f} from the truth, {test.tracked.success:.3f} from the "
+                f"onboard tracker's estimate, {test.tracked_noisy.success:.3f} with "
+                f"{TRACKER_TEST_NOISE_M} m range noise"
             )
     return 0
 

@@ -152,12 +152,15 @@ def test_the_command_prints_a_round_per_line_and_resumes(tmp_path: Path) -> None
     assert first.returncode == 0, first.stderr
     rounds = [json.loads(line) for line in first.stdout.splitlines()]
     assert [row["round"] for row in rounds] == [0, 1]
-    tracked = run_qnav(
-        "lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--tracker-episodes", "2", "--json"
+    tested = run_qnav(
+        "lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--test-episodes", "2", "--json"
     )
-    assert tracked.returncode == 0, tracked.stderr
-    test = json.loads(tracked.stdout.splitlines()[-1])["tracker_test"]
-    assert test["truth"]["episodes"] == test["tracked"]["episodes"] == 2
+    assert tested.returncode == 0, tested.stderr
+    test = json.loads(tested.stdout.splitlines()[-1])["final_test"]
+    assert test["threshold"] in (0.5, 0.6, 0.7, 0.8, 0.9)
+    assert test["validation"][str(test["threshold"])] == max(test["validation"].values())
+    for result in ("half", "truth", "tracked", "tracked_noisy"):
+        assert test[result]["episodes"] == 2
     again = run_qnav("lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--json")
     assert again.returncode == 0, again.stderr
     assert [json.loads(line) for line in again.stdout.splitlines()] == rounds

@@ -77,6 +77,8 @@ def test_a_shield_keeps_go_to_targets_action_where_judged_safe_else_takes_the_sa
         ]
     )
     np.testing.assert_array_equal(safe_choice(preferred, safe), [0, 2, 2, 0])
+    # a stricter shield keeps go-to-target's action only where surer of it
+    np.testing.assert_array_equal(safe_choice(preferred, safe, threshold=0.8), [0, 2, 1, 0])
 
 
 class _TrustsEveryAction(torch.nn.Module):
