@@ -14,6 +14,7 @@ from qnav.options import config_text, settings_from_args
 from qnav.sim.config import WorldConfig, load_world
 
 if TYPE_CHECKING:
+    from qnav.lab.doubt import FinalTest
     from qnav.lab.imitate import ImitationResult
     from qnav.lab.imitation_settings import ImitationSettings
     from qnav.lab.probe import PerceptionSettings, ShieldTest
@@ -188,8 +189,11 @@ def label(args: argparse.Namespace) -> int:
     from qnav.lab.decisive import GaugeSettings
     from qnav.lab.doubt import LABEL_PROBE, DoubtSettings, run_rounds
 
-    if args.rounds < 0:
-        raise ConfigError(f"--rounds must be 0 or more, not {args.rounds}")
+    if args.rounds < 0 or args.test_episodes < 0:
+        raise ConfigError(
+            f"--rounds and --test-episodes must be 0 or more, not {args.rounds} and "
+            f"{args.test_episodes}"
+        )
     probe_settings, doubt, gauge = _probe_set(
         args.probe_assignments, LABEL_PROBE, DoubtSettings(), GaugeSettings()
     )
@@ -227,37 +231,45 @@ def label(args: argparse.Namespace) -> int:
             flush=True,
         )
     if args.test_episodes:
-        from qnav.lab.doubt import TRACKER_TEST_NOISE_M, final_test
+        from qnav.lab.doubt import final_test
 
         test = final_test(world, args.folder, probe_settings, doubt, args.test_episodes)
+        _print_final_test(test, args.test_episodes, args.json)
+    return 0
+
+
+def _print_final_test(test: FinalTest, episodes: int, as_json: bool) -> None:
+    """The label folder's final test: the threshold chosen on validation layouts, and success on
+    the test protocol from the truth, the tracker, and noisy scans."""
+    from qnav.lab.doubt import TRACKER_TEST_NOISE_M
+
+    if as_json:
         results = {
             name: asdict(value)
             for name, value in test._asdict().items()
             if name not in ("validation", "threshold")
         }
-        if args.json:
-            print(
-                json.dumps(
-                    {
-                        "final_test": {
-                            "validation": test.validation,
-                            "threshold": test.threshold,
-                            **results,
-                        }
+        print(
+            json.dumps(
+                {
+                    "final_test": {
+                        "validation": test.validation,
+                        "threshold": test.threshold,
+                        **results,
                     }
-                )
+                }
             )
-        else:
-            chosen = ", ".join(f"{t}: {s:.3f}" for t, s in test.validation.items())
-            print(
-                f"the latest fit shielding go-to-target, {args.test_episodes} episodes each: "
-                f"validation success by threshold {chosen}; chosen {test.threshold}\n"
-                f"  test protocol: {test.half.success:.3f} at 0.5; at {test.threshold}: "
-                f"{test.truth.success:.3f} from the truth, {test.tracked.success:.3f} from the "
-                f"onboard tracker's estimate, {test.tracked_noisy.success:.3f} with "
-                f"{TRACKER_TEST_NOISE_M} m range noise"
-            )
-    return 0
+        )
+        return
+    chosen = ", ".join(f"{t}: {s:.3f}" for t, s in test.validation.items())
+    print(
+        f"the latest fit shielding go-to-target, {episodes} episodes each: validation success by "
+        f"threshold {chosen}; chosen {test.threshold}\n"
+        f"  test protocol: {test.half.success:.3f} at 0.5; at {test.threshold}: "
+        f"{test.truth.success:.3f} from the truth, {test.tracked.success:.3f} from the onboard "
+        f"tracker's estimate, {test.tracked_noisy.success:.3f} with {TRACKER_TEST_NOISE_M} m "
+        "range noise"
+    )
 
 
 def _print_shield_test(test: ShieldTest, as_json: bool) -> None:
