@@ -400,7 +400,10 @@ def tracked_safety(
         assert observation.scan_m is not None  # world_lookahead refuses a world without lidar
         scans_m = noisy(observation.scan_m, range_noise_m, random)
         velocity, slots = [], []
-        for row, episode in enumerate(state.episode.tolist()):
+        running = state.episode.tolist()
+        for ended in cars.keys() - set(running):  # drive drops the worlds whose episode ended
+            del cars[ended]
+        for row, episode in enumerate(running):
             car = cars.get(episode)
             if car is None:
                 car = world_lookahead(world, LookaheadSettings(mode="shield"), TrackerSettings())
