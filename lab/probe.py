@@ -422,9 +422,7 @@ def tracked_safety(
             encode_target(observation.target_features(), max_range_m),
             np.array(slots),
         )
-        with torch.no_grad():
-            logits = network(*(torch.from_numpy(part) for part in parts))
-        return np.asarray(torch.sigmoid(logits).numpy(), dtype=np.float64)
+        return judged_safe(network, parts)
 
     return safety
 
@@ -469,14 +467,20 @@ def state_inputs(
     )
 
 
+def judged_safe(
+    network: torch.nn.Module, parts: tuple[NDArray[np.float32], ...]
+) -> NDArray[np.float64]:
+    """(N, A) the fitted network's probabilities that each action is safe, given its inputs."""
+    with torch.no_grad():
+        logits = network(*(torch.from_numpy(part) for part in parts))
+    return np.asarray(torch.sigmoid(logits).numpy(), dtype=np.float64)
+
+
 def network_safety(world: WorldConfig, network: torch.nn.Module, inputs: str) -> SafeProbability:
     """The fitted network's probabilities that each action is safe, as a shield asks them."""
 
     def safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
-        parts = state_inputs(world, inputs, state, observation)
-        with torch.no_grad():
-            logits = network(*(torch.from_numpy(part) for part in parts))
-        return np.asarray(torch.sigmoid(logits).numpy(), dtype=np.float64)
+        return judged_safe(network, state_inputs(world, inputs, state, observation))
 
     return safety
 
