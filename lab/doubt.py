@@ -27,7 +27,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, get_type_hints
 
 import numpy as np
 import torch
@@ -52,10 +52,11 @@ from qnav.lab.probe import (
     decisive_only,
     doom_network,
     fit_doom,
+    judged_safe,
+    labelled_features,
     network_safety,
     safe_choice,
     shielded_go_to_target,
-    slot_features,
     state_features,
     state_inputs,
     tracked_safety,
@@ -256,7 +257,7 @@ def training_set(
     """The probe's labelled set (collected as `base_set` says) and, from each round, its
     decisive states and a seeded `ordinary_share` of the others."""
     base = cached(world, base_set)
-    parts = [_features(world, probe, base)]
+    parts = [labelled_features(world, probe.inputs, base)]
     shares: list[NDArray[np.floating]] = [base.collide_share]
     for index, labelled in enumerate(rounds, start=1):
         decisive = is_decisive(labelled.collide_share == 1.0)
@@ -313,13 +314,9 @@ class LabelFolder:
         if not path.exists():
             return []
         with path.open() as file:
+            kinds = get_type_hints(RoundReport)  # each column read back as its field's type
             return [
-                RoundReport(
-                    *(
-                        kind(row[name])
-                        for name, kind in zip(RoundReport._fields, _REPORT_KINDS, strict=True)
-                    )
-                )
+                RoundReport._make(kinds[name](row[name]) for name in RoundReport._fields)
                 for row in csv.DictReader(file)
             ]
 
@@ -341,9 +338,6 @@ def _write_atomically(path: Path, text: str) -> None:
     partial = path.with_suffix(path.suffix + ".partial")
     partial.write_text(text)
     partial.replace(path)
-
-
-_REPORT_KINDS = (int, int, int, int, int, int, float, float, float, float, float, float)
 
 
 def run_rounds(
@@ -522,9 +516,8 @@ def _measure(
     """The fit's gauge and shielded success, with the round's sizes (minutes left 0); for
     round 0 (`fresh` None) the sizes of the probe's labelled set, every visited state of
     which was labelled."""
-    with torch.no_grad():
-        logits = network(*(torch.from_numpy(part) for part in _features(world, probe, held_out)))
-    judged = score(held_out, np.asarray(logits.argmax(dim=1).numpy(), dtype=np.int64))
+    safest = judged_safe(network, labelled_features(world, probe.inputs, held_out)).argmax(axis=1)
+    judged = score(held_out, safest)
     if fresh is None:
         base = cached(world, probe.labelled_set(gauge))
         visited = labelled = int(base.visited.sum())
@@ -552,14 +545,6 @@ def _measure(
         overruled=overruled,
         minutes=0.0,
     )
-
-
-def _features(
-    world: WorldConfig, probe: ProbeSettings, states: DecisiveStates
-) -> tuple[NDArray[np.float32], ...]:
-    if probe.inputs == "state":
-        return state_features(states.world, world.arena.size_m)
-    return slot_features(states)
 
 
 def plot_progress(

@@ -181,6 +181,16 @@ def slot_features(states: DecisiveStates) -> tuple[NDArray[np.float32], ...]:
     )
 
 
+def labelled_features(
+    world: WorldConfig, inputs: str, states: DecisiveStates
+) -> tuple[NDArray[np.float32], ...]:
+    """What a doom network with `ProbeSettings.inputs` "state" or "slots" sees in a labelled
+    set's states (`state_inputs` for worlds being driven)."""
+    if inputs == "state":
+        return state_features(states.world, world.arena.size_m)
+    return slot_features(states)
+
+
 def slot_inputs(
     velocity: NDArray[np.floating],
     encoded_target: NDArray[np.floating],
@@ -310,11 +320,7 @@ def probe(
 
     def inputs(states: DecisiveStates) -> tuple[torch.Tensor, ...]:
         if settings.inputs != "lidar":
-            features = (
-                state_features(states.world, world.arena.size_m)
-                if settings.inputs == "state"
-                else slot_features(states)
-            )
+            features = labelled_features(world, settings.inputs, states)
             return tuple(torch.from_numpy(part) for part in features)
         return (torch.from_numpy(states.windows),)
 
