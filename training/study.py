@@ -623,12 +623,14 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         "protocol: greedy policy, 200 episodes of up to 500 steps. Paper values beside ours.",
         "",
         f"Status: {len(_study_runs(results))} of "
-        f"{len(plan())} study runs finished. Known gap: moving obstacles. The obstacle tables "
-        "below were measured in the world before 2026-12-03 (obstacle radius 0.4 m, where even "
-        "the oracle planner reached only 0.78 in obstacles-inertia); the world was re-pinned "
-        "to every number the paper gives (docs/simulator.md) and their runs are due again. In "
-        "the new world the paper's method still stops at the blind controller's level "
-        "(docs/learner.md, 'The re-pinned obstacle world').",
+        f"{len(plan())} study runs finished. Known gap: moving obstacles. The world was "
+        "re-pinned on 2026-12-03 to every number the paper gives (docs/simulator.md; the "
+        "obstacle radius went from 0.4 to 0.2 m), so the obstacle runs of the world before "
+        "it left these tables for results/world-before-2026-12-03/ (there even the oracle "
+        "planner reached only 0.78 in obstacles-inertia) and run again; the rows below hold "
+        "the runs of the new world finished so far. There the paper's method still stops "
+        "near the blind go-to-target controller's level (0.671 in obstacles-inertia, 0.660 in "
+        "obstacles-increment; docs/learner.md, 'The re-pinned obstacle world').",
         "",
         *_goal_lines(results),
     ]
@@ -699,8 +701,7 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         + ". Figures per run, in seed order; test success is the mean. '-' = never reached "
         "within the run. The obstacles-inertia rows were rerun in the re-pinned world "
         "(2026-12-04), where the blind go-to-target controller scores 0.671 (`qnav eval "
-        "--scenario obstacles-inertia --agent goto --episodes 1000`); the obstacle tables "
-        "above were not.",
+        "--scenario obstacles-inertia --agent goto --episodes 1000`).",
         "",
         _row(
             "scenario",
