@@ -226,6 +226,7 @@ def _finish(
         "first_reached": {
             str(level): first_reached(state.history, level) for level in REACHED_LEVELS
         },
+        "decisive": shipped_gauge(state.history, settings.keep_best),
         "collect_s": round(state.collect_s, 1),
         "train_s": round(state.train_s, 1),
         "eval_s": round(state.eval_s + time.perf_counter() - started, 1),
@@ -241,6 +242,22 @@ def first_reached(history: list[dict[str, float]], level: float) -> dict[str, fl
         if row.get("eval_success", -1.0) >= level:
             return {k: row[k] for k in ("episodes", "iterations", "wall_s")}
     return None
+
+
+def shipped_gauge(history: list[dict[str, float]], keep_best: bool) -> dict[str, float] | None:
+    """The decisive-state gauge of the network a run ships: the last validation's, or with
+    `keep_best` the best one's (the last of equals, as `save_best` keeps it); None where that
+    validation had no gauge (walls-only worlds) or there was none."""
+    validated = [row for row in history if "eval_success" in row]
+    if not validated:
+        return None
+    shipped = validated[-1]
+    if keep_best:
+        best = max(row["eval_success"] for row in validated)
+        shipped = [row for row in validated if row["eval_success"] == best][-1]
+    if "decisive_safe" not in shipped:
+        return None
+    return {"safe": shipped["decisive_safe"], "balanced": shipped["decisive_balanced"]}
 
 
 def _crossed(every: int, episodes: int, added: int) -> bool:

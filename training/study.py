@@ -44,6 +44,19 @@ CROSS = {
 
 
 @dataclass(frozen=True)
+class References:
+    """A scenario's reference agents, each as a test result (success, collision, unfinished and
+    episodes, as `qnav eval --json` gives them)."""
+
+    random: dict[str, float]
+    """A uniformly random action at every step (the paper's Random row)."""
+    blind: dict[str, float] | None = None
+    """The go-to-target controller, blind to obstacles, on the test layouts."""
+    oracle: dict[str, float] | None = None
+    """The planner that knows the obstacles' future, on the test layouts (obstacle worlds)."""
+
+
+@dataclass(frozen=True)
 class RunSpec:
     """One training run of the study."""
 
@@ -533,6 +546,12 @@ SUCCESS_GOALS = {
     "walls-increment": 0.995,
     "obstacles-increment": 0.80,
 }
+RECURRENT_MARGIN = {"obstacles-inertia": 0.1, "obstacles-increment": 0.1}
+"""How much the recurrent agent's mean success must exceed the feedforward one's, by scenario
+(issue 19; the paper: +0.41 and +0.44); elsewhere it must only be higher."""
+HEADROOM_GOAL = 0.8
+"""Share of the room above the blind controller, (success - blind) / (oracle - blind), the
+recurrent agent must take in each obstacle scenario."""
 WALLS_LEARNED_WITHIN_EPISODES = 200
 """Walls-only worlds must reach 0.99 validation success within this many training episodes."""
 MINUTES_PER_RUN_LIMIT = {"walls": 10.0, "obstacles": 30.0}
@@ -551,8 +570,20 @@ def _verdict(met: bool) -> str:
     return "met" if met else "**not met**"
 
 
-def _goal_lines(results: dict[str, dict[str, Any]]) -> list[str]:
-    """The issue's goals, each with what the finished runs reach."""
+def _mean_success(runs: list[dict[str, Any]]) -> float:
+    return float(np.mean([r["test"]["success"] for r in runs]))
+
+
+def headroom_taken(success: float, blind: float, oracle: float) -> float:
+    """Share of the room the world leaves above the blind controller that `success` takes:
+    (success - blind) / (oracle - blind); 0 at the blind controller's level, 1 at the oracle's."""
+    if oracle <= blind:
+        raise ValueError(f"no room above the blind controller: oracle {oracle} <= blind {blind}")
+    return (success - blind) / (oracle - blind)
+
+
+def _goal_lines(results: dict[str, dict[str, Any]], references: dict[str, References]) -> list[str]:
+    """The issues' goals, each with what the finished runs reach."""
     lines = [
         "## Goals",
         "",
@@ -568,21 +599,38 @@ def _goal_lines(results: dict[str, dict[str, Any]]) -> list[str]:
         if not runs:
             lines.append(_row(label, "not run yet", 0, ""))
             continue
-        mean = float(np.mean([r["test"]["success"] for r in runs]))
+        mean = _mean_success(runs)
         lines.append(_row(label, f"{mean:.3f}", len(runs), _verdict(mean >= goal)))
     for scenario in SCENARIOS:
         recurrent, feedforward = (_runs(results, scenario, m) for m in MODELS)
-        label = f"Table {paper.TABLES[scenario]}: recurrent beats feedforward"
+        margin = RECURRENT_MARGIN.get(scenario, 0.0)
+        label = f"Table {paper.TABLES[scenario]}: recurrent beats feedforward" + (
+            f" by >= {margin:g}" if margin else ""
+        )
         if not recurrent or not feedforward:
             lines.append(_row(label, "not run yet", f"{len(recurrent)} + {len(feedforward)}", ""))
             continue
-        ours = [
-            float(np.mean([r["test"]["success"] for r in runs]))
-            for runs in (recurrent, feedforward)
-        ]
+        ours = _mean_success(recurrent), _mean_success(feedforward)
+        met = ours[0] - ours[1] >= margin if margin else ours[0] > ours[1]
         lines.append(
             _row(label, f"{ours[0]:.3f} vs {ours[1]:.3f}", f"{len(recurrent)} + {len(feedforward)}",
-                 _verdict(ours[0] > ours[1]) if ours[0] < 1 else "met (recurrent 1.0)")
+                 _verdict(met) if ours[0] < 1 else "met (recurrent 1.0)")
+        )  # fmt: skip
+    for scenario in RECURRENT_MARGIN:
+        runs = _runs(results, scenario, "recurrent")
+        bounds = references.get(scenario)
+        label = (
+            f"Table {paper.TABLES[scenario]}: recurrent takes >= {HEADROOM_GOAL:g} of the "
+            "headroom, (success - blind) / (oracle - blind)"
+        )
+        if not runs or bounds is None or bounds.blind is None or bounds.oracle is None:
+            lines.append(_row(label, "not run yet", len(runs), ""))
+            continue
+        blind, oracle = bounds.blind["success"], bounds.oracle["success"]
+        taken = headroom_taken(_mean_success(runs), blind, oracle)
+        lines.append(
+            _row(label, f"{taken:.2f} (blind {blind:.3f}, oracle {oracle:.3f})", len(runs),
+                 _verdict(taken >= HEADROOM_GOAL))
         )  # fmt: skip
     walls = [
         r
@@ -610,7 +658,43 @@ def _goal_lines(results: dict[str, dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
-def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]]) -> str:
+def _reference_rows(scenario: str, bounds: References | None) -> list[str]:
+    """The reference agents' rows of a scenario's table (none measured: none shown)."""
+    if bounds is None:
+        return []
+    rows = []
+    for agent, result, quoted in (
+        ("Random", bounds.random, " / ".join(str(v) for v in paper.RANDOM[scenario])),
+        ("Go-to-target (blind)", bounds.blind, ""),
+        ("Oracle planner", bounds.oracle, ""),
+    ):
+        if result is not None:
+            rows.append(
+                _row(agent, f"{int(result['episodes'])} episodes",
+                     *(f"{result[k]:.3f}" for k in ("success", "collision", "unfinished")), quoted)
+            )  # fmt: skip
+    return rows
+
+
+def _gauge_line(results: dict[str, dict[str, Any]], scenario: str) -> list[str]:
+    """The decisive-state gauge of the shipped networks, per model (runs that recorded it)."""
+    cells = []
+    for model in MODELS:
+        judged = [r["decisive"] for r in _runs(results, scenario, model) if r.get("decisive")]
+        if judged:
+            safe, balanced = (np.mean([j[k] for j in judged]) for k in ("safe", "balanced"))
+            cells.append(f"{model} {safe:.3f} / {balanced:.3f} (n = {len(judged)})")
+    if not cells:
+        return []
+    return [
+        "",
+        "Decisive-state gauge of the shipped networks (docs/learner.md): the share of decisive "
+        "states where the greedy action is safe / that share balanced over the doom patterns, "
+        "0.5 for any choice blind to the scan: " + "; ".join(cells) + ".",
+    ]
+
+
+def results_markdown(results_root: Path, references: dict[str, References]) -> str:
     """docs/results.md: our tables beside the paper's."""
     results = _load(results_root)
     header = _row("agent", "n", "success", "collision", "unfinished", "paper s / c / u")
@@ -620,33 +704,25 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
         "",
         "Generated by `qnav reproduce` from `results/*.json` (one file per training run). Each",
         "figure is the mean +- std over the seeds that have finished (n), under the paper's test",
-        "protocol: greedy policy, 200 episodes of up to 500 steps. Paper values beside ours.",
+        "protocol: greedy policy, 200 episodes of up to 500 steps. Paper values beside ours. The",
+        "reference agents: Random over 1000 episodes; the blind go-to-target controller and the",
+        "oracle planner that knows the obstacles' future (`lab.oracle`) on the agents' own 200",
+        "test layouts.",
         "",
         f"Status: {len(_study_runs(results))} of "
         f"{len(plan())} study runs finished. Known gap: moving obstacles. The world was "
         "re-pinned on 2026-12-03 to every number the paper gives (docs/simulator.md; the "
         "obstacle radius went from 0.4 to 0.2 m), so the obstacle runs of the world before "
         "it left these tables for results/world-before-2026-12-03/ (there even the oracle "
-        "planner reached only 0.78 in obstacles-inertia) and run again; the rows below hold "
-        "the runs of the new world finished so far. There the paper's method still stops "
-        "near the blind go-to-target controller's level (0.671 in obstacles-inertia, 0.660 in "
-        "obstacles-increment; docs/learner.md, 'The re-pinned obstacle world').",
+        "planner reached only 0.78 in obstacles-inertia) and run again. In the new world the "
+        "paper's method stops near the blind go-to-target controller's level (the Go-to-target "
+        "rows; docs/learner.md, 'The re-pinned obstacle world').",
         "",
-        *_goal_lines(results),
+        *_goal_lines(results, references),
     ]
     for scenario in SCENARIOS:
         lines += [f"## Table {paper.TABLES[scenario]}: {scenario}", "", header, rule]
-        ours = random_rows.get(scenario)
-        if ours:
-            theirs = " / ".join(str(v) for v in paper.RANDOM[scenario])
-            lines.append(
-                _row(
-                    "Random",
-                    "1000 episodes",
-                    *(f"{ours[k]:.3f}" for k in ("success", "collision", "unfinished")),
-                    theirs,
-                )
-            )
+        lines += _reference_rows(scenario, references.get(scenario))
         for model, reference in (
             ("feedforward", paper.FEEDFORWARD),
             ("recurrent", paper.RECURRENT),
@@ -667,7 +743,7 @@ def results_markdown(results_root: Path, random_rows: dict[str, dict[str, float]
                     "",
                 )
             )
-        lines.append("")
+        lines += [*_gauge_line(results, scenario), ""]
     lines += [
         "## Generalisation and random test actions",
         "",

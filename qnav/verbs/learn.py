@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -12,11 +12,11 @@ from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import load_toml, with_overrides
 from qnav.options import config_text, settings_from_args
 from qnav.sim.config import WorldConfig, load_world
-from qnav.sim.evaluate import EvalSettings, RandomAgent
+from qnav.sim.evaluate import EvalResult, EvalSettings, GoToTargetAgent, RandomAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
 
 if TYPE_CHECKING:
-    from qnav.training.study import Engine, RunSpec, StudySettings
+    from qnav.training.study import Engine, References, RunSpec, StudySettings
 
 
 def train(args: argparse.Namespace) -> int:
@@ -110,19 +110,33 @@ def reproduce(args: argparse.Namespace) -> int:
         specs += [s for s in ablation_plan(ablation_seeds) if s.scenario in scenarios]
     if not args.tables_only:
         _run_study(args, specs)
-    random_rows = {}
-    for name in paper.RANDOM:
-        result = run_evaluation(
-            scenario(name),
-            RandomAgent(250, seed=1),
-            EvalSettings(episodes=1000, num_worlds=250),
-            progress=False,
-        )
-        random_rows[name] = asdict(result)
+    references = {name: _references(scenario(name)) for name in paper.RANDOM}
     args.docs.parent.mkdir(parents=True, exist_ok=True)
-    args.docs.write_text(results_markdown(args.results_dir, random_rows))
+    args.docs.write_text(results_markdown(args.results_dir, references))
     print(f"wrote {args.docs}")
     return 0
+
+
+def _references(world: WorldConfig) -> References:
+    """The reference agents of a scenario's table: Random over 1000 episodes; the blind
+    go-to-target controller and, where obstacles move, the oracle planner on the test layouts
+    (the agents' own, so each agent is compared layout for layout)."""
+    from qnav.lab.oracle import run_oracle
+    from qnav.training.study import References
+
+    def fractions(result: EvalResult) -> dict[str, float]:
+        return {k: v for k, v in asdict(result).items() if k != "mean_steps"}
+
+    random = run_evaluation(
+        world, RandomAgent(250, seed=1), EvalSettings(episodes=1000, num_worlds=250), progress=False
+    )
+    test = EvalSettings()
+    blind = run_evaluation(world, GoToTargetAgent(), test, progress=False)
+    # The planner is slow: 50 worlds at a time keep its batches small (same layouts).
+    oracle = run_oracle(world, replace(test, num_worlds=50)) if world.obstacles.count else None
+    return References(
+        fractions(random), fractions(blind), None if oracle is None else fractions(oracle)
+    )
 
 
 def _study_axes(

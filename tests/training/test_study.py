@@ -6,7 +6,9 @@ import pytest
 from qnav.contracts.errors import ConfigError
 from qnav.training.study import (
     MODELS,
+    References,
     RunSpec,
+    headroom_taken,
     parse_choices,
     parse_seeds,
     plan,
@@ -119,3 +121,42 @@ def test_ablation_runs_stay_out_of_the_tables_and_fill_only_the_ablation_rows(
     assert "| walls-increment | paper | 1 | 16 | 1.0 | 24 | 1.5 | 0.500 |" in text
     assert "| walls-increment | none | 1 | 16 | 1.0 | 24 | 1.5 | 0.250 |" in text
     assert "Status: 0 of 40" in text
+
+
+def _fractions(success: float, episodes: int = 200) -> dict[str, float]:
+    return {"success": success, "collision": 1 - success, "unfinished": 0.0, "episodes": episodes}
+
+
+def test_obstacle_goals_ask_a_margin_over_feedforward_and_a_share_of_the_headroom(
+    tmp_path: Path,
+) -> None:
+    gauge = {"safe": 0.6, "balanced": 0.5}
+    for model, successes in (("recurrent", (0.70, 0.72)), ("feedforward", (0.65, 0.65))):
+        for seed, success in enumerate(successes):
+            spec = RunSpec("obstacles-inertia", model, seed)
+            (tmp_path / f"{spec.name}.json").write_text(
+                json.dumps(_result(spec, success, decisive=gauge))
+            )
+    bounds = References(_fractions(0.05, 1000), blind=_fractions(0.65), oracle=_fractions(0.93))
+    text = results_markdown(tmp_path, {"obstacles-inertia": bounds})
+    assert (
+        "| Table I: recurrent beats feedforward by >= 0.1 | 0.710 vs 0.650 | 2 + 2 | **not met** |"
+        in text
+    )
+    assert (
+        "| Table I: recurrent takes >= 0.8 of the headroom, (success - blind) / (oracle - blind) "
+        "| 0.21 (blind 0.650, oracle 0.930) | 2 | **not met** |" in text
+    )
+    assert "| Table III: recurrent beats feedforward | not run yet |" in text  # no margin asked
+    table = text.split("## Table I:")[1].split("##")[0]
+    assert "| Go-to-target (blind) | 200 episodes | 0.650 | 0.350 | 0.000 |  |" in table
+    assert "| Oracle planner | 200 episodes | 0.930 |" in table
+    assert "| Random | 1000 episodes | 0.050 |" in table
+    assert "recurrent 0.600 / 0.500 (n = 2); feedforward 0.600 / 0.500 (n = 2)" in table
+
+
+def test_headroom_is_zero_at_the_blind_controller_one_at_the_oracle_and_needs_room() -> None:
+    assert headroom_taken(0.65, 0.65, 0.93) == 0.0
+    assert headroom_taken(0.93, 0.65, 0.93) == 1.0
+    with pytest.raises(ValueError, match="no room"):
+        headroom_taken(0.9, 0.95, 0.95)
