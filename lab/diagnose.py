@@ -10,7 +10,10 @@
 - **Target sensitivity.** How much of the LSTM's gate input comes from the target features
   against the lidar features, and whether the greedy action follows the target's bearing on
   fixed scans (the share of probe scans on which it turns towards the target).
-- **Action mix** of the greedy policy in test episodes, with its outcome.
+- **Action mix** of the greedy policy in the test episodes, with its success, and layout for
+  layout against the blind go-to-target controller: how many layouts it completes that the
+  blind controller does not, and the reverse (a learner that only seeks the target differs on
+  few, and gains nothing on them).
 - **Decisive states** (obstacle worlds): the share of the gauge's decisive states
   (`lab.decisive`) where the greedy action is safe, beside what a random choice and the blind
   go-to-target controller score there.
@@ -28,6 +31,7 @@ from numpy.typing import NDArray
 from torch.nn import functional
 
 from qnav.contracts.actions import NUM_ACTIONS, Action
+from qnav.contracts.motion import Outcome
 from qnav.contracts.observation import distance_scale_m, encode_frame, encode_scan
 from qnav.contracts.policy_file import CONV_CHANNELS
 from qnav.lab.decisive import (
@@ -39,7 +43,7 @@ from qnav.lab.decisive import (
 )
 from qnav.lab.gauge import decisive_states
 from qnav.sim.config import WorldConfig
-from qnav.sim.evaluate import EvalSettings, evaluate
+from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, episode_outcomes
 from qnav.sim.world import Observation, observe, reset
 from qnav.training.agent import TorchAgent, greedy_actions, policy_agent
 from qnav.training.algorithm import bootstrap_windows, double_dqn_target
@@ -100,6 +104,29 @@ def decisive_report(network: QNetwork, states: DecisiveStates) -> DecisiveReport
 
 
 @dataclass(frozen=True)
+class AgainstBlind:
+    """The greedy policy against the blind go-to-target controller on the same test layouts."""
+
+    layouts: int
+    """Test layouts both drove."""
+    saved: int
+    """Layouts the policy completes and the blind controller does not."""
+    lost: int
+    """Layouts the blind controller completes and the policy does not."""
+    blind_success: float
+    """The blind controller's success on them."""
+
+    def render(self) -> str:
+        """One line for the terminal."""
+        same = 1 - (self.saved + self.lost) / self.layouts
+        return (
+            f"against the blind go-to-target controller ({self.blind_success:.3f}) on the same "
+            f"{self.layouts} test layouts: same outcome on {same:.0%}, completes {self.saved} it "
+            f"does not, fails {self.lost} it completes"
+        )
+
+
+@dataclass(frozen=True)
 class Diagnosis:
     """What `diagnose` measured on one run."""
 
@@ -120,6 +147,8 @@ class Diagnosis:
     """Forward, left and right shares of greedy test actions."""
     test_success: float
     """Success of those test episodes."""
+    against_blind: AgainstBlind
+    """Those test episodes, layout for layout, against the blind controller's."""
     decisive: DecisiveReport | None = None
     """The decisive-state gauge (obstacle worlds with `train.gauge_episodes` > 0)."""
 
@@ -139,6 +168,7 @@ class Diagnosis:
                 + (", ".join(f"{d} of {CONV_CHANNELS}" for d in self.dead_channels) or "no lidar"),
                 f"greedy test actions: forward {forward:.0%}, left {left:.0%}, right {right:.0%}; "
                 f"success {self.test_success:.3f}",
+                self.against_blind.render(),
             ]
             + ([self.decisive.render()] if self.decisive is not None else [])
         )
@@ -167,7 +197,7 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
         for stored in (replay, fresh)
     )
     target_std, lidar_std = _gate_inputs(network, replay_batch)
-    actions, success = _test_actions(network, settings)
+    actions, success, against_blind = _test_actions(network, settings)
     decisive = None
     if settings.world.obstacles.count and train.gauge_episodes:
         decisive = decisive_report(network, decisive_states(world, train, progress=True))
@@ -180,6 +210,7 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
         dead_channels=_dead_channels(network, settings),
         action_mix=actions,
         test_success=success,
+        against_blind=against_blind,
         decisive=decisive,
     )
 
@@ -268,9 +299,19 @@ class _CountingAgent:
 
 
 def _test_actions(
-    network: QNetwork, settings: RunSettings, episodes: int = 100
-) -> tuple[tuple[float, float, float], float]:
+    network: QNetwork, settings: RunSettings
+) -> tuple[tuple[float, float, float], float, AgainstBlind]:
+    """The greedy policy on the test protocol's layouts: its action mix, its success, and its
+    outcomes against the blind controller's, layout for layout."""
+    test = replace(EvalSettings(), num_worlds=50)
     counting = _CountingAgent(policy_agent(network, settings.world, 50, settings.train.window))
-    result = evaluate(settings.world, counting, EvalSettings(episodes=episodes, num_worlds=50))
+    ours = episode_outcomes(settings.world, counting, test)[0] == Outcome.SUCCESS
+    blind = episode_outcomes(settings.world, GoToTargetAgent(), test)[0] == Outcome.SUCCESS
     forward, left, right = (counting.counts / max(counting.counts.sum(), 1)).tolist()
-    return (forward, left, right), result.success
+    against = AgainstBlind(
+        layouts=int(ours.size),
+        saved=int((ours & ~blind).sum()),
+        lost=int((blind & ~ours).sum()),
+        blind_success=float(blind.mean()),
+    )
+    return (forward, left, right), float(ours.mean()), against

@@ -234,6 +234,14 @@ def evaluate(
     config: WorldConfig, agent: Agent, settings: EvalSettings, progress: bool = False
 ) -> EvalResult:
     """Run `settings.episodes` episodes and count outcomes."""
+    return EvalResult.of_outcomes(*episode_outcomes(config, agent, settings, progress))
+
+
+def episode_outcomes(
+    config: WorldConfig, agent: Agent, settings: EvalSettings, progress: bool = False
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Run `settings.episodes` episodes: each one's `Outcome` and steps, by episode index (the
+    same index is the same layout for every agent)."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     worlds = min(settings.num_worlds, settings.episodes)
     episode = np.arange(worlds, dtype=np.int64)
@@ -268,7 +276,7 @@ def evaluate(
                 state = scatter(state, index, fresh)
                 observation = scatter(observation, index, observe(config, fresh))
                 agent.start(index, episode[index])
-    return EvalResult.of_outcomes(outcomes, lengths)
+    return outcomes, lengths
 
 
 StateAct = Callable[[WorldState, Observation], NDArray[np.int64]]

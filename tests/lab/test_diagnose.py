@@ -37,6 +37,17 @@ def test_a_diagnosis_measures_fractions_and_errors_and_repeats_exactly(tiny_run:
     assert 0 <= first.decisive.safe <= 1 and 0 <= first.decisive.go_to_target <= 1
 
 
+def test_layouts_saved_and_lost_against_the_blind_controller_add_up_to_the_success_gap(
+    tiny_run: Path,
+) -> None:
+    diagnosis = diagnose(tiny_run, fresh_episodes=4, samples=64)
+    against = diagnosis.against_blind
+    assert against.layouts == 200  # the test protocol's layouts
+    gap = round((diagnosis.test_success - against.blind_success) * against.layouts)
+    assert against.saved - against.lost == gap
+    assert 0 < against.blind_success < 1  # obstacles-increment: the blind controller loses some
+
+
 def test_a_network_blind_to_the_target_never_seems_to_turn_towards_it(tiny_run: Path) -> None:
     network, settings = load_network(tiny_run)
     assert network.lstm is not None
@@ -59,4 +70,5 @@ def test_qnav_diagnose_prints_the_gap_and_the_action_mix(tiny_run: Path) -> None
     assert result.returncode == 0, result.stderr
     assert "TD error (mse): replay" in result.stdout
     assert "greedy test actions: forward" in result.stdout
+    assert "against the blind go-to-target controller (" in result.stdout
     assert "dead lidar channels per convolution: " in result.stdout
