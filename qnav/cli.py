@@ -413,7 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
         tools,
         "qnav.verbs.lab:diagnose",
         "diagnose",
-        help="why a run learns or not: generalisation gap, target sensitivity, action mix",
+        help="why a run learns or not: generalisation gap, target sensitivity, action mix, "
+        "test layouts against the blind controller, decisive states",
     )
     diagnose.add_argument("run", type=Path, help="training run folder (finished or not)")
     diagnose.add_argument(
