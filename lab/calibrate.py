@@ -13,7 +13,7 @@ and the blind go-to-target controller and the share of layouts that are lost fro
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from tqdm import tqdm
@@ -81,16 +81,11 @@ class Calibration:
     def as_dict(self) -> dict[str, object]:
         """The row as `qnav lab calibrate --json` prints it (fractions without the mean length)."""
 
-        def fractions(result: EvalResult | None) -> dict[str, float] | None:
-            if result is None:
-                return None
-            return {k: v for k, v in asdict(result).items() if k != "mean_steps"}
-
         return {
             "scenario": self.scenario,
-            "random": fractions(self.random),
-            "go_to_target": fractions(self.goto),
-            "oracle": fractions(self.oracle),
+            "random": self.random.fractions(),
+            "go_to_target": self.goto.fractions(),
+            "oracle": None if self.oracle is None else self.oracle.fractions(),
             "doomed_at_start": self.doomed_at_start,
             "random_within_two_errors": self.random_within_two_errors(),
             "oracle_reaches_best_seed": self.oracle_reaches_best_seed(),

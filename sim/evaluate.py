@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -224,6 +224,11 @@ class EvalResult:
             episodes=int(outcomes.size),
             mean_steps=float(np.mean(steps)),
         )
+
+    def fractions(self) -> dict[str, float]:
+        """Success, collision and unfinished shares and the episode count, as results files
+        and `qnav eval --json` give them (without the mean length)."""
+        return {k: v for k, v in asdict(self).items() if k != "mean_steps"}
 
     def standard_error(self, fraction: float) -> float:
         """Binomial sampling error of one of the fractions."""

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -220,7 +220,7 @@ def _finish(
         "model": settings.model,
         "seed": settings.seed,
         "relabel": settings.relabel,
-        "test": {k: v for k, v in asdict(final).items() if k != "mean_steps"},
+        "test": final.fractions(),
         "episodes": state.episodes,
         "iterations": state.iterations,
         "first_reached": {

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -12,7 +12,7 @@ from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import load_toml, with_overrides
 from qnav.options import config_text, settings_from_args
 from qnav.sim.config import WorldConfig, load_world
-from qnav.sim.evaluate import EvalResult, EvalSettings, GoToTargetAgent, RandomAgent
+from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, RandomAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
 
 if TYPE_CHECKING:
@@ -124,9 +124,6 @@ def _references(world: WorldConfig) -> References:
     from qnav.lab.oracle import run_oracle
     from qnav.training.study import References
 
-    def fractions(result: EvalResult) -> dict[str, float]:
-        return {k: v for k, v in asdict(result).items() if k != "mean_steps"}
-
     random = run_evaluation(
         world, RandomAgent(250, seed=1), EvalSettings(episodes=1000, num_worlds=250), progress=False
     )
@@ -135,7 +132,7 @@ def _references(world: WorldConfig) -> References:
     # The planner is slow: 50 worlds at a time keep its batches small (same layouts).
     oracle = run_oracle(world, replace(test, num_worlds=50)) if world.obstacles.count else None
     return References(
-        fractions(random), fractions(blind), None if oracle is None else fractions(oracle)
+        random.fractions(), blind.fractions(), None if oracle is None else oracle.fractions()
     )
 
 

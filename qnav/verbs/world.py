@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict
 from typing import cast
 
 from qnav.contracts.errors import ConfigError
@@ -175,7 +174,7 @@ def evaluate(args: argparse.Namespace) -> int:
     else:
         result = run_evaluation(world, agent, eval_settings, progress=not args.json)
     if args.json:
-        print(json.dumps({k: v for k, v in asdict(result).items() if k != "mean_steps"}))
+        print(json.dumps(result.fractions()))
         return 0
     steps = eval_settings.max_episode_steps
     print(f"{world.name}, {label}, {result.episodes} episodes of up to {steps} steps")
