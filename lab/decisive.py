@@ -98,6 +98,9 @@ class DecisiveStates(NamedTuple):
     """The true state of the world there, one row per state (for probes given exact state)."""
     driver: NDArray[np.int8]
     """(K,) index into `DRIVERS` of who drove to this state."""
+    taken: NDArray[np.int8]
+    """(K,) the action that driver took there: the only one whose outcome its own experience
+    shows."""
     visited: NDArray[np.int64]
     """(len(DRIVERS),) states visited by each driver, decisive or not."""
 
@@ -130,6 +133,7 @@ class DecisiveStates(NamedTuple):
             collide_share=self.collide_share[keep],
             world=take_rows(self.world, np.arange(len(self.doomed))[keep]),
             driver=self.driver[keep],
+            taken=self.taken[keep],
         )
 
 
@@ -167,7 +171,7 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
         *found, seen = _drive_and_keep(config, settings, act, index, progress)
         parts.append(found)
         visited.append(seen)
-    windows, obstacle_windows, share, world, driver = zip(*parts, strict=True)
+    windows, obstacle_windows, share, world, driver, taken = zip(*parts, strict=True)
     collide_share = np.concatenate(share)
     return DecisiveStates(
         windows=np.concatenate(windows),
@@ -175,13 +179,14 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
         collide_share=collide_share,
         world=concatenate_rows(world),
         driver=np.concatenate(driver),
+        taken=np.concatenate(taken),
         visited=np.array(visited, dtype=np.int64),
     )
 
 
-_FORMAT = "3"
+_FORMAT = "4"
 """Version of the cached file's layout (2: collision shares and world states kept; 3: the
-obstacles' windows)."""
+obstacles' windows; 4: the action taken)."""
 
 
 def cache_dir() -> Path:
@@ -220,12 +225,18 @@ def _drive_and_keep(
     index: int,
     progress: bool,
 ) -> tuple[
-    NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], WorldState, NDArray[np.int8], int
+    NDArray[np.float32],
+    NDArray[np.float32],
+    NDArray[np.float32],
+    WorldState,
+    NDArray[np.int8],
+    NDArray[np.int8],
+    int,
 ]:
     max_range_m = distance_scale_m(config.lidar)
     plain = _frame_size(config)  # the scan and the target; the obstacles follow
     chance = np.random.default_rng([settings.seed, index])
-    windows, obstacle_windows, shares, worlds = [], [], [], []
+    windows, obstacle_windows, shares, worlds, taken = [], [], [], [], []
     visited = 0
     episodes = np.arange(settings.episodes_per_driver, dtype=np.int64)
     batches = np.array_split(episodes, -(-episodes.size // settings.num_worlds))
@@ -244,8 +255,10 @@ def _drive_and_keep(
             obstacle_windows.append(frames[keep, :, plain:])
             shares.append(share[keep].astype(np.float32))
             worlds.append(take_rows(state, np.flatnonzero(keep)))
+            actions = act(state, observation)
+            taken.append(actions[keep].astype(np.int8))
             visited += running.size
-            state, observation, transition = step(config, state, act(state, observation))
+            state, observation, transition = step(config, state, actions)
             going = np.flatnonzero(~(transition.terminated | transition.truncated))
             if going.size == 0:
                 break
@@ -261,6 +274,7 @@ def _drive_and_keep(
         np.concatenate(shares),
         world,
         np.full(count, index, dtype=np.int8),
+        np.concatenate(taken),
         visited,
     )
 

@@ -359,6 +359,11 @@ def run_rounds(
             "qnav lab label needs probe.inputs = state or slots: the rounds judge each driven "
             "state from the world, without a window of scans"
         )
+    if probe.labelled_actions == "taken":
+        raise ConfigError(
+            "qnav lab label needs probe.labelled_actions = all or random: its rounds record no "
+            "driver's action"
+        )
     if not world.obstacles.count:
         raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
     gauge = gauge or GaugeSettings()

@@ -78,9 +78,14 @@ class ProbeSettings:
     "state" (the exact world state, per obstacle, through `ObstacleSetNetwork`): the state
     probe bounds what the labels teach when perception is perfect; or "slots" (the same
     structure on what a network given obstacle inputs sees, `slot_features`)."""
-    label: Literal["doom", "collide_share"] = "doom"
-    """What it is fitted to per action: "doom" (0/1: every continuation collides) or
-    "collide_share" (the share of continuations that collide, graded)."""
+    label: Literal["doom", "collide_share", "outcome"] = "doom"
+    """What it is fitted to per action: "doom" (0/1: every continuation collides),
+    "collide_share" (the share of continuations that collide, graded) or "outcome" (whether one
+    continuation, drawn by that share, collides: all that one experienced return can tell)."""
+    labelled_actions: Literal["all", "random", "taken"] = "all"
+    """Whose labels each state gives: "all" (every action's), "random" (one action's, drawn
+    uniformly: what a stored step among re-drawn obstacles shows) or "taken" (the action the
+    driver took there: what its own experience shows)."""
     shield_episodes: int = 0
     """Test-protocol episodes in which the fitted network then shields go-to-target, beside
     go-to-target alone and shielded by the exact labels (0: no shield test; inputs "state" or
@@ -263,36 +268,72 @@ def doom_network(world: WorldConfig, inputs: str) -> torch.nn.Module:
     return QNetwork("recurrent", world.lidar.num_beams if world.lidar is not None else None)
 
 
+def fitted_labels(
+    collide_share: NDArray[np.floating],
+    settings: ProbeSettings,
+    taken: NDArray[np.integer] | None = None,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(K, A) the targets that each action is safe, as `settings.label` reads the collision
+    shares, and (K, A) which of them the fit sees (`settings.labelled_actions`; "taken" needs
+    the drivers' actions `taken` (K,)), both drawn from `settings.seed`."""
+    chance = np.random.default_rng([settings.seed, 1])
+    count, actions = collide_share.shape
+    if settings.label == "doom":
+        unsafe = np.asarray(collide_share == 1.0, dtype=np.float32)
+    elif settings.label == "outcome":
+        unsafe = (chance.random(collide_share.shape) < collide_share).astype(np.float32)
+    else:
+        unsafe = np.asarray(collide_share, dtype=np.float32)
+    seen = np.ones((count, actions), dtype=np.float32)
+    if settings.labelled_actions != "all":
+        if settings.labelled_actions == "random":
+            one = np.asarray(chance.integers(0, actions, count), dtype=np.int64)
+        elif taken is None:
+            raise ConfigError(
+                "probe.labelled_actions = taken needs the actions the drivers took, which only "
+                "`qnav lab probe`'s labelled set records"
+            )
+        else:
+            one = np.asarray(taken, dtype=np.int64)
+        seen = np.zeros_like(seen)
+        seen[np.arange(count), one] = 1.0
+    return 1.0 - unsafe, seen
+
+
 def fit_doom(
     network: torch.nn.Module,
     inputs: tuple[torch.Tensor, ...],
     collide_share: NDArray[np.floating],
     settings: ProbeSettings,
     *,
+    taken: NDArray[np.integer] | None = None,
     after_epoch: Callable[[int, float], None] | None = None,
     progress: bool = False,
 ) -> None:
     """Fit `network` (logits that each action is safe) to the labels of the states `inputs`
-    describe (their (K, A) collision shares, as `settings.label` reads them), decisive states
+    describe (their (K, A) collision shares, as `fitted_labels` reads them), decisive states
     weighted by `settings.decisive_weight`; `after_epoch(epoch, mean loss)` is called after each
     pass with the network in eval mode."""
-    doomed = np.asarray(collide_share == 1.0)
-    unsafe = doomed if settings.label == "doom" else collide_share
-    safe = torch.from_numpy(1.0 - np.asarray(unsafe, dtype=np.float32))
+    target, seen = (
+        torch.from_numpy(part) for part in fitted_labels(collide_share, settings, taken)
+    )
     weight = torch.from_numpy(
-        np.where(is_decisive(doomed), settings.decisive_weight, 1.0).astype(np.float32)
+        np.where(is_decisive(collide_share == 1.0), settings.decisive_weight, 1.0).astype(
+            np.float32
+        )
     )
     optimizer = torch.optim.Adam(network.parameters(), lr=settings.learning_rate)
     order = np.random.default_rng(settings.seed)
     for epoch in tqdm(range(1, settings.epochs + 1), desc="fit", disable=not progress):
         network.train()
         total = 0.0
-        permutation = order.permutation(len(safe))
-        for start in range(0, len(safe), settings.batch_size):
+        permutation = order.permutation(len(target))
+        for start in range(0, len(target), settings.batch_size):
             rows = torch.from_numpy(permutation[start : start + settings.batch_size])
-            per_window = torch.nn.functional.binary_cross_entropy_with_logits(
-                network(*(part[rows] for part in inputs)), safe[rows], reduction="none"
-            ).mean(dim=1)
+            per_label = torch.nn.functional.binary_cross_entropy_with_logits(
+                network(*(part[rows] for part in inputs)), target[rows], reduction="none"
+            )
+            per_window = (per_label * seen[rows]).sum(dim=1) / seen[rows].sum(dim=1)
             loss = (per_window * weight[rows]).sum() / weight[rows].sum()
             optimizer.zero_grad()
             loss.backward()  # type: ignore[no-untyped-call]
@@ -300,7 +341,7 @@ def fit_doom(
             total += loss.item() * len(rows)
         network.eval()
         if after_epoch is not None:
-            after_epoch(epoch, total / len(safe))
+            after_epoch(epoch, total / len(target))
 
 
 def probe(
@@ -342,6 +383,7 @@ def probe(
         inputs(labelled),
         labelled.collide_share,
         settings,
+        taken=labelled.taken,
         after_epoch=judge,
         progress=progress,
     )

@@ -64,6 +64,7 @@ def test_a_blind_choice_scores_one_half_balanced_whatever_the_mix_of_patterns() 
         collide_share=doomed.astype(np.float32),
         world=world,
         driver=np.zeros(len(doomed), dtype=np.int8),
+        taken=np.zeros(len(doomed), dtype=np.int8),
         visited=np.array([len(doomed), 0]),
     )
     assert random_expectation(states).balanced == pytest.approx(0.5)
@@ -99,6 +100,16 @@ def test_go_to_target_is_judged_on_the_newest_frames_bearing(states: DecisiveSta
     choices = go_to_target_choices(states)
     assert choices.shape == (len(states.doomed),)
     assert set(np.unique(choices)) <= set(range(NUM_ACTIONS))
+
+
+def test_the_action_taken_is_the_drivers_own(states: DecisiveStates) -> None:
+    by_go_to_target = states.driver == DRIVERS.index("go-to-target")
+    assert by_go_to_target.any() and (~by_go_to_target).any()
+    assert (states.taken[by_go_to_target] == go_to_target_choices(states)[by_go_to_target]).all()
+    # The planner mostly keeps clear of doom: its own actions are rarely the doomed ones.
+    planner = ~by_go_to_target
+    taken_doomed = states.doomed[np.flatnonzero(planner), states.taken[planner]]
+    assert taken_doomed.mean() < 0.5
 
 
 def test_a_layout_with_an_obstacle_on_the_robot_dooms_every_action() -> None:

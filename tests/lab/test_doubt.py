@@ -148,6 +148,19 @@ def test_rounds_judged_from_a_window_of_scans_are_refused_by_name(tmp_path: Path
     assert not (tmp_path / "settings.toml").exists()
 
 
+def test_rounds_fitted_to_the_drivers_own_actions_are_refused_by_name(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"probe\.labelled_actions"):
+        run_rounds(
+            scenario("obstacles-increment"),
+            tmp_path,
+            1,
+            probe=replace(SMALL_PROBE, labelled_actions="taken"),
+            settings=SMALL,
+            gauge=SMALL_GAUGE,
+        )
+    assert not (tmp_path / "settings.toml").exists()
+
+
 def test_the_command_prints_a_round_per_line_and_resumes(tmp_path: Path) -> None:
     folder = str(tmp_path / "rounds")
     first = run_qnav("lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--json")

@@ -17,6 +17,7 @@ from qnav.lab.probe import (
     Probe,
     ProbeSettings,
     decisive_only,
+    fitted_labels,
     perceive,
     perception_windows,
     probe,
@@ -61,6 +62,38 @@ def test_each_pass_reports_its_fit_and_the_held_out_gauge() -> None:
 )
 def test_the_probe_fits_exact_state_and_graded_labels_too(inputs: str, label: str) -> None:
     settings = replace(SMALL, inputs=inputs, label=label)  # type: ignore[arg-type]
+    history = probe(scenario("obstacles-increment"), settings, SMALL_GAUGE).history
+    assert len(history) == 2
+    assert all(np.isfinite(epoch.loss) and 0.0 <= epoch.balanced <= 1.0 for epoch in history)
+
+
+def test_one_label_per_state_is_the_taken_or_a_random_actions() -> None:
+    share = np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.25]] * 500, dtype=np.float32)
+    taken = np.tile([0, 2], 500)
+    target, seen = fitted_labels(share, replace(SMALL, labelled_actions="taken"), taken)
+    np.testing.assert_array_equal(target, 1.0 - (share == 1.0))
+    np.testing.assert_array_equal(seen.argmax(axis=1), taken)
+    assert (seen.sum(axis=1) == 1).all()
+    _, seen = fitted_labels(share, replace(SMALL, labelled_actions="random"))
+    assert (seen.sum(axis=1) == 1).all()
+    assert np.bincount(seen.argmax(axis=1), minlength=3).min() > 250  # about a third each
+    _, seen = fitted_labels(share, SMALL)
+    assert (seen == 1).all()
+    with pytest.raises(ConfigError, match="labelled_actions"):
+        fitted_labels(share, replace(SMALL, labelled_actions="taken"))
+
+
+def test_an_outcome_label_is_one_continuation_drawn_by_the_collision_share() -> None:
+    share = np.array([[1.0, 0.25, 0.0]] * 4000, dtype=np.float32)
+    target, _ = fitted_labels(share, replace(SMALL, label="outcome"))
+    assert set(np.unique(target)) <= {0.0, 1.0}
+    assert (target[:, 0] == 0).all() and (target[:, 2] == 1).all()
+    assert target[:, 1].mean() == pytest.approx(0.75, abs=0.03)
+
+
+@pytest.mark.parametrize("labelled_actions", ["taken", "random"])
+def test_the_probe_fits_one_label_per_state(labelled_actions: str) -> None:
+    settings = replace(SMALL, inputs="slots", labelled_actions=labelled_actions)  # type: ignore[arg-type]
     history = probe(scenario("obstacles-increment"), settings, SMALL_GAUGE).history
     assert len(history) == 2
     assert all(np.isfinite(epoch.loss) and 0.0 <= epoch.balanced <= 1.0 for epoch in history)
@@ -136,6 +169,9 @@ def test_a_wrong_probe_setting_names_itself() -> None:
     assert "probe.inputs" in result.stderr
     with pytest.raises(ConfigError, match=r"probe\.shield_episodes"):
         ProbeSettings(inputs="lidar", shield_episodes=10)
+    result = run_qnav("lab", "probe", "--probe-set", "probe.labelled_actions=one", "--json")
+    assert result.returncode != 0
+    assert "probe.labelled_actions" in result.stderr
 
 
 def test_qnav_probe_prints_its_settings() -> None:
