@@ -78,8 +78,9 @@ class GaugeSettings:
         check_range(self, "ordinary_share", self.ordinary_share, 0.0, 1.0)
 
 
-DRIVERS = ("planner", "go-to-target")
-"""Who drove the episodes a state comes from, by `DecisiveStates.driver` index."""
+DRIVERS = ("planner", "go-to-target", "a run's stored path")
+"""Who drove the episodes a state comes from, by `DecisiveStates.driver` index (the last:
+a training run's own episodes, among re-drawn obstacles, `lab.redrawn`)."""
 
 
 class DecisiveStates(NamedTuple):
@@ -180,7 +181,7 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
         world=concatenate_rows(world),
         driver=np.concatenate(driver),
         taken=np.concatenate(taken),
-        visited=np.array(visited, dtype=np.int64),
+        visited=np.array(visited + [0] * (len(DRIVERS) - len(visited)), dtype=np.int64),
     )
 
 

@@ -359,6 +359,10 @@ def run_rounds(
             "qnav lab label needs probe.inputs = state or slots: the rounds judge each driven "
             "state from the world, without a window of scans"
         )
+    if probe.redrawn_from:
+        raise ConfigError(
+            "qnav lab label starts from the driven labelled set: leave probe.redrawn_from empty"
+        )
     if probe.labelled_actions == "taken":
         raise ConfigError(
             "qnav lab label needs probe.labelled_actions = all or random: its rounds record no "

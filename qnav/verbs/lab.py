@@ -59,6 +59,7 @@ def gauge(args: argparse.Namespace) -> int:
     own world's states beside its test success."""
     from qnav.contracts.actions import Action
     from qnav.lab.decisive import (
+        DRIVERS,
         GaugeResult,
         GaugeSettings,
         cached,
@@ -99,7 +100,7 @@ def gauge(args: argparse.Namespace) -> int:
                     **result.by_driver,
                 }
             )
-        visited = dict(zip(("planner", "go-to-target"), states.visited.tolist(), strict=True))
+        visited = dict(zip(DRIVERS, states.visited.tolist(), strict=True))
         print(
             f"{len(states.doomed)} decisive states in {sum(visited.values())} visited "
             f"(planner {visited['planner']}, go-to-target {visited['go-to-target']})"

@@ -158,6 +158,15 @@ def test_rounds_fitted_to_the_drivers_own_actions_are_refused_by_name(tmp_path: 
             settings=SMALL,
             gauge=SMALL_GAUGE,
         )
+    with pytest.raises(ConfigError, match=r"probe\.redrawn_from"):
+        run_rounds(
+            scenario("obstacles-increment"),
+            tmp_path,
+            1,
+            probe=replace(SMALL_PROBE, redrawn_from=str(tmp_path)),
+            settings=SMALL,
+            gauge=SMALL_GAUGE,
+        )
     assert not (tmp_path / "settings.toml").exists()
 
 
