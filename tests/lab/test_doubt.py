@@ -135,35 +135,23 @@ def test_a_folder_refuses_rounds_made_otherwise_and_names_the_setting(tmp_path: 
         )
 
 
-def test_rounds_judged_from_a_window_of_scans_are_refused_by_name(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match=r"probe\.inputs"):
+@pytest.mark.parametrize(
+    ("setting", "value"),
+    [
+        ("inputs", "lidar"),  # judged from a window of scans, which the rounds do not render
+        ("labelled_actions", "taken"),  # the rounds record no driver's action
+        ("redrawn_from", "runs/any"),  # round 0 is the driven labelled set
+    ],
+)
+def test_rounds_the_doubt_led_labelling_cannot_make_are_refused_by_name(
+    tmp_path: Path, setting: str, value: str
+) -> None:
+    with pytest.raises(ConfigError, match=rf"probe\.{setting}"):
         run_rounds(
             scenario("obstacles-increment"),
             tmp_path,
             1,
-            probe=replace(SMALL_PROBE, inputs="lidar"),
-            settings=SMALL,
-            gauge=SMALL_GAUGE,
-        )
-    assert not (tmp_path / "settings.toml").exists()
-
-
-def test_rounds_fitted_to_the_drivers_own_actions_are_refused_by_name(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match=r"probe\.labelled_actions"):
-        run_rounds(
-            scenario("obstacles-increment"),
-            tmp_path,
-            1,
-            probe=replace(SMALL_PROBE, labelled_actions="taken"),
-            settings=SMALL,
-            gauge=SMALL_GAUGE,
-        )
-    with pytest.raises(ConfigError, match=r"probe\.redrawn_from"):
-        run_rounds(
-            scenario("obstacles-increment"),
-            tmp_path,
-            1,
-            probe=replace(SMALL_PROBE, redrawn_from=str(tmp_path)),
+            probe=replace(SMALL_PROBE, **{setting: value}),  # type: ignore[arg-type]
             settings=SMALL,
             gauge=SMALL_GAUGE,
         )
