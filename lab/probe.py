@@ -438,6 +438,11 @@ class ShieldTest(NamedTuple):
     colliding action is taken) or the share itself."""
     exact_overruled: float
     """Share of the exact shield's decisions that overrule go-to-target."""
+    tracked: EvalResult | None = None
+    """Shielded by the fitted network on the onboard tracker's estimate, as a car would ask it
+    (`tracked_safety`; inputs "slots" only, else None)."""
+    tracked_overruled: float = 0.0
+    """Share of the tracked shield's decisions that overrule go-to-target."""
 
 
 def safe_choice(
@@ -522,11 +527,23 @@ def shield_test(
         return 1.0 - share / 2
 
     shields: list[SafeProbability | None] = [None, fitted_safety, exact_safety]
-    (blind, _), (with_network, network_overruled), (with_labels, labels_overruled) = (
+    if settings.inputs == "slots":
+        shields.append(tracked_safety(world, fitted.network))
+    results = [
         shielded_go_to_target(world, shield, protocol)
         for shield in tqdm(shields, desc="shield test", unit="shield", disable=not progress)
+    ]
+    (blind, _), (with_network, network_overruled), (with_labels, labels_overruled) = results[:3]
+    tracked, tracked_overruled = results[3] if len(results) > 3 else (None, 0.0)
+    return ShieldTest(
+        blind,
+        with_network,
+        network_overruled,
+        with_labels,
+        labels_overruled,
+        tracked,
+        tracked_overruled,
     )
-    return ShieldTest(blind, with_network, network_overruled, with_labels, labels_overruled)
 
 
 def state_inputs(

@@ -280,6 +280,15 @@ def _print_shield_test(test: ShieldTest, as_json: bool) -> None:
         ("shielded by the fitted network", test.fitted, test.fitted_overruled),
         ("shielded by the exact labels", test.exact, test.exact_overruled),
     ]
+    if test.tracked is not None:
+        rows.insert(
+            2,
+            (
+                "shielded by the fitted network on the onboard tracker's estimate",
+                test.tracked,
+                test.tracked_overruled,
+            ),
+        )
     if as_json:
         print(
             json.dumps(

@@ -137,10 +137,14 @@ def test_a_fitted_network_shields_go_to_target_from_the_state_it_judges() -> Non
     for inputs in ("state", "slots"):
         settings = replace(SMALL, inputs=inputs, shield_episodes=SMALL_PROTOCOL.episodes)
         test = shield_test(world, probe(world, settings, SMALL_GAUGE), settings, SMALL_PROTOCOL)
-        for result in (test.blind, test.fitted, test.exact):
+        results = [test.blind, test.fitted, test.exact]
+        # A car perceives the obstacles through its tracker: slot inputs are tested on it too.
+        assert (test.tracked is not None) == (inputs == "slots")
+        results += [test.tracked] if test.tracked is not None else []
+        for result in results:
             assert result.episodes == SMALL_PROTOCOL.episodes
             assert result.success + result.collision + result.unfinished == pytest.approx(1.0)
-        assert 0.0 <= test.fitted_overruled <= 1.0
+        assert 0.0 <= test.fitted_overruled <= 1.0 and 0.0 <= test.tracked_overruled <= 1.0
 
 
 def test_state_features_are_in_the_robots_frame() -> None:
