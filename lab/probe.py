@@ -533,8 +533,10 @@ def shield_test(
         shielded_go_to_target(world, shield, protocol)
         for shield in tqdm(shields, desc="shield test", unit="shield", disable=not progress)
     ]
-    (blind, _), (with_network, network_overruled), (with_labels, labels_overruled) = results[:3]
-    tracked, tracked_overruled = results[3] if len(results) > 3 else (None, 0.0)
+    (blind, _), (with_network, network_overruled), (with_labels, labels_overruled), *on_car = (
+        results
+    )
+    tracked, tracked_overruled = on_car[0] if on_car else (None, 0.0)
     return ShieldTest(
         blind,
         with_network,

@@ -132,8 +132,7 @@ def redrawn_states(
     chance = np.random.default_rng([seed, 2])
     picked = chance.integers(0, len(steps.pose), count)
     max_range_m = distance_scale_m(world.lidar)
-    kept: list[tuple[WorldState, NDArray[np.float32], NDArray[np.float32], NDArray[np.int64]]]
-    kept = []
+    kept: list[tuple[WorldState, NDArray[np.float32], NDArray[np.int64]]] = []
     for start in tqdm(
         range(0, count, _BATCH), desc="label re-drawn", unit="batch", disable=not progress
     ):
@@ -155,24 +154,21 @@ def redrawn_states(
         share = collision_shares(world, state).astype(np.float32)
         keep = is_decisive(share == 1.0) | (chance.random(rows.size) < ordinary_share)
         where = np.flatnonzero(keep)
-        kept.append((take_rows(state, where), share[where], _obstacles(state, where), rows[where]))
-    states, shares, obstacles, picked_rows = zip(*kept, strict=True)
+        kept.append((take_rows(state, where), share[where], rows[where]))
+    states, shares, picked_rows = zip(*kept, strict=True)
     world_rows = concatenate_rows(list(states))
     target = encode_target(target_features(world_rows.pose, world_rows.target_xy), max_range_m)
+    obstacles = obstacle_features(
+        world_rows.pose, world_rows.obstacle_xy, world_rows.obstacle_velocity
+    )
+    visited = np.zeros(len(DRIVERS), dtype=np.int64)
+    visited[STORED_PATH] = count
     return DecisiveStates(
         windows=target[:, None, :],
-        obstacle_windows=np.concatenate(obstacles)[:, None, :],
+        obstacle_windows=obstacles[:, None, :],
         collide_share=np.concatenate(shares),
         world=world_rows,
         driver=np.full(len(world_rows.pose), STORED_PATH, dtype=np.int8),
         taken=steps.action[np.concatenate(picked_rows)].astype(np.int8),
-        visited=np.bincount([STORED_PATH], weights=[count], minlength=len(DRIVERS)).astype(
-            np.int64
-        ),
-    )
-
-
-def _obstacles(state: WorldState, where: NDArray[np.intp]) -> NDArray[np.float32]:
-    return obstacle_features(
-        state.pose[where], state.obstacle_xy[where], state.obstacle_velocity[where]
+        visited=visited,
     )
