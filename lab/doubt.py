@@ -11,6 +11,11 @@ doubtful share (where three quarters of the decisive states are), refits on ever
 so far, and measures the fit twice: on the gauge's held-out decisive states and as a shield on
 the test protocol.
 
+With `probe.redrawn_from = RUN` nobody drives: round 0 is the probe's re-drawn set (RUN's own
+stored steps among fresh obstacles, `lab.redrawn`), and each round draws as many fresh
+re-drawn states at RUN's stored steps and labels the most doubtful share of them, so every label
+stays within the episodes RUN collected.
+
 Rounds are kept in a folder, one file each, written atomically: a killed run loses at most
 the round under way, and rerunning the command (with more `--rounds`) resumes after the last
 finished one, so rounds add up across sessions. `qnav lab label` runs it. A diagnostic, like
@@ -35,6 +40,12 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.observation import (
+    distance_scale_m,
+    encode_target,
+    obstacle_features,
+    target_features,
+)
 from qnav.contracts.settings import check_range, to_toml
 from qnav.lab.decisive import (
     DecisiveStates,
@@ -57,10 +68,12 @@ from qnav.lab.probe import (
     network_safety,
     safe_choice,
     shielded_go_to_target,
+    slot_inputs,
     state_features,
     state_inputs,
     tracked_safety,
 )
+from qnav.lab.redrawn import LABEL_BATCH, StoredSteps, redrawn_states, redrawn_worlds, stored_steps
 from qnav.sim import paper
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
@@ -79,7 +92,8 @@ class DoubtSettings:
 
     driver: Literal["shielded", "go-to-target"] = "shielded"
     """Who drives each round's episodes: go-to-target shielded by the latest fit (labels where
-    the judgement being improved takes the robot, as DAgger does), or go-to-target alone."""
+    the judgement being improved takes the robot, as DAgger does), or go-to-target alone. With
+    `probe.redrawn_from` nobody drives, and the drive's settings below play no part."""
     episodes_per_round: int = 6000
     """Episodes driven each round (fresh layouts every round)."""
     labelled_share: float = 0.2
@@ -188,18 +202,79 @@ def drive_and_label(
         np.arange(start, min(start + settings.num_worlds, first + settings.episodes_per_round))
         for start in range(first, first + settings.episodes_per_round, settings.num_worlds)
     ]
-    kept = [
-        _label_batch(world, config, safety, settings, episodes)
-        for episodes in tqdm(
-            batches, desc=f"round {round_index}", unit="batch", disable=not progress
+    return _joined(
+        [
+            _label_batch(world, config, safety, settings, episodes)
+            for episodes in tqdm(
+                batches, desc=f"round {round_index}", unit="batch", disable=not progress
+            )
+        ]
+    )
+
+
+def redraw_and_label(
+    world: WorldConfig,
+    steps: StoredSteps,
+    network: torch.nn.Module,
+    probe: ProbeSettings,
+    settings: DoubtSettings,
+    *,
+    round_index: int,
+    window: int,
+    progress: bool = False,
+) -> LabelledRound:
+    """Round `round_index` (1-based) among re-drawn obstacles: `probe.redrawn_states` of a
+    run's stored `steps`, drawn uniformly, each among fresh obstacles that kept clear of the
+    robot over its last `window` frames; the most doubtful share of each batch is labelled by
+    the planner. No episode is driven."""
+    chance = np.random.default_rng([settings.seed, round_index])
+    picked = chance.integers(0, len(steps.pose), probe.redrawn_states)
+    parts = []
+    for start in tqdm(
+        range(0, picked.size, LABEL_BATCH),
+        desc=f"round {round_index}",
+        unit="batch",
+        disable=not progress,
+    ):
+        rows = picked[start : start + LABEL_BATCH]
+        state = redrawn_worlds(world, steps, rows, window=window, seed=settings.seed, chance=chance)
+        context, slots = world_slot_inputs(world, state)
+        features: tuple[NDArray[np.float32], ...] = (context, slots)
+        if probe.inputs == "state":
+            features = state_features(state, world.arena.size_m)
+        pick = most_doubtful(judged_safe(network, features), settings.labelled_share)
+        chosen = take_rows(state, pick)
+        parts.append(
+            LabelledRound(
+                world=chosen,
+                context=context[pick],
+                slots=slots[pick],
+                collide_share=collision_shares(world, chosen),
+                visited=rows.size,
+            )
         )
-    ]
+    return _joined(parts)
+
+
+def world_slot_inputs(world: WorldConfig, state: WorldState) -> tuple[NDArray[np.float32], ...]:
+    """What the slot network sees in worlds known without an observation (`lab.probe.slot_inputs`
+    from the worlds' own target and obstacles)."""
+    target = target_features(state.pose, state.target_xy)
+    return slot_inputs(
+        state.velocity,
+        encode_target(target, distance_scale_m(world.lidar)),
+        obstacle_features(state.pose, state.obstacle_xy, state.obstacle_velocity),
+    )
+
+
+def _joined(parts: list[LabelledRound]) -> LabelledRound:
+    """One round from the rounds of its batches."""
     return LabelledRound(
-        world=concatenate_rows([part.world for part in kept]),
-        context=np.concatenate([part.context for part in kept]),
-        slots=np.concatenate([part.slots for part in kept]),
-        collide_share=np.concatenate([part.collide_share for part in kept]),
-        visited=sum(part.visited for part in kept),
+        world=concatenate_rows([part.world for part in parts]),
+        context=np.concatenate([part.context for part in parts]),
+        slots=np.concatenate([part.slots for part in parts]),
+        collide_share=np.concatenate([part.collide_share for part in parts]),
+        visited=sum(part.visited for part in parts),
     )
 
 
@@ -249,14 +324,13 @@ class TrainingSet(NamedTuple):
 
 def training_set(
     world: WorldConfig,
-    base_set: GaugeSettings,
+    base: DecisiveStates,
     probe: ProbeSettings,
     settings: DoubtSettings,
     rounds: list[LabelledRound],
 ) -> TrainingSet:
-    """The probe's labelled set (collected as `base_set` says) and, from each round, its
-    decisive states and a seeded `ordinary_share` of the others."""
-    base = cached(world, base_set)
+    """The probe's labelled set `base` and, from each round, its decisive states and a seeded
+    `ordinary_share` of the others."""
     parts = [labelled_features(world, probe.inputs, base)]
     shares: list[NDArray[np.floating]] = [base.collide_share]
     for index, labelled in enumerate(rounds, start=1):
@@ -329,6 +403,33 @@ class LabelFolder:
         _write_atomically(self.path / "progress.csv", text.getvalue())
 
 
+def _base_set(
+    world: WorldConfig,
+    store: LabelFolder,
+    probe: ProbeSettings,
+    gauge: GaugeSettings,
+    progress: bool,
+) -> DecisiveStates:
+    """Round 0's labels: the probe's driven set (from the cache), or with `probe.redrawn_from`
+    its re-drawn set, labelled once and kept in the folder (round-000.npz: minutes of labels)."""
+    if not probe.redrawn_from:
+        return cached(world, probe.labelled_set(gauge), progress)
+    path = store.round_path(0)
+    if path.exists():
+        return DecisiveStates.load(path)
+    base = redrawn_states(
+        world,
+        Path(probe.redrawn_from),
+        probe.redrawn_states,
+        window=gauge.window,
+        ordinary_share=probe.ordinary_share,
+        seed=probe.seed,
+        progress=progress,
+    )
+    base.save(path)
+    return base
+
+
 def _setting_lines(toml: str) -> list[str]:
     """The settings of a TOML text, without its comments (which explain, and may be reworded)."""
     return [line for line in toml.splitlines() if line.strip() and not line.startswith("#")]
@@ -358,10 +459,6 @@ def run_rounds(
         raise ConfigError(
             "qnav lab label needs probe.inputs = state or slots: the rounds judge each driven "
             "state from the world, without a window of scans"
-        )
-    if probe.redrawn_from:
-        raise ConfigError(
-            "qnav lab label starts from the driven labelled set: leave probe.redrawn_from empty"
         )
     if probe.labelled_actions == "taken":
         raise ConfigError(
@@ -403,13 +500,30 @@ def _rounds(
     labelled = list(store.rounds())
     reports = store.reports()[: len(labelled) + 1]
     yield from reports
+    base = _base_set(world, store, probe, gauge, progress)
+    stored = (
+        stored_steps(world, Path(probe.redrawn_from), gauge.window) if probe.redrawn_from else None
+    )
     network = doom_network(world, probe.inputs)
     fitted_path = folder / "network.pt"
     for index in range(len(labelled), rounds + 1):
         started = time.monotonic()
         if index > len(labelled):
-            fresh = drive_and_label(
-                world, network_safety(world, network, probe.inputs), settings, index, progress
+            fresh = (
+                redraw_and_label(
+                    world,
+                    stored,
+                    network,
+                    probe,
+                    settings,
+                    round_index=index,
+                    window=gauge.window,
+                    progress=progress,
+                )
+                if stored is not None
+                else drive_and_label(
+                    world, network_safety(world, network, probe.inputs), settings, index, progress
+                )
             )
             fresh.save(store.round_path(index))
             labelled.append(fresh)
@@ -417,7 +531,7 @@ def _rounds(
             network.load_state_dict(torch.load(fitted_path))
             network.eval()
             continue
-        data = training_set(world, probe.labelled_set(gauge), probe, settings, labelled)
+        data = training_set(world, base, probe, settings, labelled)
         torch.manual_seed(probe.seed)
         network = doom_network(world, probe.inputs)
         fit_doom(network, data.inputs, data.collide_share, probe, progress=progress)
@@ -430,8 +544,8 @@ def _rounds(
             held_out=held_out,
             protocol=protocol,
             fresh=labelled[index - 1] if index else None,
+            base=base,
             data=data,
-            gauge=gauge,
         )
         report = report._replace(round=index, minutes=(time.monotonic() - started) / 60)
         del reports[index:]  # a report whose fit was lost is replaced, not repeated
@@ -519,16 +633,15 @@ def _measure(
     held_out: DecisiveStates,
     protocol: EvalSettings,
     fresh: LabelledRound | None,
+    base: DecisiveStates,
     data: TrainingSet,
-    gauge: GaugeSettings,
 ) -> RoundReport:
     """The fit's gauge and shielded success, with the round's sizes (minutes left 0); for
-    round 0 (`fresh` None) the sizes of the probe's labelled set, every visited state of
+    round 0 (`fresh` None) the sizes of the probe's labelled set `base`, every visited state of
     which was labelled."""
     safest = judged_safe(network, labelled_features(world, probe.inputs, held_out)).argmax(axis=1)
     judged = score(held_out, safest)
     if fresh is None:
-        base = cached(world, probe.labelled_set(gauge))
         visited = labelled = int(base.visited.sum())
         labelled_decisive = int(is_decisive(base.doomed).sum())
     else:

@@ -91,10 +91,12 @@ class ProbeSettings:
     redrawn_from: str = ""
     """A training run folder: fit to `redrawn_states` of its own stored steps, each among freshly
     drawn obstacles and labelled by the planner (`lab.redrawn`), instead of the episodes driven
-    by the planner and go-to-target ("": those; inputs "state" or "slots" only)."""
+    by the planner and go-to-target ("": those; inputs "state" or "slots" only). In `qnav lab
+    label` its rounds too draw re-drawn states at the run's stored steps instead of driving."""
     redrawn_states: int = 100_000
     """Stored steps labelled among re-drawn obstacles with `redrawn_from` (about 3 % of them
-    are decisive; 4 ms of CPU each)."""
+    are decisive; 4 ms of CPU each); in `qnav lab label` each later round draws as many and
+    labels the most doubtful `doubt.labelled_share` of them."""
     shield_episodes: int = 0
     """Test-protocol episodes in which the fitted network then shields go-to-target, beside
     go-to-target alone and shielded by the exact labels (0: no shield test; inputs "state" or

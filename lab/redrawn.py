@@ -9,7 +9,9 @@ for every action (`lab.oracle.collision_shares`, the simulator's own rollouts), 
 hundred episodes a run collects give as many labelled states as there is CPU to label them,
 each decisive state of them a new arrangement of obstacles around a pose the learner reached.
 
-`qnav lab probe --probe-set probe.redrawn_from=RUN` fits the doom network to them.
+`qnav lab probe --probe-set probe.redrawn_from=RUN` fits the doom network to them; `qnav lab
+label FOLDER --probe-set probe.redrawn_from=RUN` adds rounds that label, of fresh re-drawn states
+at the same stored steps, only those where the latest fit doubts (`lab.doubt.redraw_and_label`).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from qnav.training.sampling import draw_obstacle_paths
 STORED_PATH = DRIVERS.index("a run's stored path")
 """`DecisiveStates.driver` of a state on a run's stored path."""
 
-_BATCH = 2000
+LABEL_BATCH = 2000
 """States labelled together (bounds the planner's rollout arrays)."""
 
 
@@ -113,6 +115,33 @@ def stored_steps(world: WorldConfig, run_dir: Path, window: int) -> StoredSteps:
     return StoredSteps(pose, velocity, target, action, episode_index, step, rows)
 
 
+def redrawn_worlds(
+    world: WorldConfig,
+    steps: StoredSteps,
+    rows: NDArray[np.int64],
+    *,
+    window: int,
+    seed: int,
+    chance: np.random.Generator,
+) -> WorldState:
+    """The worlds at stored steps `rows` among fresh obstacles drawn from `chance`, each of
+    which kept clear of the robot over its last `window` frames (as TD's re-drawing)."""
+    frames = steps.window[rows]
+    centres, velocities = draw_obstacle_paths(
+        world, steps.pose[frames], np.diff(frames, axis=1) > 0, history=window, rng=chance
+    )
+    return WorldState(
+        pose=steps.pose[rows],
+        velocity=steps.velocity[rows],
+        target_xy=steps.target_xy[rows],
+        obstacle_xy=centres[:, -1],
+        obstacle_velocity=velocities[:, -1],
+        steps=steps.step[rows],
+        seed=np.full(rows.size, seed, dtype=np.int64),
+        episode=steps.episode[rows],
+    )
+
+
 def redrawn_states(
     world: WorldConfig,
     run_dir: Path,
@@ -134,23 +163,10 @@ def redrawn_states(
     max_range_m = distance_scale_m(world.lidar)
     kept: list[tuple[WorldState, NDArray[np.float32], NDArray[np.int64]]] = []
     for start in tqdm(
-        range(0, count, _BATCH), desc="label re-drawn", unit="batch", disable=not progress
+        range(0, count, LABEL_BATCH), desc="label re-drawn", unit="batch", disable=not progress
     ):
-        rows = picked[start : start + _BATCH]
-        frames = steps.window[rows]
-        centres, velocities = draw_obstacle_paths(
-            world, steps.pose[frames], np.diff(frames, axis=1) > 0, history=window, rng=chance
-        )
-        state = WorldState(
-            pose=steps.pose[rows],
-            velocity=steps.velocity[rows],
-            target_xy=steps.target_xy[rows],
-            obstacle_xy=centres[:, -1],
-            obstacle_velocity=velocities[:, -1],
-            steps=steps.step[rows],
-            seed=np.full(rows.size, seed, dtype=np.int64),
-            episode=steps.episode[rows],
-        )
+        rows = picked[start : start + LABEL_BATCH]
+        state = redrawn_worlds(world, steps, rows, window=window, seed=seed, chance=chance)
         share = collision_shares(world, state).astype(np.float32)
         keep = is_decisive(share == 1.0) | (chance.random(rows.size) < ordinary_share)
         where = np.flatnonzero(keep)

@@ -21,15 +21,19 @@ from qnav.lab.doubt import (
     LabelFolder,
     LabelledRound,
     RoundReport,
+    doubt,
     drive_and_label,
     most_doubtful,
+    redraw_and_label,
     run_rounds,
 )
-from qnav.lab.probe import ProbeSettings, network_safety, tracked_safety
+from qnav.lab.probe import ProbeSettings, judged_safe, network_safety, tracked_safety
+from qnav.lab.redrawn import stored_steps
 from qnav.sim.config import scenario
 from qnav.sim.evaluate import drive, go_to_target
 from qnav.sim.world import Observation, WorldState
 from tests.command import run_qnav
+from tests.lab.conftest import TINY_RUN_WORLD
 
 SMALL_GAUGE = GaugeSettings(episodes_per_driver=6, max_episode_steps=40, num_worlds=6)
 SMALL_PROBE = ProbeSettings(
@@ -140,7 +144,6 @@ def test_a_folder_refuses_rounds_made_otherwise_and_names_the_setting(tmp_path: 
     [
         ("inputs", "lidar"),  # judged from a window of scans, which the rounds do not render
         ("labelled_actions", "taken"),  # the rounds record no driver's action
-        ("redrawn_from", "runs/any"),  # round 0 is the driven labelled set
     ],
 )
 def test_rounds_the_doubt_led_labelling_cannot_make_are_refused_by_name(
@@ -247,3 +250,43 @@ def test_the_tracker_shows_the_fit_the_obstacles_the_truth_shows_it() -> None:
     # the nearest obstacle, ahead: the tracker finds it where it is, within noise
     np.testing.assert_allclose(from_exact_scans, exact, atol=1e-3)
     assert 0 < np.median(np.abs(from_noisy_scans - exact)) < 0.01
+
+
+def test_rounds_among_redrawn_obstacles_label_the_runs_own_steps_and_resume(
+    tiny_run: Path, tmp_path: Path
+) -> None:
+    probe = replace(SMALL_PROBE, redrawn_from=str(tiny_run), redrawn_states=400)
+    settings = {"probe": probe, "settings": SMALL, "gauge": SMALL_GAUGE}
+    straight = list(run_rounds(TINY_RUN_WORLD, tmp_path / "straight", 2, **settings))  # type: ignore[arg-type]
+    assert [report.round for report in straight] == [0, 1, 2]
+    assert all(report.visited == 400 for report in straight)
+    assert all(report.labelled == 80 for report in straight[1:])  # the doubtful fifth
+    resumed = tmp_path / "resumed"
+    list(run_rounds(TINY_RUN_WORLD, resumed, 1, **settings))  # type: ignore[arg-type]
+    labelled_once = (resumed / "round-000.npz").stat().st_mtime_ns
+    again = list(run_rounds(TINY_RUN_WORLD, resumed, 2, **settings))  # type: ignore[arg-type]
+    assert (resumed / "round-000.npz").stat().st_mtime_ns == labelled_once  # not relabelled
+    assert _without_minutes(again) == _without_minutes(straight)
+    steps = stored_steps(TINY_RUN_WORLD, tiny_run, window=SMALL_GAUGE.window)
+    visited = {tuple(row) for row in np.round(steps.pose, 9)}
+    for labelled in LabelFolder(resumed).rounds():
+        assert all(tuple(row) in visited for row in np.round(labelled.world.pose, 9))
+
+
+def test_a_redrawn_round_labels_the_most_doubtful_of_its_drawn_states(tiny_run: Path) -> None:
+    steps = stored_steps(TINY_RUN_WORLD, tiny_run, window=5)
+    probe = replace(SMALL_PROBE, redrawn_from=str(tiny_run), redrawn_states=300)
+    network = _NearestAhead()
+
+    def round_with(share: float) -> LabelledRound:
+        settings = replace(SMALL, labelled_share=share)
+        return redraw_and_label(
+            TINY_RUN_WORLD, steps, network, probe, settings, round_index=1, window=5
+        )
+
+    every, doubtful = round_with(1.0), round_with(0.2)
+    assert every.visited == doubtful.visited == 300 and len(doubtful.collide_share) == 60
+    judged = judged_safe(network, (every.context, every.slots))
+    chosen = judged_safe(network, (doubtful.context, doubtful.slots))
+    # the same draws, of which the fifth whose judgement is nearest even odds was labelled
+    assert doubt(chosen).max() <= np.sort(doubt(judged))[59]

@@ -14,19 +14,7 @@ from qnav.lab.oracle import collision_shares
 from qnav.lab.probe import ProbeSettings, probe
 from qnav.lab.redrawn import STORED_PATH, redrawn_states, stored_steps
 from qnav.sim.config import scenario
-from tests import tiny_training
-
-TINY = replace(tiny_training.TINY, eval_every_episodes=0, final_eval_episodes=2)
-WORLD = scenario("obstacles-inertia")
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from qnav.training.run import train
-
-    run_dir = tmp_path_factory.mktemp("redrawn") / "run"
-    train(WORLD, TINY, run_dir, progress=False)
-    return run_dir
+from tests.lab.conftest import TINY_RUN_WORLD as WORLD
 
 
 def test_stored_steps_replay_their_actions_to_the_next_stored_pose(tiny_run: Path) -> None:
