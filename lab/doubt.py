@@ -500,6 +500,7 @@ def _rounds(
     labelled = list(store.rounds())
     reports = store.reports()[: len(labelled) + 1]
     yield from reports
+    base_started = time.monotonic()  # round 0's minutes include labelling its set
     base = _base_set(world, store, probe, gauge, progress)
     stored = (
         stored_steps(world, Path(probe.redrawn_from), gauge.window) if probe.redrawn_from else None
@@ -507,7 +508,7 @@ def _rounds(
     network = doom_network(world, probe.inputs)
     fitted_path = folder / "network.pt"
     for index in range(len(labelled), rounds + 1):
-        started = time.monotonic()
+        started = base_started if index == 0 else time.monotonic()
         if index > len(labelled):
             fresh = (
                 redraw_and_label(
