@@ -65,6 +65,7 @@ from qnav.lab.probe import (
     fit_doom,
     judged_safe,
     labelled_features,
+    labelled_states,
     network_safety,
     safe_choice,
     shielded_go_to_target,
@@ -73,7 +74,7 @@ from qnav.lab.probe import (
     state_inputs,
     tracked_safety,
 )
-from qnav.lab.redrawn import LABEL_BATCH, StoredSteps, redrawn_states, redrawn_worlds, stored_steps
+from qnav.lab.redrawn import LABEL_BATCH, StoredSteps, redrawn_worlds, stored_steps
 from qnav.sim import paper
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
@@ -412,21 +413,12 @@ def _base_set(
 ) -> DecisiveStates:
     """Round 0's labels: the probe's driven set (from the cache), or with `probe.redrawn_from`
     its re-drawn set, labelled once and kept in the folder (round-000.npz: minutes of labels)."""
-    if not probe.redrawn_from:
-        return cached(world, probe.labelled_set(gauge), progress)
     path = store.round_path(0)
-    if path.exists():
+    if probe.redrawn_from and path.exists():
         return DecisiveStates.load(path)
-    base = redrawn_states(
-        world,
-        Path(probe.redrawn_from),
-        probe.redrawn_states,
-        window=gauge.window,
-        ordinary_share=probe.ordinary_share,
-        seed=probe.seed,
-        progress=progress,
-    )
-    base.save(path)
+    base = labelled_states(world, probe, gauge, progress)
+    if probe.redrawn_from:
+        base.save(path)
     return base
 
 

@@ -361,6 +361,24 @@ def fit_doom(
             after_epoch(epoch, total / len(target))
 
 
+def labelled_states(
+    world: WorldConfig, settings: ProbeSettings, gauge: GaugeSettings, progress: bool = False
+) -> DecisiveStates:
+    """The labelled states the probe fits: `settings.redrawn_from`'s stored steps among re-drawn
+    obstacles, or the driven set (from the cache; `gauge` gives its episode length and window)."""
+    if not settings.redrawn_from:
+        return cached(world, settings.labelled_set(gauge), progress)
+    return redrawn_states(
+        world,
+        Path(settings.redrawn_from),
+        settings.redrawn_states,
+        window=gauge.window,
+        ordinary_share=settings.ordinary_share,
+        seed=settings.seed,
+        progress=progress,
+    )
+
+
 def probe(
     world: WorldConfig,
     settings: ProbeSettings = ProbeSettings(),
@@ -370,19 +388,7 @@ def probe(
     """Fit a network to doom labels and judge it on the gauge after each pass."""
     gauge = gauge or GaugeSettings()
     torch.set_num_threads(settings.threads)
-    labelled = (
-        redrawn_states(
-            world,
-            Path(settings.redrawn_from),
-            settings.redrawn_states,
-            window=gauge.window,
-            ordinary_share=settings.ordinary_share,
-            seed=settings.seed,
-            progress=progress,
-        )
-        if settings.redrawn_from
-        else cached(world, settings.labelled_set(gauge), progress)
-    )
+    labelled = labelled_states(world, settings, gauge, progress)
     held_out = cached(world, gauge, progress)
     fitted = decisive_only(labelled)
     torch.manual_seed(settings.seed)
