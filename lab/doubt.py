@@ -551,10 +551,11 @@ def _rounds(
 TRACKER_TEST_NOISE_M = 0.02
 """Range noise of the final test's noisy scans (a hobby lidar's, as the tracker's own check)."""
 
-THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9)
+THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.98)
 """The shield's thresholds the final test chooses among: go-to-target's action is kept where the
 fit's P(safe) exceeds it. A miss (keeping a doomed action) ends the episode, a false alarm costs
-a detour, so a good enough fit wants a threshold above 1/2; how far depends on the fit."""
+a detour, so a good enough fit wants a threshold above 1/2; how far depends on the fit (the fits
+of re-drawn rounds chose 0.9 when it was the highest offered)."""
 
 
 class FinalTest(NamedTuple):

@@ -17,6 +17,7 @@ from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
 from qnav.lab.decisive import GaugeSettings
 from qnav.lab.doubt import (
+    THRESHOLDS,
     DoubtSettings,
     LabelFolder,
     LabelledRound,
@@ -172,7 +173,7 @@ def test_the_command_prints_a_round_per_line_and_resumes(tmp_path: Path) -> None
     )
     assert tested.returncode == 0, tested.stderr
     test = json.loads(tested.stdout.splitlines()[-1])["final_test"]
-    assert test["threshold"] in (0.5, 0.6, 0.7, 0.8, 0.9)
+    assert test["threshold"] in THRESHOLDS
     assert test["validation"][str(test["threshold"])] == max(test["validation"].values())
     for result in ("half", "truth", "tracked", "tracked_noisy"):
         assert test[result]["episodes"] == 2
