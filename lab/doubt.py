@@ -40,12 +40,6 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.observation import (
-    distance_scale_m,
-    encode_target,
-    obstacle_features,
-    target_features,
-)
 from qnav.contracts.settings import check_range, to_toml
 from qnav.lab.decisive import (
     DecisiveStates,
@@ -74,7 +68,13 @@ from qnav.lab.probe import (
     state_inputs,
     tracked_safety,
 )
-from qnav.lab.redrawn import LABEL_BATCH, StoredSteps, redrawn_worlds, stored_steps
+from qnav.lab.redrawn import (
+    LABEL_BATCH,
+    StoredSteps,
+    encoded_view,
+    redrawn_worlds,
+    stored_steps,
+)
 from qnav.sim import paper
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, drive, go_to_target
@@ -239,7 +239,7 @@ def redraw_and_label(
     ):
         rows = picked[start : start + LABEL_BATCH]
         state = redrawn_worlds(world, steps, rows, window=window, seed=settings.seed, chance=chance)
-        context, slots = world_slot_inputs(world, state)
+        context, slots = slot_inputs(state.velocity, *encoded_view(world, state))
         features: tuple[NDArray[np.float32], ...] = (context, slots)
         if probe.inputs == "state":
             features = state_features(state, world.arena.size_m)
@@ -255,17 +255,6 @@ def redraw_and_label(
             )
         )
     return _joined(parts)
-
-
-def world_slot_inputs(world: WorldConfig, state: WorldState) -> tuple[NDArray[np.float32], ...]:
-    """What the slot network sees in worlds known without an observation (`lab.probe.slot_inputs`
-    from the worlds' own target and obstacles)."""
-    target = target_features(state.pose, state.target_xy)
-    return slot_inputs(
-        state.velocity,
-        encode_target(target, distance_scale_m(world.lidar)),
-        obstacle_features(state.pose, state.obstacle_xy, state.obstacle_velocity),
-    )
 
 
 def _joined(parts: list[LabelledRound]) -> LabelledRound:
@@ -492,18 +481,19 @@ def _rounds(
     labelled = list(store.rounds())
     reports = store.reports()[: len(labelled) + 1]
     yield from reports
-    base_started = time.monotonic()  # round 0's minutes include labelling its set
-    base = _base_set(world, store, probe, gauge, progress)
-    stored = (
-        stored_steps(world, Path(probe.redrawn_from), gauge.window) if probe.redrawn_from else None
-    )
+    # Read (or label) only when a round needs them: a finished folder, rerun for its final
+    # test, reads neither.
+    base: DecisiveStates | None = None
+    stored: StoredSteps | None = None
     network = doom_network(world, probe.inputs)
     fitted_path = folder / "network.pt"
     for index in range(len(labelled), rounds + 1):
-        started = base_started if index == 0 else time.monotonic()
+        started = time.monotonic()
         if index > len(labelled):
-            fresh = (
-                redraw_and_label(
+            if probe.redrawn_from:
+                if stored is None:
+                    stored = stored_steps(world, Path(probe.redrawn_from), gauge.window)
+                fresh = redraw_and_label(
                     world,
                     stored,
                     network,
@@ -513,17 +503,18 @@ def _rounds(
                     window=gauge.window,
                     progress=progress,
                 )
-                if stored is not None
-                else drive_and_label(
+            else:
+                fresh = drive_and_label(
                     world, network_safety(world, network, probe.inputs), settings, index, progress
                 )
-            )
             fresh.save(store.round_path(index))
             labelled.append(fresh)
         if index < len(reports) and fitted_path.exists():
             network.load_state_dict(torch.load(fitted_path))
             network.eval()
             continue
+        if base is None:  # round 0's minutes include labelling its set
+            base = _base_set(world, store, probe, gauge, progress)
         data = training_set(world, base, probe, settings, labelled)
         torch.manual_seed(probe.seed)
         network = doom_network(world, probe.inputs)

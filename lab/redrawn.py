@@ -142,6 +142,18 @@ def redrawn_worlds(
     )
 
 
+def encoded_view(
+    world: WorldConfig, state: WorldState
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """What a doom network given the obstacles sees of worlds known without an observation:
+    the encoded target (K, TARGET_FEATURES) and obstacles (K, OBSTACLE_FEATURES)."""
+    target = target_features(state.pose, state.target_xy)
+    return (
+        encode_target(target, distance_scale_m(world.lidar)),
+        obstacle_features(state.pose, state.obstacle_xy, state.obstacle_velocity),
+    )
+
+
 def redrawn_states(
     world: WorldConfig,
     run_dir: Path,
@@ -160,7 +172,6 @@ def redrawn_states(
     steps = stored_steps(world, run_dir, window)
     chance = np.random.default_rng([seed, 2])
     picked = chance.integers(0, len(steps.pose), count)
-    max_range_m = distance_scale_m(world.lidar)
     kept: list[tuple[WorldState, NDArray[np.float32], NDArray[np.int64]]] = []
     for start in tqdm(
         range(0, count, LABEL_BATCH), desc="label re-drawn", unit="batch", disable=not progress
@@ -173,10 +184,7 @@ def redrawn_states(
         kept.append((take_rows(state, where), share[where], rows[where]))
     states, shares, picked_rows = zip(*kept, strict=True)
     world_rows = concatenate_rows(list(states))
-    target = encode_target(target_features(world_rows.pose, world_rows.target_xy), max_range_m)
-    obstacles = obstacle_features(
-        world_rows.pose, world_rows.obstacle_xy, world_rows.obstacle_velocity
-    )
+    target, obstacles = encoded_view(world, world_rows)
     visited = np.zeros(len(DRIVERS), dtype=np.int64)
     visited[STORED_PATH] = count
     return DecisiveStates(
