@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 from qnav.contracts import delivery, wire
 from qnav.contracts.actions import Action
 from qnav.contracts.errors import PolicyFileError, PolicyInputError
+from qnav.contracts.judge_file import judged_actions
 from qnav.contracts.lookahead import shielded_actions
 from qnav.contracts.observation import target_features_of
 from qnav.contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
@@ -127,7 +128,7 @@ class Counters:
     policy_swaps: int = 0
     """Policies swapped in while running (`Controller.swap_policy`)."""
     overruled: int = 0
-    """Policy decisions the look ahead changed (`lookahead.mode` shield or plan)."""
+    """Policy decisions the look ahead changed (`lookahead.mode` shield, plan or judge)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As plain JSON values."""
@@ -177,7 +178,8 @@ class Status:
     """Version of the policy that decides (or would decide): `Controller.policy_version`."""
     risks: tuple[float, ...] | None = None
     """With `lookahead.mode = "shield"`: each action's share of forecast continuations
-    that collide, indexed by action (None otherwise, or when stopped by a rule)."""
+    that collide; with "judge": 1 - the doom judge's P(safe); indexed by action (None
+    otherwise, or when stopped by a rule)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As one JSON object (the status message)."""
@@ -464,6 +466,13 @@ class Controller:
             target_xy = np.array([target.x_m, target.y_m])
             if self.lookahead_settings.mode == "plan":
                 action = Action(self.lookahead.plan(target_xy))
+            elif self.lookahead_settings.mode == "judge":
+                assert self.lookahead.judge is not None  # built with mode judge
+                safe = self.lookahead.safety(target_xy)
+                threshold = self.lookahead.judge.contract.threshold
+                preferred = np.array([int(decision.action)])
+                action = Action(int(judged_actions(preferred, safe[None], threshold)[0]))
+                risks = tuple((1.0 - safe).tolist())
             else:
                 shares = self.lookahead.risks(target_xy)
                 tolerance = self.lookahead_settings.tolerance
@@ -581,14 +590,18 @@ class Controller:
                 f"lidar: {runtime.path} reads no scan"
             )
         dynamics, robot_radius_m = contract.motion_model(str(runtime.path))
-        return Lookahead(
+        lookahead = Lookahead(
             self.lookahead_settings,
             tracker,
             dynamics=dynamics,
             robot_radius_m=robot_radius_m,
             control_period_s=contract.control_period_s,
             beam_angles_rad=beam_angles(contract.num_beams),
+            judge_backend=runtime.backend_name,
         )
+        if lookahead.judge is not None:
+            lookahead.judge.check_fits(contract, str(runtime.path))
+        return lookahead
 
     def _stop(self, now: float, reason: Reason, send: CommandSink | None) -> Output:
         self._restart_window()

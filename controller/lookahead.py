@@ -16,6 +16,10 @@ simulator's oracle plans with) do. Each decision:
    `plan_horizon_s` (the simulator's oracle planner, on the perceived state), whatever the
    policy's values.
 
+In "judge" mode steps 3-4 are learned instead: a doom judge file (`controller.judge`) gives each
+action's P(safe) from the same perceived state, and the policy's action is kept unless judged
+doomed (`contracts.judge_file.judged_actions`).
+
 `Lookahead` holds one car's state; the controller (`controller.decision`) calls it, and the
 simulator's in-process evaluation runs the same class (`qnav.tracking.LookaheadAgent`).
 """
@@ -24,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -40,7 +45,9 @@ from qnav.contracts.lookahead import (
 )
 from qnav.contracts.motion import Dynamics, InertiaDynamics
 from qnav.contracts.settings import check_range
+from qnav.controller.judge import DoomJudge, belief_inputs
 from qnav.controller.perception import ObstacleTracker, TrackerSettings, box_walls, own_velocity
+from qnav.controller.policy import Backend
 
 F64 = NDArray[np.float64]
 
@@ -51,11 +58,15 @@ class LookaheadSettings:
 
     SECTION = "lookahead"
 
-    mode: Literal["off", "shield", "plan"] = "off"
+    mode: Literal["off", "shield", "plan", "judge"] = "off"
     """"off": the policy decides alone. "shield": the policy's best-valued action among the
     least likely to collide (the forecast overrules it only there). "plan": the first action of
     the best-scoring candidate sequence (reach the target early, collide late or never, else end
-    near the target and clear of surfaces), the policy's values reported but not used."""
+    near the target and clear of surfaces), the policy's values reported but not used. "judge":
+    the policy's action unless `judge_file` judges it doomed, then the action it judges safest
+    (learned, no forecast)."""
+    judge_file: str = ""
+    """With mode "judge": the doom judge file (`qnav lab label FOLDER ... --export FILE`)."""
     room_size_m: float = 10.0
     """Side of the square room [0, size]^2 in the motion-capture frame: its walls are known (a
     lidar return on them is not an obstacle, and obstacles bounce off them)."""
@@ -74,8 +85,13 @@ class LookaheadSettings:
     """Seed of the random continuations (the generator restarts with every episode)."""
 
     def __post_init__(self) -> None:
-        if self.mode not in ("off", "shield", "plan"):
-            raise ConfigError(f"lookahead.mode = {self.mode!r}: choose off, shield or plan")
+        if self.mode not in ("off", "shield", "plan", "judge"):
+            raise ConfigError(f"lookahead.mode = {self.mode!r}: choose off, shield, plan or judge")
+        if (self.mode == "judge") != bool(self.judge_file):
+            raise ConfigError(
+                f"lookahead.judge_file = {self.judge_file!r} with lookahead.mode = {self.mode!r}: "
+                "mode judge needs a doom judge file, and only it reads one"
+            )
         check_range(self, "room_size_m", self.room_size_m, 0.0, 1000.0, exclusive_low=True)
         check_range(self, "shield_horizon_s", self.shield_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "plan_horizon_s", self.plan_horizon_s, 0.0, 60.0, exclusive_low=True)
@@ -115,6 +131,7 @@ class Lookahead:
         robot_radius_m: float,
         control_period_s: float,
         beam_angles_rad: F64,
+        judge_backend: Backend = "onnxruntime",
     ) -> None:
         self.settings = settings
         self.tracker_settings = tracker
@@ -135,6 +152,9 @@ class Lookahead:
         )
         self.horizon = max(1, round(horizon_s / control_period_s))
         """Control periods each candidate sequence runs."""
+        judging = settings.mode == "judge"
+        self.judge = DoomJudge(Path(settings.judge_file), judge_backend) if judging else None
+        """The doom judge of mode "judge" (else None)."""
         self.restart()
 
     def restart(self) -> None:
@@ -191,6 +211,10 @@ class Lookahead:
         """(A,) each first action's share of colliding continuations within the horizon."""
         return np.asarray(risks_of([self], [target_xy])[0])
 
+    def safety(self, target_xy: F64) -> F64:
+        """(A,) the doom judge's P(safe) of each action (mode "judge")."""
+        return np.asarray(safeties_of([self], [target_xy])[0])
+
 
 def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
     """(N, A) `Lookahead.risks` of several cars at once (one forecast over all of them; their
@@ -199,6 +223,23 @@ def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
         return np.zeros((0, NUM_ACTIONS))
     tails = np.concatenate([car.continuations() for car in lookaheads])
     return collision_shares(lookaheads[0].model, beliefs_of(lookaheads, targets_xy), tails)
+
+
+def safeties_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
+    """(N, A) `Lookahead.safety` of several cars at once (one call of the first car's judge)."""
+    if not lookaheads:
+        return np.zeros((0, NUM_ACTIONS))
+    judge = lookaheads[0].judge
+    if judge is None:
+        raise ConfigError("the doom judge's P(safe) needs lookahead.mode = 'judge'")
+    # One car at a time: stacking pads beliefs with far obstacles, which the judge would see as
+    # occupied slots where a car with fewer tracks has empty ones.
+    parts = [
+        belief_inputs(**car.belief(target)._asdict(), max_range_m=judge.contract.max_range_m)
+        for car, target in zip(lookaheads, targets_xy, strict=True)
+    ]
+    inputs = tuple(np.concatenate(part) for part in zip(*parts, strict=True))
+    return judge.safe_probability(*inputs)
 
 
 def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:

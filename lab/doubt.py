@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.judge_file import judge_inputs, judged_actions
 from qnav.contracts.settings import check_range, to_toml
 from qnav.lab.decisive import (
     DecisiveStates,
@@ -61,9 +62,7 @@ from qnav.lab.probe import (
     labelled_features,
     labelled_states,
     network_safety,
-    safe_choice,
     shielded_go_to_target,
-    slot_inputs,
     state_features,
     state_inputs,
     tracked_safety,
@@ -127,7 +126,7 @@ class LabelledRound(NamedTuple):
     world: WorldState
     """The true state of each labelled world (K rows)."""
     context: NDArray[np.float32]
-    """(K, 5) the slot network's context (`lab.probe.slot_inputs`)."""
+    """(K, 5) the slot network's context (`contracts.judge_file.judge_inputs`)."""
     slots: NDArray[np.float32]
     """(K, OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES) the obstacles' slots."""
     collide_share: NDArray[np.float64]
@@ -239,7 +238,7 @@ def redraw_and_label(
     ):
         rows = picked[start : start + LABEL_BATCH]
         state = redrawn_worlds(world, steps, rows, window=window, seed=settings.seed, chance=chance)
-        context, slots = slot_inputs(state.velocity, *encoded_view(world, state))
+        context, slots = judge_inputs(state.velocity, *encoded_view(world, state))
         features: tuple[NDArray[np.float32], ...] = (context, slots)
         if probe.inputs == "state":
             features = state_features(state, world.arena.size_m)
@@ -286,9 +285,9 @@ def _label_batch(
         inputs.append(state_inputs(world, "slots", state, observation))
         judged.append(safety(state, observation))
         preferred = go_to_target(observation.target_features())
-        return (
-            preferred if settings.driver == "go-to-target" else safe_choice(preferred, judged[-1])
-        )
+        if settings.driver == "go-to-target":
+            return preferred
+        return judged_actions(preferred, judged[-1], 0.5)
 
     drive(config, settings.seed, episodes, act)
     visited = concatenate_rows(states)
@@ -567,6 +566,20 @@ class FinalTest(NamedTuple):
     """The same with `TRACKER_TEST_NOISE_M` of range noise on the scans."""
 
 
+def fitted_network(world: WorldConfig, folder: Path, probe: ProbeSettings) -> torch.nn.Module:
+    """The folder's latest fit (network.pt), in eval mode, on what a car perceives."""
+    if probe.inputs != "slots":
+        raise ConfigError(
+            "a fit a car can ask needs probe.inputs = slots (the state is not perceived)"
+        )
+    fitted_path = folder / "network.pt"
+    if not fitted_path.exists():
+        raise ConfigError(f"{folder} holds no fit yet ({fitted_path}): run a round first")
+    network = doom_network(world, probe.inputs)
+    network.load_state_dict(torch.load(fitted_path))
+    return network.eval()
+
+
 def final_test(
     world: WorldConfig,
     folder: Path,
@@ -578,14 +591,7 @@ def final_test(
     validation layouts (seed `settings.seed + 1`, apart from the rounds' and the test's), then
     the first `episodes` test-protocol layouts at it, the fit seeing the world's truth, the
     onboard tracker's estimate (as the car's controller would), and that with noisy scans."""
-    if probe.inputs != "slots":
-        raise ConfigError("the final test needs probe.inputs = slots (what a car perceives)")
-    fitted_path = folder / "network.pt"
-    if not fitted_path.exists():
-        raise ConfigError(f"{folder} holds no fit yet ({fitted_path}): run a round first")
-    network = doom_network(world, probe.inputs)
-    network.load_state_dict(torch.load(fitted_path))
-    network.eval()
+    network = fitted_network(world, folder, probe)
     truth = network_safety(world, network, "slots")
     validation_layouts = EvalSettings(episodes=episodes, seed=settings.seed + 1)
     validation = {

@@ -32,9 +32,9 @@ from tqdm import tqdm
 
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.judge_file import judge_inputs, judged_actions
 from qnav.contracts.observation import (
     OBSTACLE_SLOT_FEATURES,
-    OBSTACLE_SLOTS,
     TARGET_FEATURES,
     FrameWindow,
     distance_scale_m,
@@ -196,7 +196,7 @@ def slot_features(states: DecisiveStates) -> tuple[NDArray[np.float32], ...]:
     inputs: (context (K, 5), obstacles (K, OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)). Context:
     the robot's own speed and turn rate (which the car estimates from its poses) and the encoded
     target; per obstacle, its slot of `contracts.observation.obstacle_features`."""
-    return slot_inputs(
+    return judge_inputs(
         states.world.velocity,
         states.windows[:, -1, -TARGET_FEATURES:],
         states.obstacle_windows[:, -1],
@@ -211,18 +211,6 @@ def labelled_features(
     if inputs == "state":
         return state_features(states.world, world.arena.size_m)
     return slot_features(states)
-
-
-def slot_inputs(
-    velocity: NDArray[np.floating],
-    encoded_target: NDArray[np.floating],
-    obstacles: NDArray[np.floating],
-) -> tuple[NDArray[np.float32], ...]:
-    """`slot_features` from the robot's velocities (K, 2), encoded targets (K, 3) and encoded
-    obstacles (K, OBSTACLE_FEATURES)."""
-    context = np.concatenate([velocity, encoded_target], axis=1)
-    slots = obstacles.reshape(len(context), OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)
-    return context.astype(np.float32), np.ascontiguousarray(slots, dtype=np.float32)
 
 
 class ObstacleSetNetwork(torch.nn.Module):
@@ -437,7 +425,7 @@ class ShieldTest(NamedTuple):
     blind: EvalResult
     """Go-to-target alone (blind to the obstacles)."""
     fitted: EvalResult
-    """Shielded by the fitted network (`safe_choice`)."""
+    """Shielded by the fitted network (`contracts.judge_file.judged_actions`)."""
     fitted_overruled: float
     """Share of the fitted shield's decisions that overrule go-to-target."""
     exact: EvalResult
@@ -451,18 +439,6 @@ class ShieldTest(NamedTuple):
     (`tracked_safety`; inputs "slots" only, else None)."""
     tracked_overruled: float = 0.0
     """Share of the tracked shield's decisions that overrule go-to-target."""
-
-
-def safe_choice(
-    preferred: NDArray[np.int64],
-    safe_probability: NDArray[np.floating],
-    threshold: float = 0.5,
-) -> NDArray[np.int64]:
-    """(N,) go-to-target's action (N,) where it is judged safe (probability (N, A) above
-    `threshold`), else the action judged safest."""
-    rows = np.arange(len(preferred))
-    keep = safe_probability[rows, preferred] > threshold
-    return np.where(keep, preferred, safe_probability.argmax(axis=1)).astype(np.int64)
 
 
 SafeProbability = Callable[[WorldState, Observation], NDArray[np.floating]]
@@ -505,7 +481,7 @@ def tracked_safety(
                     belief.pose[0], belief.obstacle_xy[0], belief.obstacle_velocity[0]
                 )
             )
-        parts = slot_inputs(
+        parts = judge_inputs(
             np.array(velocity),
             encode_target(observation.target_features(), max_range_m),
             np.array(slots),
@@ -562,7 +538,7 @@ def state_inputs(
     """What a doom network with `ProbeSettings.inputs` "state" or "slots" sees in each world."""
     if inputs == "state":
         return state_features(state, world.arena.size_m)
-    return slot_inputs(
+    return judge_inputs(
         state.velocity,
         encode_target(observation.target_features(), distance_scale_m(world.lidar)),
         observation.obstacle_features(),
@@ -603,7 +579,7 @@ def shielded_go_to_target(
         preferred = go_to_target(observation.target_features())
         if safety is None:
             return preferred
-        chosen = safe_choice(preferred, safety(state, observation), threshold)
+        chosen = judged_actions(preferred, safety(state, observation), threshold)
         decisions += chosen.size
         overruled += int((chosen != preferred).sum())
         return chosen

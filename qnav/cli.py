@@ -218,11 +218,19 @@ def _with_listing(parser: _Parser, target: str, intro: str) -> None:
 def _lookahead_option(parser: argparse.ArgumentParser, where: str) -> None:
     parser.add_argument(
         "--lookahead",
-        choices=["off", "shield", "plan"],
+        choices=["off", "shield", "plan", "judge"],
         default="off",
         help=f"{where}the controller's look ahead (lookahead.mode): the obstacle tracker feeds "
         "a forecast; shield takes the policy's best-valued action among the least likely to "
-        "collide within 4 s, plan takes the planner's (10 s ahead)",
+        "collide within 4 s, plan takes the planner's (10 s ahead); judge keeps the policy's "
+        "action unless the doom judge file (--judge) finds it doomed",
+    )
+    parser.add_argument(
+        "--judge",
+        type=Path,
+        metavar="FILE.onnx",
+        help="with --lookahead judge: the doom judge file (lookahead.judge_file; "
+        "`qnav lab label FOLDER ... --export FILE`)",
     )
 
 
@@ -505,6 +513,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="then test the latest fit as a shield: its threshold chosen on this many validation "
         "episodes, then as many test-protocol episodes from the truth and from the onboard "
         "tracker's estimate (0: not)",
+    )
+    label.add_argument(
+        "--export",
+        type=Path,
+        metavar="FILE.onnx",
+        help="with --test-episodes: write the latest fit as a doom judge file at the chosen "
+        "threshold, for the controller's lookahead.mode = judge",
     )
     add_print_config(label)
     _flag(label, "--json", "print one JSON object per round")

@@ -34,6 +34,7 @@ from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import from_dict, to_toml
 
 if TYPE_CHECKING:
+    from qnav.controller.lookahead import LookaheadSettings
     from qnav.sim.config import WorldConfig
     from qnav.sim.evaluate import Agent
 
@@ -132,14 +133,14 @@ def write_configs(
     bridge_values: dict[str, Any] | None = None,
     public_key: Path | None = None,
     input_timeout_s: float = 0.0,
-    lookahead: str = "off",
+    lookahead: LookaheadSettings | None = None,
     room_size_m: float = 10.0,
 ) -> None:
     """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
     bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
     controller takes policies from a server signed with its private key, `policy` first;
     `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default;
-    `lookahead`: the controller's `lookahead.mode`, in a room of `room_size_m`)."""
+    `lookahead`: the controller's look ahead, in a room of `room_size_m`)."""
     from qnav.controller.config import DaemonConfig
     from qnav.firmware_bridge.settings import BridgeSettings
 
@@ -156,11 +157,7 @@ def write_configs(
             ),
             "zenoh": zenoh,
         }
-        | (
-            {}
-            if lookahead == "off"
-            else {"lookahead": {"mode": lookahead, "room_size_m": room_size_m}}
-        )
+        | ({} if lookahead is None else {"lookahead": _lookahead_values(lookahead, room_size_m)})
         | (
             {}
             if public_key is None
@@ -250,7 +247,7 @@ def run_stack(
     sitl_binary: Path | None = None,
     serve: StackServe | None = None,
     lockstep: bool = True,
-    lookahead: str = "off",
+    lookahead: LookaheadSettings | None = None,
 ) -> dict[str, Any]:
     """Run the full stack for `episodes` episodes; returns its outcome fractions and paths.
 
@@ -264,7 +261,7 @@ def run_stack(
     With `lockstep` (the test vehicle only), the sim-car steps the world once the command
     decided on each scan has reached the car (`sim-car --lockstep`); else in real time.
 
-    `lookahead` is the controller's `lookahead.mode` (`controller.lookahead`).
+    `lookahead` is the controller's look ahead (`controller.lookahead`; None: off).
     """
     from tqdm import tqdm
 
@@ -396,8 +393,11 @@ def episode_health(episodes_log: Path) -> dict[str, int]:
 
 def stack_verb(args: argparse.Namespace) -> int:
     """`qnav stack`: the full stack, then the same episodes in process, side by side."""
+    from qnav.tracking import lookahead_settings
+
     if not args.policy.is_file():
         raise ConfigError(f"--policy {args.policy} does not exist")
+    lookahead = None if args.lookahead == "off" else lookahead_settings(args.lookahead, args.judge)
     serve = None
     if args.serve_folder is not None or args.keys is not None:
         if args.serve_folder is None or args.keys is None:
@@ -427,14 +427,14 @@ def stack_verb(args: argparse.Namespace) -> int:
         sitl_binary=sitl_binary,
         serve=serve,
         lockstep=not args.real_time,
-        lookahead=args.lookahead,
+        lookahead=lookahead,
     )
     result["in_process"] = in_process_outcomes(
-        args.policy, result["scenario"], args.episodes, lookahead=args.lookahead
+        args.policy, result["scenario"], args.episodes, lookahead=lookahead
     )
     result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
     result["agreement"] = episode_agreement(
-        args.policy, result["scenario"], args.out / "episodes.jsonl", lookahead=args.lookahead
+        args.policy, result["scenario"], args.out / "episodes.jsonl", lookahead=lookahead
     )
     result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
     if args.json:
@@ -540,8 +540,21 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     }
 
 
+def _lookahead_values(lookahead: LookaheadSettings, room_size_m: float) -> dict[str, Any]:
+    """The controller's [lookahead] table: `lookahead` in the stack's room, a judge file by its
+    absolute path (the daemon runs elsewhere)."""
+    values: dict[str, Any] = {"mode": lookahead.mode, "room_size_m": room_size_m}
+    if lookahead.judge_file:
+        values["judge_file"] = str(Path(lookahead.judge_file).resolve())
+    return values
+
+
 def in_process_outcomes(
-    policy: Path, scenario_name: str, episodes: int, *, lookahead: str = "off"
+    policy: Path,
+    scenario_name: str,
+    episodes: int,
+    *,
+    lookahead: LookaheadSettings | None = None,
 ) -> dict[str, Any]:
     """`qnav eval --lookahead MODE` of the policy file on the stack's episodes (the test
     protocol's first ones)."""
@@ -562,24 +575,28 @@ def in_process_outcomes(
     }
 
 
-def file_agent(policy: Path, world: WorldConfig, worlds: int, *, lookahead: str) -> Agent:
+def file_agent(
+    policy: Path, world: WorldConfig, worlds: int, *, lookahead: LookaheadSettings | None
+) -> Agent:
     """The policy file on one stream per world, as the controller runs it, with its look ahead
-    in `lookahead` mode."""
-    from qnav.controller.lookahead import LookaheadSettings
+    (None: none)."""
     from qnav.controller.perception import TrackerSettings
     from qnav.controller.policy import PolicyRuntime
     from qnav.sim.evaluate import StreamPolicyAgent
     from qnav.tracking import LookaheadAgent
 
     agent = StreamPolicyAgent(PolicyRuntime(policy, num_streams=worlds), worlds)
-    if lookahead == "off":
+    if lookahead is None:
         return agent
-    settings = LookaheadSettings(mode=lookahead)  # type: ignore[arg-type]  # argparse choices
-    return LookaheadAgent(agent, world, worlds, tracker=TrackerSettings(), lookahead=settings)
+    return LookaheadAgent(agent, world, worlds, tracker=TrackerSettings(), lookahead=lookahead)
 
 
 def episode_agreement(
-    policy: Path, scenario_name: str, episodes_log: Path, *, lookahead: str = "off"
+    policy: Path,
+    scenario_name: str,
+    episodes_log: Path,
+    *,
+    lookahead: LookaheadSettings | None = None,
 ) -> dict[str, int]:
     """Each episode of the sim-car's log run again in process one at a time, the policy on one
     stream as the controller runs it: how many took the same action at every step

@@ -10,15 +10,23 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.judge_file import judged_actions
 from qnav.contracts.lookahead import shielded_actions
 from qnav.contracts.observation import LidarSpec
-from qnav.controller.lookahead import Lookahead, LookaheadSettings, plans_of, risks_of
+from qnav.controller.lookahead import (
+    Lookahead,
+    LookaheadSettings,
+    plans_of,
+    risks_of,
+    safeties_of,
+)
 from qnav.controller.perception import TrackerSettings
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import WanderingGoToTarget
@@ -56,6 +64,17 @@ def noisy(
     return (scans_m + random.normal(0.0, sigma_m, scans_m.shape)).astype(np.float32)
 
 
+def lookahead_settings(mode: str, judge: Path | None) -> LookaheadSettings:
+    """The look ahead of `--lookahead MODE [--judge FILE]` (ConfigError naming the option)."""
+    if judge is not None and mode != "judge":
+        raise ConfigError(f"--judge {judge} is read only with --lookahead judge")
+    if mode == "judge" and judge is None:
+        raise ConfigError("--lookahead judge needs --judge FILE.onnx, a doom judge file")
+    if judge is not None and not judge.is_file():
+        raise ConfigError(f"--judge {judge}: no such file")
+    return LookaheadSettings(mode=mode, judge_file=str(judge or ""))  # type: ignore[arg-type]
+
+
 class QAgent(Protocol):
     """An agent that keeps the Q values of its last choice (`training.agent.TorchAgent`)."""
 
@@ -70,7 +89,9 @@ class LookaheadAgent:
     """A learned policy with the controller's look ahead (`controller.lookahead`, one per world,
     as each car runs it), in `lookahead.mode`: "shield", each action's share of colliding
     continuations is forecast from the tracker's obstacles and the room's walls and the policy's
-    best-valued action among the safest wins; "plan", the planner on that state decides.
+    best-valued action among the safest wins; "plan", the planner on that state decides;
+    "judge", the doom judge file judges each action from that state and the policy's action is
+    kept unless judged doomed (the inner agent then needs no Q values: go-to-target will do).
     """
 
     def __init__(
@@ -90,6 +111,15 @@ class LookaheadAgent:
         if self.settings.mode == "off":
             raise ConfigError("lookahead.mode = 'off': nothing to run beside the policy")
         self.cars = [world_lookahead(world, lookahead, tracker) for _ in range(num_worlds)]
+        judge = self.cars[0].judge if self.cars else None
+        if judge is not None:
+            judged = (judge.contract.dynamics, judge.contract.control_period_s)
+            if judged != (world.dynamics.kind, world.control_period_s):
+                raise ConfigError(
+                    f"{lookahead.judge_file} judges {judged[0]} dynamics at {judged[1]} s "
+                    f"({judge.contract.scenario}); scenario {world.name!r} has "
+                    f"{world.dynamics.kind} at {world.control_period_s} s"
+                )
         self.range_noise_m = range_noise_m
         self._noise = np.random.default_rng([seed, 31])
         self.steps = np.zeros(num_worlds, dtype=np.int64)
@@ -119,6 +149,10 @@ class LookaheadAgent:
         targets = list(observation.target_xy)
         if self.settings.mode == "plan":
             action = plans_of(self.cars, targets)
+        elif self.settings.mode == "judge":
+            assert self.cars[0].judge is not None  # built with mode judge
+            safe = safeties_of(self.cars, targets)
+            action = judged_actions(chosen, safe, self.cars[0].judge.contract.threshold)
         else:
             shares = risks_of(self.cars, targets)
             action = shielded_actions(self.inner.last_q, shares, self.settings.tolerance)

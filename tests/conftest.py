@@ -92,3 +92,53 @@ def policy_network(
     torch.manual_seed(seed)
     beams = world.lidar.num_beams if world.lidar else None
     return world, QNetwork(kind, beams, hidden_size).eval()  # type: ignore[arg-type]
+
+
+JUDGE_THRESHOLD = 0.6
+"""The threshold of `make_judge`'s files."""
+
+
+@pytest.fixture(scope="session")
+def make_judge(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]:
+    """`make_judge(scenario)` -> a doom judge file of an unfitted network (seed 0; rebuilt in
+    torch by `judge_network`), with threshold `JUDGE_THRESHOLD`; cached for the session."""
+    cache: dict[str, Path] = {}
+    root = tmp_path_factory.mktemp("judges")
+
+    def make(scenario: str = "obstacles-inertia") -> Path:
+        if scenario not in cache:
+            from qnav.contracts.judge_file import JudgeContract
+            from qnav.contracts.observation import distance_scale_m
+            from qnav.lab.judge import export_judge
+            from qnav.sim.config import scenario as load
+
+            world = load(scenario)
+            contract = JudgeContract(
+                scenario=world.name,
+                dynamics=world.dynamics.kind,
+                control_period_s=world.control_period_s,
+                max_range_m=distance_scale_m(world.lidar),
+                threshold=JUDGE_THRESHOLD,
+                horizon_s=4.0,
+                training={"label_folder": "none: unfitted weights of seed 0"},
+                evaluation={},
+                commit="test",
+            )
+            path = root / f"{scenario}.onnx"
+            export_judge(judge_network(), contract, path)
+            cache[scenario] = path
+        return cache[scenario]
+
+    return make
+
+
+def judge_network() -> Any:
+    """The unfitted doom network of `make_judge`'s files (seed 0), in eval mode."""
+    import torch
+
+    from qnav.contracts.judge_file import CONTEXT_FEATURES
+    from qnav.contracts.observation import OBSTACLE_SLOT_FEATURES
+    from qnav.lab.probe import ObstacleSetNetwork
+
+    torch.manual_seed(0)
+    return ObstacleSetNetwork(CONTEXT_FEATURES, OBSTACLE_SLOT_FEATURES).eval()

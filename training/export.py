@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import onnx
@@ -113,6 +113,11 @@ def export_onnx(
     write_metadata(model, contract)
     for key, value in (extra_metadata or {}).items():
         model.metadata_props.add(key=key, value=value)
+    save_checked(model, path)
+
+
+def save_checked(model: onnx.ModelProto, path: Path) -> None:
+    """Check `model` with onnx's full checker and write it to `path` atomically, weights inside."""
     onnx.checker.check_model(model, full_check=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
@@ -136,7 +141,7 @@ def streaming_model(network: QNetwork, contract: PolicyContract) -> onnx.ModelPr
         shape = (2, contract.state_slots, contract.state_size)
         inputs |= {"state_h": torch.zeros(shape), "state_c": torch.zeros(shape)}
         output_names += list(STATE_OUTPUTS)
-    program = _quiet_export(
+    program = quiet_export(
         streaming,
         inputs,
         input_names=[FRAME_INPUT, *STATE_INPUTS][: len(inputs)],
@@ -166,7 +171,7 @@ def _graph_description(contract: PolicyContract) -> str:
     )
 
 
-def _quiet_export(
+def quiet_export(
     module: torch.nn.Module,
     inputs: dict[str, torch.Tensor],
     *,
@@ -199,7 +204,13 @@ def _quiet_export(
     return program
 
 
-def write_metadata(model: onnx.ModelProto, contract: PolicyContract) -> None:
+class HasMetadata(Protocol):
+    """A file's contract (`PolicyContract`, `contracts.judge_file.JudgeContract`)."""
+
+    def to_metadata(self) -> dict[str, str]: ...
+
+
+def write_metadata(model: onnx.ModelProto, contract: HasMetadata) -> None:
     """Replace the model's qnav metadata with `contract`."""
     kept = [p for p in model.metadata_props if p.key not in contract.to_metadata()]
     del model.metadata_props[:]

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import asdict, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from qnav.contracts.errors import ConfigError
@@ -14,10 +16,10 @@ from qnav.options import config_text, settings_from_args
 from qnav.sim.config import WorldConfig, load_world
 
 if TYPE_CHECKING:
-    from qnav.lab.doubt import FinalTest
+    from qnav.lab.doubt import FinalTest, RoundReport
     from qnav.lab.imitate import ImitationResult
     from qnav.lab.imitation_settings import ImitationSettings
-    from qnav.lab.probe import PerceptionSettings, ShieldTest
+    from qnav.lab.probe import PerceptionSettings, ProbeSettings, ShieldTest
 
 
 def calibrate(args: argparse.Namespace) -> int:
@@ -203,6 +205,11 @@ def label(args: argparse.Namespace) -> int:
         return 0
     if args.folder is None:
         raise ConfigError("qnav lab label needs a FOLDER for its rounds")
+    if args.export and not args.test_episodes:
+        raise ConfigError(
+            "--export writes the fit with the threshold its final test chooses: give "
+            "--test-episodes N too"
+        )
     world = load_world(args.scenario, args.world_config, args.assignments)
     reports = run_rounds(
         world,
@@ -218,7 +225,9 @@ def label(args: argparse.Namespace) -> int:
             f"{world.name}: doubt-led labelling in {args.folder}, up to round {args.rounds} "
             f"(round 0: the probe's labelled set alone)"
         )
+    finished: list[RoundReport] = []
     for report in reports:
+        finished.append(report)
         if args.json:
             print(json.dumps(report._asdict()), flush=True)
             continue
@@ -236,7 +245,47 @@ def label(args: argparse.Namespace) -> int:
 
         test = final_test(world, args.folder, probe_settings, doubt, args.test_episodes)
         _print_final_test(test, args.test_episodes, args.json)
+        if args.export:
+            _export_judge(
+                world=world,
+                folder=args.folder,
+                probe=probe_settings,
+                test=test,
+                reports=finished,
+                path=args.export,
+            )
     return 0
+
+
+def _export_judge(
+    *,
+    world: WorldConfig,
+    folder: Path,
+    probe: ProbeSettings,
+    test: FinalTest,
+    reports: list[RoundReport],
+    path: Path,
+) -> None:
+    """Write the folder's latest fit as a doom judge file at the final test's threshold."""
+    from qnav.lab.doubt import fitted_network
+    from qnav.lab.judge import export_judge, judge_contract
+
+    last = reports[-1]
+    training = {
+        "label_folder": str(folder),
+        "rounds": last.round,
+        "fitted_states": last.fitted_states,
+        "fitted_decisive": last.fitted_decisive,
+        "redrawn_from": probe.redrawn_from,
+    }
+    contract = judge_contract(world, test, training)
+    export_judge(fitted_network(world, folder, probe), contract, path)
+    print(
+        f"wrote {path}: the doom judge of {folder} (round {last.round}), threshold "
+        f"{contract.threshold}; run it with `qnav eval --policy FILE --lookahead judge --judge "
+        f"{path}` or lookahead.mode = judge in the controller",
+        file=sys.stderr,
+    )
 
 
 def _print_final_test(test: FinalTest, episodes: int, as_json: bool) -> None:

@@ -3,6 +3,7 @@ controller runs it on every decision as the in-process shield does."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -79,15 +80,19 @@ def test_the_shield_refuses_a_policy_file_without_a_motion_model_naming_the_fix(
     Controller(runtime)  # without the shield the file runs as before
 
 
-def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes() -> None:
+@pytest.mark.parametrize("mode", ["shield", "judge"])
+def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes(
+    mode: str, make_judge: Callable[[str], Path]
+) -> None:
     # The daemon's decision step, fed the simulator's own messages stamped with its clock, and
-    # `qnav eval --lookahead shield` on one stream: the same look ahead, the same actions, step
-    # by step.
+    # `qnav eval --lookahead MODE` on one stream: the same look ahead, the same actions, step
+    # by step (the forecast's shield, or a doom judge file's).
     from qnav.tracking import LookaheadAgent
 
     world = scenario("obstacles-inertia")
     assert world.lidar is not None
-    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
+    judge = str(make_judge(world.name)) if mode == "judge" else ""
+    settings = LookaheadSettings(mode=mode, room_size_m=world.arena.size_m, judge_file=judge)  # type: ignore[arg-type]
     period, test = world.control_period_s, EvalSettings()
     overruled = 0
     for episode in (0, 1, 2):

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
+from qnav.controller.judge import DoomJudge
 from qnav.lab.decisive import GaugeSettings
 from qnav.lab.doubt import (
     THRESHOLDS,
@@ -168,15 +169,31 @@ def test_the_command_prints_a_round_per_line_and_resumes(tmp_path: Path) -> None
     assert first.returncode == 0, first.stderr
     rounds = [json.loads(line) for line in first.stdout.splitlines()]
     assert [row["round"] for row in rounds] == [0, 1]
+    judge = tmp_path / "judge.onnx"
     tested = run_qnav(
-        "lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--test-episodes", "2", "--json"
-    )
+        "lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--test-episodes", "3", "--json",
+        "--export", str(judge),
+    )  # fmt: skip
     assert tested.returncode == 0, tested.stderr
     test = json.loads(tested.stdout.splitlines()[-1])["final_test"]
     assert test["threshold"] in THRESHOLDS
     assert test["validation"][str(test["threshold"])] == max(test["validation"].values())
     for result in ("half", "truth", "tracked", "tracked_noisy"):
-        assert test[result]["episodes"] == 2
+        assert test[result]["episodes"] == 3
+    # The exported judge carries the chosen threshold and the test's figures, and the
+    # controller's judge mode, in process, drives go-to-target as the test's tracked shield did.
+    contract = DoomJudge(judge).contract
+    assert (contract.threshold, contract.evaluation["success"]) == (
+        test["threshold"],
+        test["truth"]["success"],
+    )
+    assert contract.training["rounds"] == 1
+    driven = run_qnav(
+        "eval", "--scenario", "obstacles-increment", "--agent", "goto", "--lookahead", "judge",
+        "--judge", str(judge), "--episodes", "3", "--json",
+    )  # fmt: skip
+    assert driven.returncode == 0, driven.stderr
+    assert json.loads(driven.stdout)["success"] == test["tracked"]["success"]
     again = run_qnav("lab", "label", folder, "--rounds", "1", *SMALL_ARGS, "--json")
     assert again.returncode == 0, again.stderr
     assert [json.loads(line) for line in again.stdout.splitlines()] == rounds

@@ -21,7 +21,6 @@ from qnav.lab.probe import (
     perceive,
     perception_windows,
     probe,
-    safe_choice,
     shield_test,
     state_features,
 )
@@ -97,21 +96,6 @@ def test_the_probe_fits_one_label_per_state(labelled_actions: str) -> None:
     history = probe(scenario("obstacles-increment"), settings, SMALL_GAUGE).history
     assert len(history) == 2
     assert all(np.isfinite(epoch.loss) and 0.0 <= epoch.balanced <= 1.0 for epoch in history)
-
-
-def test_a_shield_keeps_go_to_targets_action_where_judged_safe_else_takes_the_safest() -> None:
-    preferred = np.array([0, 1, 2, 2])
-    safe = np.array(
-        [
-            [0.9, 0.1, 0.1],  # judged safe: kept
-            [0.2, 0.4, 0.8],  # judged doomed: the safest instead
-            [0.7, 0.9, 0.51],  # judged safe, although others are safer: kept
-            [0.6, 0.2, 0.5],  # exactly 1/2 is not safe
-        ]
-    )
-    np.testing.assert_array_equal(safe_choice(preferred, safe), [0, 2, 2, 0])
-    # a stricter shield keeps go-to-target's action only where surer of it
-    np.testing.assert_array_equal(safe_choice(preferred, safe, threshold=0.8), [0, 2, 1, 0])
 
 
 class _TrustsEveryAction(torch.nn.Module):
