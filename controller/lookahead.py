@@ -232,14 +232,21 @@ def safeties_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
     judge = lookaheads[0].judge
     if judge is None:
         raise ConfigError("the doom judge's P(safe) needs lookahead.mode = 'judge'")
+    return judged_safety(
+        judge, [car.belief(t) for car, t in zip(lookaheads, targets_xy, strict=True)]
+    )
+
+
+def judged_safety(judge: DoomJudge, beliefs: list[Belief]) -> F64:
+    """(N, A) the judge's P(safe) of each action in each car's belief."""
     # One car at a time: stacking pads beliefs with far obstacles, which the judge would see as
     # occupied slots where a car with fewer tracks has empty ones.
     parts = [
-        belief_inputs(**car.belief(target)._asdict(), max_range_m=judge.contract.max_range_m)
-        for car, target in zip(lookaheads, targets_xy, strict=True)
+        belief_inputs(**belief._asdict(), max_range_m=judge.contract.max_range_m)
+        for belief in beliefs
     ]
-    inputs = tuple(np.concatenate(part) for part in zip(*parts, strict=True))
-    return judge.safe_probability(*inputs)
+    context, obstacles = (np.concatenate(part) for part in zip(*parts, strict=True))
+    return judge.safe_probability(context, obstacles)
 
 
 def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:

@@ -893,6 +893,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench_lookahead.add_argument(
         "--decisions", type=int, default=2000, help="timed decisions (2000)"
     )
+    bench_lookahead.add_argument(
+        "--judge",
+        type=Path,
+        metavar="FILE.onnx",
+        help="also time a doom judge file's judgement (lookahead.mode = judge) of each belief",
+    )
     _flag(bench_lookahead, "--json", "print one JSON object")
     bench_controller = _verb(
         benches,

@@ -20,9 +20,11 @@ from qnav.contracts.errors import ConfigError
 from qnav.contracts.judge_file import judged_actions
 from qnav.contracts.lookahead import shielded_actions
 from qnav.contracts.observation import LidarSpec
+from qnav.controller.judge import DoomJudge
 from qnav.controller.lookahead import (
     Lookahead,
     LookaheadSettings,
+    judged_safety,
     plans_of,
     risks_of,
     safeties_of,
@@ -163,21 +165,29 @@ class LookaheadAgent:
 
 
 def time_lookahead(
-    world: WorldConfig, decisions: int = 2000, seed: int = 1005, worlds: int = 20
+    world: WorldConfig,
+    decisions: int = 2000,
+    seed: int = 1005,
+    worlds: int = 20,
+    judge: Path | None = None,
 ) -> dict[str, float]:
     """Wall time of the controller's look ahead per decision, one car at a time as the daemon
-    runs it: the tracker's update, the shield's forecast and the plan, on the perception probe's
-    drive (go-to-target with held random actions); median and 99th percentile, milliseconds."""
+    runs it: the tracker's update, the shield's forecast and the plan (and with a doom `judge`
+    file, its judgement of the shield's belief), on the perception probe's drive (go-to-target
+    with held random actions); median and 99th percentile, milliseconds."""
     tracker = TrackerSettings(obstacle_radius_m=world.obstacles.radius_m)
 
     def car(mode: Literal["shield", "plan"]) -> Lookahead:
         return world_lookahead(world, LookaheadSettings(mode=mode), tracker)
 
     pairs = [(car("shield"), car("plan")) for _ in range(worlds)]
+    judging = None if judge is None else DoomJudge(judge)
     batched = BatchedWorld(world, worlds, seed=seed)
     observation = batched.reset(seed)
     driver = WanderingGoToTarget(worlds, 0.3, seed)
     times: dict[str, list[float]] = {"track": [], "shield": [], "plan": []}
+    if judging is not None:
+        times["judge"] = []
     while len(times["plan"]) < decisions:
         assert observation.scan_m is not None
         steps = batched.state.steps
@@ -193,6 +203,10 @@ def time_lookahead(
             tracked = time.perf_counter()
             shield.risks(target)
             shielded = time.perf_counter()
+            if judging is not None:  # from the shield's belief: the tracker is timed once
+                judged_safety(judging, [shield.belief(target)])
+                times["judge"].append(time.perf_counter() - shielded)
+                shielded = time.perf_counter()
             planner.observe(now, pose, now, scan)
             observed = time.perf_counter()
             planner.plan(target)

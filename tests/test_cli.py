@@ -60,12 +60,13 @@ def test_bench_sim_json_has_the_documented_shape() -> None:
     assert all(r["steps_per_second"] > 0 for r in report["results"])
 
 
-def test_bench_lookahead_json_times_each_part_of_the_decision() -> None:
-    result = run_qnav("bench", "lookahead", "--decisions", "40", "--json")
+def test_bench_lookahead_json_times_each_part_of_the_decision(make_judge) -> None:  # type: ignore[no-untyped-def]
+    judge = str(make_judge("obstacles-inertia"))
+    result = run_qnav("bench", "lookahead", "--decisions", "40", "--json", "--judge", judge)
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["decisions"] >= 40
-    for part in ("track", "shield", "plan"):
+    for part in ("track", "shield", "plan", "judge"):
         assert 0 < report[f"{part}_ms_p50"] <= report[f"{part}_ms_p99"]
 
 

@@ -47,12 +47,12 @@ def bench_lookahead(args: argparse.Namespace) -> int:
     from qnav.tracking import time_lookahead
 
     world = load_world(args.scenario, args.world_config, args.assignments)
-    report = time_lookahead(world, args.decisions)
+    report = time_lookahead(world, args.decisions, judge=args.judge)
     if args.json:
         print(json.dumps(report))
         return 0
     print(f"{world.name}, {report['decisions']:.0f} decisions, one car at a time (ms):")
-    for name in ("track", "shield", "plan"):
+    for name in ("track", "shield", "plan", *(["judge"] if args.judge else [])):
         print(
             f"  {name:<7} p50 {report[name + '_ms_p50']:6.1f}  p99 {report[name + '_ms_p99']:6.1f}"
         )
