@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,7 @@ from qnav.contracts.observation import (
     OBSTACLE_SLOTS,
     TARGET_FEATURES,
 )
-from qnav.contracts.policy_file import METADATA_PREFIX
+from qnav.contracts.policy_file import METADATA_PREFIX, metadata_values
 
 JUDGE_FORMAT = "qnav-judge/1"
 """Value of the `qnav.format` metadata key of a doom judge file."""
@@ -104,15 +104,7 @@ class JudgeContract:
                 f"{source} is not a qnav doom judge (format {found}; expected {JUDGE_FORMAT!r}): "
                 "export one with `qnav lab label FOLDER ... --export FILE`"
             )
-        values: dict[str, Any] = {}
-        for spec in fields(cls):
-            key = METADATA_PREFIX + spec.name
-            if key not in metadata:
-                raise PolicyFileError(f"{source} lacks the metadata entry '{key}'")
-            try:
-                values[spec.name] = json.loads(metadata[key])
-            except json.JSONDecodeError as error:
-                raise PolicyFileError(f"{source}: metadata '{key}' is not JSON: {error}") from None
+        values = metadata_values(cls, metadata, source)
         try:
             return cls(**values)
         except TypeError as error:

@@ -191,22 +191,32 @@ class PolicyContract:
             )
         found = metadata[METADATA_PREFIX + "format"]
         check_format(found, source)
-        values: dict[str, Any] = {}
-        for spec in fields(cls):
-            key = METADATA_PREFIX + spec.name
-            if key not in metadata and spec.name in ENTRIES_ADDED_LATER:
-                continue  # a file written before the entry existed: the field's default
-            if key not in metadata:
-                raise PolicyFileError(f"{source} lacks the metadata entry '{key}'")
-            try:
-                values[spec.name] = json.loads(metadata[key])
-            except json.JSONDecodeError as error:
-                raise PolicyFileError(f"{source}: metadata '{key}' is not JSON: {error}") from None
+        values = metadata_values(cls, metadata, source, ENTRIES_ADDED_LATER)
         try:
             values["actions"] = tuple(ActionVelocity(**a) for a in values["actions"])
             return cls(**values)
         except TypeError as error:
             raise PolicyFileError(f"{source}: malformed metadata: {error}") from None
+
+
+def metadata_values(
+    contract: type[Any], metadata: Mapping[str, str], source: str, added_later: tuple[str, ...] = ()
+) -> dict[str, Any]:
+    """Each field of the dataclass `contract` from its `qnav.<field>` JSON entry (a field in
+    `added_later` may be absent: the file predates it, and the field keeps its default);
+    PolicyFileError naming `source` and the entry otherwise."""
+    values: dict[str, Any] = {}
+    for spec in fields(contract):
+        key = METADATA_PREFIX + spec.name
+        if key not in metadata and spec.name in added_later:
+            continue
+        if key not in metadata:
+            raise PolicyFileError(f"{source} lacks the metadata entry '{key}'")
+        try:
+            values[spec.name] = json.loads(metadata[key])
+        except json.JSONDecodeError as error:
+            raise PolicyFileError(f"{source}: metadata '{key}' is not JSON: {error}") from None
+    return values
 
 
 def check_format(found: str, source: str) -> None:

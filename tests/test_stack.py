@@ -43,6 +43,8 @@ POLICY = Path(__file__).parent / "data" / "stack" / "policy.onnx"
 # 0.620 under the test protocol's 200 episodes, 0.500 on the first 50). It dodges badly; what
 # matters here is that the stack does what it does in process, among moving obstacles.
 OBSTACLES_POLICY = Path(__file__).parent / "data" / "stack" / "obstacles-inertia.onnx"
+OBSTACLES_JUDGE = Path(__file__).parent / "data" / "stack" / "obstacles-inertia-judge.onnx"
+"""A doom judge for obstacles-inertia (docs/controller.md, "The learned doom judge")."""
 EPISODES = 50
 
 
@@ -116,6 +118,26 @@ def test_among_moving_obstacles_the_full_stack_scores_within_five_hundredths_of_
     # docs/deploy.md).
 
 
+def _dodging(out: Path, *lookahead: str) -> None:
+    """`qnav stack` of the obstacles policy with the look ahead `lookahead` (its options): it
+    ends within 0.05 of the same look ahead in process, and dodges: it succeeds in clearly more
+    episodes than the policy alone (0.500 on these, the test above), not one or two by luck."""
+    done = subprocess.run(
+        [sys.executable, "-m", "qnav", "stack", "--policy", str(OBSTACLES_POLICY), "--episodes",
+         str(EPISODES), "--out", str(out), "--json", "--no-record", *lookahead],
+        capture_output=True, text=True, timeout=1440, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    stack = json.loads(done.stdout.strip().splitlines()[-1])
+    print(
+        f"{' '.join(lookahead)}: stack {stack['success']:.3f}, in process "
+        f"{stack['in_process']['success']:.3f}; episode by episode: {stack['agreement']}"
+    )
+    assert stack["episodes"] == EPISODES and stack["timing"] == "lockstep"
+    assert abs(stack["gap"]) <= 0.05
+    assert stack["success"] * EPISODES >= 0.5 * EPISODES + 8
+
+
 @pytest.mark.stack
 @pytest.mark.timeout(1500)
 def test_with_the_look_ahead_the_full_stack_dodges_as_the_shield_does_in_process(
@@ -124,23 +146,18 @@ def test_with_the_look_ahead_the_full_stack_dodges_as_the_shield_does_in_process
     # The controller daemon runs the tracker and the forecast on the wire's scans and poses
     # (lookahead.mode = "shield"); in process, `qnav eval --lookahead shield` runs the same look
     # ahead per world.
-    done = subprocess.run(
-        [sys.executable, "-m", "qnav", "stack", "--policy", str(OBSTACLES_POLICY), "--episodes",
-         str(EPISODES), "--out", str(tmp_path / "stack"), "--json", "--no-record",
-         "--lookahead", "shield"],
-        capture_output=True, text=True, timeout=1440, check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    stack = json.loads(done.stdout.strip().splitlines()[-1])
-    print(
-        f"shielded: stack {stack['success']:.3f}, in process {stack['in_process']['success']:.3f}"
-        f"; episode by episode: {stack['agreement']}"
-    )
-    assert stack["episodes"] == EPISODES and stack["timing"] == "lockstep"
-    assert abs(stack["gap"]) <= 0.05
-    # Alone this policy reaches 0.500 on these episodes (the test above); shielded, it must
-    # succeed in clearly more of them, not one or two by luck.
-    assert stack["success"] * EPISODES >= 0.5 * EPISODES + 8
+    _dodging(tmp_path / "stack", "--lookahead", "shield")
+
+
+@pytest.mark.stack
+@pytest.mark.timeout(1500)
+def test_with_a_learned_doom_judge_the_full_stack_dodges_as_the_judge_does_in_process(
+    tmp_path: Path,
+) -> None:
+    # The controller daemon asks a doom judge file (lookahead.mode = "judge", fitted to the
+    # planner's labels of a DQN run's own 600 episodes) from the tracker's obstacles; in process,
+    # `qnav eval --lookahead judge` asks the same file per world.
+    _dodging(tmp_path / "stack", "--lookahead", "judge", "--judge", str(OBSTACLES_JUDGE))
 
 
 def test_the_stack_on_sitl_needs_a_binary_and_a_loopback_only_namespace(tmp_path: Path) -> None:
