@@ -22,6 +22,7 @@ from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.settings import to_toml
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.controller.config import ControllerSettings, DaemonConfig, SafetySettings
+from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.onnx_file import read_onnx
 from tests.conftest import PolicyFactory
 
@@ -296,5 +297,37 @@ def test_the_scan_triggered_daemon_stops_the_car_when_scans_stop_coming(
         daemon.send_signal(signal.SIGTERM)
         _, stderr = daemon.communicate(timeout=20)
         assert daemon.returncode == 0, stderr
+    finally:
+        listener.session.close()
+
+
+def test_the_daemon_with_a_doom_judge_reports_each_actions_judged_risk(
+    tmp_path: Path,
+    endpoint: str,
+    make_policy: PolicyFactory,
+    make_judge: Callable[[str], Path],
+    processes: list[subprocess.Popen[str]],
+) -> None:
+    """`lookahead.mode = "judge"` on the numpy backend (a board without onnxruntime): every
+    policy decision carries the judge's risks, and the daemon still stops on SIGTERM."""
+    config = DaemonConfig(
+        controller=ControllerSettings(
+            policy=str(make_policy("obstacles-inertia")), trigger="scan", backend="numpy"
+        ),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+        lookahead=LookaheadSettings(mode="judge", judge_file=str(make_judge("obstacles-inertia"))),
+    )
+    daemon = start_daemon(tmp_path, config, processes)
+    listener = Listener(endpoint)
+    try:
+        listener.wait_for(lambda s: True, timeout=30)
+        start_feeder(processes, endpoint)
+        first = listener.wait_for(reason_is("policy"))
+        later = listener.wait_for(reason_is("policy"), since=listener.mark() + 3)
+        for status in (first, later):
+            risks = status["risks"]
+            assert len(risks) == 3 and all(0.0 <= risk <= 1.0 for risk in risks), status
+        assert "overruled" in later["counters"]
+        stop_sends_stop(daemon, signal.SIGTERM, listener)
     finally:
         listener.session.close()
