@@ -12,6 +12,7 @@ boards without an onnxruntime wheel (it reads the weights by the fit's parameter
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,9 @@ from qnav.controller.policy import Backend
 
 F32 = NDArray[np.float32]
 
+JudgeLogits = Callable[[F32, F32], F32]
+"""A backend: (context, obstacles) inputs -> (N, 3) logits that each action is safe."""
+
 LAYERS = {"per_obstacle": (0, 2, 4), "walls": (0, 2)}
 """The fit's linear layers by parameter name (`lab.probe.ObstacleSetNetwork`: Linear, ReLU,
 Linear, ...): the numpy backend applies ReLU between them."""
@@ -60,7 +64,7 @@ class DoomJudge:
         """(N, 3) each action's P(safe) for the inputs `contracts.judge_file.judge_inputs`
         builds."""
         logits = np.asarray(self._logits(context, obstacles), dtype=np.float64)
-        return np.asarray(1.0 / (1.0 + np.exp(-logits)))
+        return np.asarray(0.5 * (1.0 + np.tanh(logits / 2)))  # the sigmoid, without overflow
 
     def check_fits(self, policy: PolicyContract, source: str) -> None:
         """Refuse (PolicyFileError) to judge beside a policy of another motion or period."""
@@ -89,7 +93,7 @@ def belief_inputs(
     return judge_inputs(velocity, encoded_target, slots)
 
 
-def _onnxruntime_backend(path: Path):  # type: ignore[no-untyped-def]
+def _onnxruntime_backend(path: Path) -> JudgeLogits:
     try:
         import onnxruntime as ort
     except ImportError:  # pragma: no cover - depends on the board
@@ -117,7 +121,7 @@ def _onnxruntime_backend(path: Path):  # type: ignore[no-untyped-def]
     return logits
 
 
-def _numpy_backend(weights: dict[str, F32], path: Path):  # type: ignore[no-untyped-def]
+def _numpy_backend(weights: dict[str, F32], path: Path) -> JudgeLogits:
     try:
         layers = {
             name: [

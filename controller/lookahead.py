@@ -239,14 +239,18 @@ def safeties_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
 
 def judged_safety(judge: DoomJudge, beliefs: list[Belief]) -> F64:
     """(N, A) the judge's P(safe) of each action in each car's belief."""
-    # One car at a time: stacking pads beliefs with far obstacles, which the judge would see as
-    # occupied slots where a car with fewer tracks has empty ones.
-    parts = [
-        belief_inputs(**belief._asdict(), max_range_m=judge.contract.max_range_m)
-        for belief in beliefs
-    ]
+    return judge.safe_probability(*beliefs_inputs(beliefs, judge.contract.max_range_m))
+
+
+def beliefs_inputs(
+    beliefs: list[Belief], max_range_m: float
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """A doom judge's (context, obstacles) inputs (`controller.judge.belief_inputs`) of several
+    cars' beliefs, one car at a time: stacking pads beliefs with far obstacles, which the judge
+    would see as occupied slots where a car with fewer tracks has empty ones."""
+    parts = [belief_inputs(**belief._asdict(), max_range_m=max_range_m) for belief in beliefs]
     context, obstacles = (np.concatenate(part) for part in zip(*parts, strict=True))
-    return judge.safe_probability(context, obstacles)
+    return context, obstacles
 
 
 def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:

@@ -40,7 +40,6 @@ from qnav.contracts.observation import (
     distance_scale_m,
     encode_frame,
     encode_target,
-    obstacle_features,
 )
 from qnav.contracts.policy_file import CONV_CHANNELS
 from qnav.contracts.settings import check_range
@@ -452,7 +451,7 @@ def tracked_safety(
     slots come from the onboard tracker (`controller.lookahead.Lookahead`, one per episode, fed
     the simulated poses and scans, with Gaussian range noise of `range_noise_m` drawn from
     `seed`), not from the world's truth."""
-    from qnav.controller.lookahead import Lookahead, LookaheadSettings
+    from qnav.controller.lookahead import Lookahead, LookaheadSettings, beliefs_inputs
     from qnav.controller.perception import TrackerSettings
     from qnav.tracking import noisy, world_lookahead
 
@@ -463,7 +462,7 @@ def tracked_safety(
     def safety(state: WorldState, observation: Observation) -> NDArray[np.floating]:
         assert observation.scan_m is not None  # world_lookahead refuses a world without lidar
         scans_m = noisy(observation.scan_m, range_noise_m, random)
-        velocity, slots = [], []
+        beliefs = []
         running = state.episode.tolist()
         for ended in cars.keys() - set(running):  # drive drops the worlds whose episode ended
             del cars[ended]
@@ -474,18 +473,8 @@ def tracked_safety(
                 cars[episode] = car
             time_s = float(state.steps[row]) * world.control_period_s
             car.observe(time_s, observation.pose[row], time_s, scans_m[row])
-            belief = car.belief(observation.target_xy[row])
-            velocity.append(belief.velocity[0])
-            slots.append(
-                obstacle_features(
-                    belief.pose[0], belief.obstacle_xy[0], belief.obstacle_velocity[0]
-                )
-            )
-        parts = judge_inputs(
-            np.array(velocity),
-            encode_target(observation.target_features(), max_range_m),
-            np.array(slots),
-        )
+            beliefs.append(car.belief(observation.target_xy[row]))
+        parts = beliefs_inputs(beliefs, max_range_m)
         return judged_safe(network, parts)
 
     return safety
