@@ -29,6 +29,9 @@ from qnav.contracts.observation import (
     OBSTACLE_SLOT_FEATURES,
     OBSTACLE_SLOTS,
     TARGET_FEATURES,
+    encode_target,
+    obstacle_features,
+    target_features,
 )
 from qnav.contracts.policy_file import METADATA_PREFIX, metadata_values
 
@@ -109,6 +112,22 @@ class JudgeContract:
             return cls(**values)
         except TypeError as error:
             raise PolicyFileError(f"{source}: malformed metadata: {error}") from None
+
+
+def encoded_surroundings(
+    pose: NDArray[np.floating],
+    target_xy: NDArray[np.floating],
+    obstacle_xy: NDArray[np.floating],
+    obstacle_velocity: NDArray[np.floating],
+    max_range_m: float,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The encoded target (K, TARGET_FEATURES) and obstacles (K, OBSTACLE_FEATURES) of K worlds
+    known in the room's frame (a car's belief, or a simulated world's truth): poses (K, 3),
+    targets (K, 2), obstacles (K, M, 2) and their velocities (K, M, 2)."""
+    return (
+        encode_target(target_features(pose, target_xy), max_range_m),
+        obstacle_features(pose, obstacle_xy, obstacle_velocity),
+    )
 
 
 def judge_inputs(

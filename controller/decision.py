@@ -600,7 +600,9 @@ class Controller:
             judge_backend=runtime.backend_name,
         )
         if lookahead.judge is not None:
-            lookahead.judge.check_fits(contract, str(runtime.path))
+            lookahead.judge.check_fits(
+                contract.dynamics, contract.control_period_s, f"{runtime.path} drives"
+            )
         return lookahead
 
     def _stop(self, now: float, reason: Reason, send: CommandSink | None) -> Output:

@@ -3,8 +3,9 @@ perceives (`contracts.judge_file`; docs/controller.md, "The learned doom judge")
 
 `lookahead.mode = "judge"` asks it at every decision instead of forecasting: the car's own speed
 and turn rate (from its poses), the target and the onboard tracker's obstacles go in
-(`belief_inputs`), each action's P(safe) comes out, and the policy's action is kept unless the
-judge finds it doomed (`contracts.judge_file.judged_actions`, at the file's threshold). It never
+(`controller.lookahead.beliefs_inputs`), each action's P(safe) comes out, and the policy's
+action is kept unless the judge finds it doomed (`contracts.judge_file.judged_actions`, at the
+file's threshold). It never
 imports torch. Two backends run the same file, as for policies: onnxruntime, and numpy for
 boards without an onnxruntime wheel (it reads the weights by the fit's parameter names and runs
 `lab.probe.ObstacleSetNetwork`'s arithmetic).
@@ -25,16 +26,8 @@ from qnav.contracts.judge_file import (
     OBSTACLES_INPUT,
     OUTPUT_NAME,
     JudgeContract,
-    judge_inputs,
 )
-from qnav.contracts.observation import (
-    OBSTACLE_SLOT_FEATURES,
-    OBSTACLE_SLOTS,
-    encode_target,
-    obstacle_features,
-    target_features,
-)
-from qnav.contracts.policy_file import PolicyContract
+from qnav.contracts.observation import OBSTACLE_SLOT_FEATURES, OBSTACLE_SLOTS
 from qnav.controller.onnx_file import float_weights, read_onnx
 from qnav.controller.policy import Backend
 
@@ -53,6 +46,8 @@ class DoomJudge:
 
     def __init__(self, path: Path, backend: Backend = "onnxruntime") -> None:
         self.path = Path(path)
+        if not self.path.is_file():
+            raise PolicyFileError(f"doom judge file {self.path} does not exist")
         contents = read_onnx(self.path)
         self.contract = JudgeContract.from_metadata(contents.metadata, str(path))
         if backend == "numpy":
@@ -66,31 +61,15 @@ class DoomJudge:
         logits = np.asarray(self._logits(context, obstacles), dtype=np.float64)
         return np.asarray(0.5 * (1.0 + np.tanh(logits / 2)))  # the sigmoid, without overflow
 
-    def check_fits(self, policy: PolicyContract, source: str) -> None:
-        """Refuse (PolicyFileError) to judge beside a policy of another motion or period."""
+    def check_fits(self, dynamics: str, control_period_s: float, driver: str) -> None:
+        """Refuse (PolicyFileError) to judge a `driver` (a policy file, a scenario: named in the
+        error with its verb) of other dynamics or another control period than the labels'."""
         judge = self.contract
-        if (judge.dynamics, judge.control_period_s) != (policy.dynamics, policy.control_period_s):
+        if (judge.dynamics, judge.control_period_s) != (dynamics, control_period_s):
             raise PolicyFileError(
                 f"{self.path} judges {judge.dynamics} dynamics at {judge.control_period_s} s "
-                f"({judge.scenario}); {source} drives {policy.dynamics} at "
-                f"{policy.control_period_s} s"
+                f"({judge.scenario}); {driver} {dynamics} at {control_period_s} s"
             )
-
-
-def belief_inputs(
-    *,
-    pose: NDArray[np.floating],
-    velocity: NDArray[np.floating],
-    target_xy: NDArray[np.floating],
-    obstacle_xy: NDArray[np.floating],
-    obstacle_velocity: NDArray[np.floating],
-    max_range_m: float,
-) -> tuple[F32, F32]:
-    """The judge's inputs for N cars' beliefs: poses (N, 3), velocities (N, 2), targets (N, 2),
-    tracked obstacles (N, M, 2) and their velocities (N, M, 2), all in the room's frame."""
-    encoded_target = encode_target(target_features(pose, target_xy), max_range_m)
-    slots = obstacle_features(pose, obstacle_xy, obstacle_velocity)
-    return judge_inputs(velocity, encoded_target, slots)
 
 
 def _onnxruntime_backend(path: Path) -> JudgeLogits:

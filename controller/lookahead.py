@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.judge_file import encoded_surroundings, judge_inputs
 from qnav.contracts.lookahead import (
     LookaheadModel,
     best_first_actions,
@@ -45,7 +46,7 @@ from qnav.contracts.lookahead import (
 )
 from qnav.contracts.motion import Dynamics, InertiaDynamics
 from qnav.contracts.settings import check_range
-from qnav.controller.judge import DoomJudge, belief_inputs
+from qnav.controller.judge import DoomJudge
 from qnav.controller.perception import ObstacleTracker, TrackerSettings, box_walls, own_velocity
 from qnav.controller.policy import Backend
 
@@ -245,10 +246,22 @@ def judged_safety(judge: DoomJudge, beliefs: list[Belief]) -> F64:
 def beliefs_inputs(
     beliefs: list[Belief], max_range_m: float
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """A doom judge's (context, obstacles) inputs (`controller.judge.belief_inputs`) of several
-    cars' beliefs, one car at a time: stacking pads beliefs with far obstacles, which the judge
-    would see as occupied slots where a car with fewer tracks has empty ones."""
-    parts = [belief_inputs(**belief._asdict(), max_range_m=max_range_m) for belief in beliefs]
+    """A doom judge's (context, obstacles) inputs of several cars' beliefs, one car at a time:
+    stacking pads beliefs with far obstacles, which the judge would see as occupied slots where a
+    car with fewer tracks has empty ones."""
+    parts = [
+        judge_inputs(
+            belief.velocity,
+            *encoded_surroundings(
+                belief.pose,
+                belief.target_xy,
+                belief.obstacle_xy,
+                belief.obstacle_velocity,
+                max_range_m,
+            ),
+        )
+        for belief in beliefs
+    ]
     context, obstacles = (np.concatenate(part) for part in zip(*parts, strict=True))
     return context, obstacles
 

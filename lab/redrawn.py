@@ -24,12 +24,10 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.judge_file import encoded_surroundings
 from qnav.contracts.motion import step_robot
 from qnav.contracts.observation import (
     distance_scale_m,
-    encode_target,
-    obstacle_features,
-    target_features,
 )
 from qnav.lab.decisive import DRIVERS, DecisiveStates, is_decisive
 from qnav.lab.oracle import collision_shares
@@ -147,10 +145,12 @@ def encoded_view(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """What a doom network given the obstacles sees of worlds known without an observation:
     the encoded target (K, TARGET_FEATURES) and obstacles (K, OBSTACLE_FEATURES)."""
-    target = target_features(state.pose, state.target_xy)
-    return (
-        encode_target(target, distance_scale_m(world.lidar)),
-        obstacle_features(state.pose, state.obstacle_xy, state.obstacle_velocity),
+    return encoded_surroundings(
+        state.pose,
+        state.target_xy,
+        state.obstacle_xy,
+        state.obstacle_velocity,
+        distance_scale_m(world.lidar),
     )
 
 

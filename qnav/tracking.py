@@ -72,8 +72,6 @@ def lookahead_settings(mode: str, judge: Path | None) -> LookaheadSettings:
         raise ConfigError(f"--judge {judge} is read only with --lookahead judge")
     if mode == "judge" and judge is None:
         raise ConfigError("--lookahead judge needs --judge FILE.onnx, a doom judge file")
-    if judge is not None and not judge.is_file():
-        raise ConfigError(f"--judge {judge}: no such file")
     return LookaheadSettings(mode=mode, judge_file=str(judge or ""))  # type: ignore[arg-type]
 
 
@@ -115,13 +113,9 @@ class LookaheadAgent:
         self.cars = [world_lookahead(world, lookahead, tracker) for _ in range(num_worlds)]
         judge = self.cars[0].judge if self.cars else None
         if judge is not None:
-            judged = (judge.contract.dynamics, judge.contract.control_period_s)
-            if judged != (world.dynamics.kind, world.control_period_s):
-                raise ConfigError(
-                    f"{lookahead.judge_file} judges {judged[0]} dynamics at {judged[1]} s "
-                    f"({judge.contract.scenario}); scenario {world.name!r} has "
-                    f"{world.dynamics.kind} at {world.control_period_s} s"
-                )
+            judge.check_fits(
+                world.dynamics.kind, world.control_period_s, f"scenario {world.name!r} has"
+            )
         self.range_noise_m = range_noise_m
         self._noise = np.random.default_rng([seed, 31])
         self.steps = np.zeros(num_worlds, dtype=np.int64)

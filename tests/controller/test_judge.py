@@ -59,3 +59,9 @@ def test_mode_judge_without_a_file_and_a_file_without_mode_judge_name_the_settin
         LookaheadSettings(mode="judge")
     with pytest.raises(ConfigError, match=r"lookahead\.judge_file"):
         LookaheadSettings(mode="shield", judge_file="judge.onnx")
+
+
+def test_a_missing_judge_file_is_refused_by_name() -> None:
+    settings = LookaheadSettings(mode="judge", judge_file="nowhere/judge.onnx")
+    with pytest.raises(PolicyFileError, match=r"doom judge file nowhere/judge\.onnx does not"):
+        Controller(PolicyRuntime(OBSTACLES_POLICY), lookahead=settings)
