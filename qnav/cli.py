@@ -449,6 +449,27 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _flag(gauge, "--json", "print one JSON object per line")
 
+    audit = _verb(
+        tools,
+        "qnav.verbs.lab:audit",
+        "audit",
+        help="what judging doom gives a run's policy: alone, judged by the exact doom labels, "
+        "shielded by the exact collision shares, by the controller's forecast and by a judge "
+        "file, each with the decisive states it drove into and how often it took a safe action",
+    )
+    audit.add_argument("run", type=Path, help="training run folder of an obstacle scenario")
+    audit.add_argument(
+        "--judge",
+        type=Path,
+        metavar="FILE",
+        help="also a doom judge file (`qnav lab label --export`)",
+    )
+    audit.add_argument("--episodes", type=int, default=500, help="episodes per judgement (500)")
+    audit.add_argument(
+        "--seed", type=int, default=12345, help="layouts' seed (12345: the test protocol's)"
+    )
+    _flag(audit, "--json", "print one JSON object per judgement")
+
     probe = _verb(
         tools,
         "qnav.verbs.lab:probe",

@@ -242,11 +242,21 @@ def evaluate(
     return EvalResult.of_outcomes(*episode_outcomes(config, agent, settings, progress))
 
 
+WorldWatch = Callable[[WorldState, NDArray[np.bool_]], None]
+"""Shown the worlds' whole state before each of an agent's decisions, and which worlds still run
+an episode that counts (the lab's audits label the states an agent drives into)."""
+
+
 def episode_outcomes(
-    config: WorldConfig, agent: Agent, settings: EvalSettings, progress: bool = False
+    config: WorldConfig,
+    agent: Agent,
+    settings: EvalSettings,
+    progress: bool = False,
+    watch: WorldWatch | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Run `settings.episodes` episodes: each one's `Outcome` and steps, by episode index (the
-    same index is the same layout for every agent)."""
+    same index is the same layout for every agent); `watch`, where given, sees each decision's
+    state first."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     worlds = min(settings.num_worlds, settings.episodes)
     episode = np.arange(worlds, dtype=np.int64)
@@ -262,6 +272,8 @@ def episode_outcomes(
         total=settings.episodes, desc=f"eval {config.name}", unit="ep", disable=not progress
     ) as bar:
         while active.any():
+            if watch is not None:
+                watch(state, active)
             state, next_observation, transition = step(config, state, agent.act(observation))
             observation = next_observation
             done = (transition.terminated | transition.truncated) & active

@@ -1,5 +1,5 @@
-"""Handlers of `qnav lab`: the research tools of lab/ (calibrate, diagnose, gauge, probe,
-imitate)."""
+"""Handlers of `qnav lab`: the research tools of lab/ (calibrate, diagnose, gauge, audit, probe,
+label, imitate)."""
 
 from __future__ import annotations
 
@@ -53,6 +53,34 @@ def diagnose(args: argparse.Namespace) -> int:
     from qnav.lab.diagnose import diagnose as measure
 
     print(measure(args.run, fresh_episodes=args.fresh_episodes).render())
+    return 0
+
+
+def audit(args: argparse.Namespace) -> int:
+    """A run's policy driven under each judgement of doom, its decisive states counted."""
+    from qnav.lab.audit import audit as drive
+    from qnav.sim.evaluate import EvalSettings
+    from qnav.training.run_folder import read_settings
+
+    if args.judge is not None and not args.judge.is_file():
+        raise ConfigError(f"--judge {args.judge}: no such file")
+    world = read_settings(args.run).world
+    protocol = EvalSettings(episodes=args.episodes, seed=args.seed)
+    audits = drive(world, args.run, protocol, args.judge, progress=not args.json)
+    if args.json:
+        for row in audits:
+            print(json.dumps({**row._asdict(), "result": row.result.fractions()}))
+        return 0
+    layouts = f"{args.episodes} episodes (seed {args.seed})"
+    print(f"{world.name}, the greedy policy of {args.run}, {layouts}")
+    if args.judge is not None:
+        print(f"  judge file: {args.judge}")
+    print(f"  {'judgement':<24} success  decisive states  taken safe  policy safe  overruled")
+    for row in audits:
+        print(
+            f"  {row.judgement:<24} {row.result.success:7.3f}  {row.decisive:15d}  "
+            f"{row.taken_safe:10.3f}  {row.policy_safe:11.3f}  {row.overruled:9.3f}"
+        )
     return 0
 
 

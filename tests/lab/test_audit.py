@@ -1,0 +1,35 @@
+"""The audit of a policy's judgements: exact judgements never take a doomed action where a safe
+one exists, and auditing a drive does not change it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from qnav.lab.audit import audit
+from qnav.sim.evaluate import EvalSettings, evaluate
+from qnav.training.agent import policy_agent
+from qnav.training.run_folder import load_network
+from tests.lab.conftest import TINY_RUN_WORLD
+
+PROTOCOL = EvalSettings(episodes=8, num_worlds=8, max_episode_steps=60, seed=5)
+
+
+def test_exact_judgements_take_a_safe_action_in_every_decisive_state(tiny_run: Path) -> None:
+    rows = {row.judgement: row for row in audit(TINY_RUN_WORLD, tiny_run, PROTOCOL)}
+    assert set(rows) == {"alone", "doom labels", "collision shares", "forecast"}
+    exact = [rows["doom labels"], rows["collision shares"]]
+    assert sum(row.decisive for row in exact) > 0, "no decisive state met: nothing tested"
+    for row in exact:
+        assert row.decisive == 0 or row.taken_safe == 1.0, row
+    alone = rows["alone"]
+    assert alone.overruled == 0.0 and alone.taken_safe == alone.policy_safe
+
+
+def test_auditing_a_policy_alone_leaves_its_outcomes_as_the_test_protocols(
+    tiny_run: Path,
+) -> None:
+    network, run = load_network(tiny_run)
+    agent = policy_agent(network, TINY_RUN_WORLD, PROTOCOL.num_worlds, run.train.window)
+    alone = audit(TINY_RUN_WORLD, tiny_run, PROTOCOL)[0]
+    assert alone.result == evaluate(TINY_RUN_WORLD, agent, PROTOCOL)
+    assert alone.decisions == round(alone.result.mean_steps * alone.result.episodes)
