@@ -33,23 +33,23 @@ from qnav.contracts.lookahead import shielded_actions
 from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.perception import TrackerSettings
 from qnav.lab.decisive import is_decisive
-from qnav.lab.oracle import collision_shares
+from qnav.lab.oracle import collision_shares, doom_label_safety
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import Agent, EvalResult, EvalSettings, episode_outcomes
 from qnav.sim.world import Observation, WorldState, take_rows
 from qnav.tracking import LookaheadAgent, QAgent
 
-Judgement = Literal["alone", "doom labels", "collision shares", "forecast", "judge"]
+Judgement = Literal["alone", "doom labels", "collision shares", "forecast", "judge file"]
 
 JUDGEMENTS: tuple[Judgement, ...] = ("alone", "doom labels", "collision shares", "forecast")
-"""What `audit` drives the policy with (and "judge", where a judge file is given)."""
+"""What `audit` drives the policy with (and "judge file", where one is given)."""
 
 
 class Audit(NamedTuple):
     """One judgement's drive of the policy over the layouts."""
 
-    judgement: str
-    """Which (`JUDGEMENTS`, or "judge FILE")."""
+    judgement: Judgement
+    """Which (`JUDGEMENTS`, or "judge file")."""
     result: EvalResult
     """Outcomes of the episodes."""
     decisions: int
@@ -90,8 +90,7 @@ class _Labelled:
         taken = self.agent.act(observation)
         preferred = self.policy.last_q.argmax(axis=1)
         if self.judgement == "doom labels":
-            # above 1/2 exactly where not doomed; where doomed, the least colliding is safest
-            taken = judged_actions(taken, 1.0 - share / 2, 0.5)
+            taken = judged_actions(taken, doom_label_safety(share), 0.5)
         elif self.judgement == "collision shares":
             taken = shielded_actions(self.policy.last_q, share, 0.0)
         doomed = share == 1.0
@@ -118,14 +117,12 @@ def audit(
 
     network, run = load_network(run_dir)
     worlds = min(protocol.num_worlds, protocol.episodes)
-    judgements: list[tuple[Judgement, str]] = [(name, name) for name in JUDGEMENTS]
-    if judge_file is not None:
-        judgements.append(("judge", "judge file"))
+    judged: tuple[Judgement, ...] = ("judge file",) if judge_file is not None else ()
     audits = []
-    for judgement, label in tqdm(judgements, desc="audit", disable=not progress):
+    for judgement in tqdm(JUDGEMENTS + judged, desc="audit", disable=not progress):
         policy = policy_agent(network, world, worlds, run.train.window, seed=protocol.seed)
         agent: Agent = policy
-        if judgement in ("forecast", "judge"):
+        if judgement in ("forecast", "judge file"):
             agent = LookaheadAgent(
                 policy,
                 world,
@@ -133,7 +130,7 @@ def audit(
                 tracker=TrackerSettings(),
                 lookahead=LookaheadSettings(
                     mode="shield" if judgement == "forecast" else "judge",
-                    judge_file=str(judge_file or "") if judgement == "judge" else "",
+                    judge_file=str(judge_file) if judgement == "judge file" else "",
                 ),
                 seed=protocol.seed,
             )
@@ -142,7 +139,7 @@ def audit(
         decisive = max(labelled.decisive, 1)
         audits.append(
             Audit(
-                judgement=label,
+                judgement=judgement,
                 result=EvalResult.of_outcomes(*outcomes),
                 decisions=labelled.decisions,
                 decisive=labelled.decisive,

@@ -136,6 +136,13 @@ def collision_shares(
     return lookahead.collision_shares(lookahead_model(config), state, tails)
 
 
+def doom_label_safety(collide_share: NDArray[np.floating]) -> NDArray[np.float64]:
+    """(N, A) a P(safe) that judges exactly by the doom labels of the planner's collision shares
+    (N, A), for `contracts.judge_file.judged_actions` at threshold 1/2: above 1/2 exactly where
+    an action is not doomed, and where the preferred one is, the least colliding is safest."""
+    return np.asarray(1.0 - np.asarray(collide_share, dtype=np.float64) / 2)
+
+
 class StateError(NamedTuple):
     """How far from the true state a perceiver's estimate is: the spread (one standard
     deviation, per axis) of zero-mean Gaussian errors."""

@@ -44,7 +44,7 @@ from qnav.contracts.observation import (
 from qnav.contracts.policy_file import CONV_CHANNELS
 from qnav.contracts.settings import check_range
 from qnav.lab.decisive import DecisiveStates, GaugeSettings, cached, is_decisive, score
-from qnav.lab.oracle import PERCEIVED, collision_shares
+from qnav.lab.oracle import PERCEIVED, collision_shares, doom_label_safety
 from qnav.lab.redrawn import redrawn_states
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget, drive, go_to_target
@@ -496,8 +496,7 @@ def shield_test(
         share = collision_shares(world, state)
         if settings.label == "collide_share":
             return 1.0 - share
-        # Above 1/2 exactly where not doomed (a share below 1); the least colliding is safest.
-        return 1.0 - share / 2
+        return doom_label_safety(share)
 
     shields: list[SafeProbability | None] = [None, fitted_safety, exact_safety]
     if settings.inputs == "slots":

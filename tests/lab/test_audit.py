@@ -3,11 +3,15 @@ one exists, and auditing a drive does not change it."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
+from qnav.controller.lookahead import LookaheadSettings
+from qnav.controller.perception import TrackerSettings
 from qnav.lab.audit import audit
 from qnav.sim.evaluate import EvalSettings, evaluate
-from qnav.training.agent import policy_agent
+from qnav.tracking import LookaheadAgent
+from qnav.training.agent import TorchAgent, policy_agent
 from qnav.training.run_folder import load_network
 from tests.lab.conftest import TINY_RUN_WORLD
 
@@ -25,11 +29,25 @@ def test_exact_judgements_take_a_safe_action_in_every_decisive_state(tiny_run: P
     assert alone.overruled == 0.0 and alone.taken_safe == alone.policy_safe
 
 
-def test_auditing_a_policy_alone_leaves_its_outcomes_as_the_test_protocols(
-    tiny_run: Path,
+def test_auditing_a_drive_leaves_its_outcomes_as_the_test_protocols(
+    tiny_run: Path, make_judge: Callable[[str], Path]
 ) -> None:
+    judge = make_judge(TINY_RUN_WORLD.name)
+    rows = {row.judgement: row for row in audit(TINY_RUN_WORLD, tiny_run, PROTOCOL, judge)}
     network, run = load_network(tiny_run)
-    agent = policy_agent(network, TINY_RUN_WORLD, PROTOCOL.num_worlds, run.train.window)
-    alone = audit(TINY_RUN_WORLD, tiny_run, PROTOCOL)[0]
-    assert alone.result == evaluate(TINY_RUN_WORLD, agent, PROTOCOL)
+
+    def policy() -> TorchAgent:
+        return policy_agent(network, TINY_RUN_WORLD, PROTOCOL.num_worlds, run.train.window)
+
+    judged = LookaheadAgent(
+        policy(),
+        TINY_RUN_WORLD,
+        PROTOCOL.num_worlds,
+        tracker=TrackerSettings(),
+        lookahead=LookaheadSettings(mode="judge", judge_file=str(judge)),
+        seed=PROTOCOL.seed,
+    )
+    assert rows["alone"].result == evaluate(TINY_RUN_WORLD, policy(), PROTOCOL)
+    assert rows["judge file"].result == evaluate(TINY_RUN_WORLD, judged, PROTOCOL)
+    alone = rows["alone"]
     assert alone.decisions == round(alone.result.mean_steps * alone.result.episodes)
