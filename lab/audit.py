@@ -30,14 +30,13 @@ from tqdm import tqdm
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.judge_file import judged_actions
 from qnav.contracts.lookahead import shielded_actions
-from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.perception import TrackerSettings
 from qnav.lab.decisive import is_decisive
 from qnav.lab.oracle import collision_shares, doom_label_safety
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import Agent, EvalResult, EvalSettings, episode_outcomes
 from qnav.sim.world import Observation, WorldState, take_rows
-from qnav.tracking import LookaheadAgent, QAgent
+from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
 
 Judgement = Literal["alone", "doom labels", "collision shares", "forecast", "judge file"]
 
@@ -104,42 +103,43 @@ class _Labelled:
 
 
 def audit(
-    world: WorldConfig,
     run_dir: Path,
     protocol: EvalSettings,
     judge_file: Path | None = None,
     progress: bool = False,
 ) -> list[Audit]:
-    """Drive the run's greedy policy over `protocol`'s layouts under each judgement (module
-    docstring), the same layouts for all."""
+    """Drive the run's greedy policy over `protocol`'s layouts in its world under each judgement
+    (module docstring), the same layouts for all. Every drive is set up before the first runs,
+    so a judge file that is missing or judges another world is refused at once."""
     from qnav.training.agent import policy_agent
     from qnav.training.run_folder import load_network
 
     network, run = load_network(run_dir)
+    world = run.world
     worlds = min(protocol.num_worlds, protocol.episodes)
     judged: tuple[Judgement, ...] = ("judge file",) if judge_file is not None else ()
-    audits = []
-    for judgement in tqdm(JUDGEMENTS + judged, desc="audit", disable=not progress):
+    drives = []
+    for judgement in JUDGEMENTS + judged:
         policy = policy_agent(network, world, worlds, run.train.window, seed=protocol.seed)
         agent: Agent = policy
         if judgement in ("forecast", "judge file"):
+            mode = "shield" if judgement == "forecast" else "judge"
             agent = LookaheadAgent(
                 policy,
                 world,
                 worlds,
                 tracker=TrackerSettings(),
-                lookahead=LookaheadSettings(
-                    mode="shield" if judgement == "forecast" else "judge",
-                    judge_file=str(judge_file) if judgement == "judge file" else "",
-                ),
+                lookahead=lookahead_settings(mode, judge_file if mode == "judge" else None),
                 seed=protocol.seed,
             )
-        labelled = _Labelled(agent, policy, world, judgement)
+        drives.append(_Labelled(agent, policy, world, judgement))
+    audits = []
+    for labelled in tqdm(drives, desc="audit", disable=not progress):
         outcomes = episode_outcomes(world, labelled, protocol, watch=labelled.watch)
         decisive = max(labelled.decisive, 1)
         audits.append(
             Audit(
-                judgement=judgement,
+                judgement=labelled.judgement,
                 result=EvalResult.of_outcomes(*outcomes),
                 decisions=labelled.decisions,
                 decisive=labelled.decisive,

@@ -60,19 +60,15 @@ def audit(args: argparse.Namespace) -> int:
     """A run's policy driven under each judgement of doom, its decisive states counted."""
     from qnav.lab.audit import audit as drive
     from qnav.sim.evaluate import EvalSettings
-    from qnav.training.run_folder import read_settings
 
-    if args.judge is not None and not args.judge.is_file():
-        raise ConfigError(f"--judge {args.judge}: no such file")
-    world = read_settings(args.run).world
     protocol = EvalSettings(episodes=args.episodes, seed=args.seed)
-    audits = drive(world, args.run, protocol, args.judge, progress=not args.json)
+    audits = drive(args.run, protocol, args.judge, progress=not args.json)
     if args.json:
         for row in audits:
             print(json.dumps({**row._asdict(), "result": row.result.fractions()}))
         return 0
     layouts = f"{args.episodes} episodes (seed {args.seed})"
-    print(f"{world.name}, the greedy policy of {args.run}, {layouts}")
+    print(f"the greedy policy of {args.run} in its world, {layouts}")
     if args.judge is not None:
         print(f"  judge file: {args.judge}")
     print(f"  {'judgement':<24} success  decisive states  taken safe  policy safe  overruled")

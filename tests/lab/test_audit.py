@@ -1,11 +1,14 @@
 """The audit of a policy's judgements: exact judgements never take a doomed action where a safe
-one exists, and auditing a drive does not change it."""
+one exists, auditing a drive does not change it, and a judge that cannot judge is refused first."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
+from qnav.contracts.errors import PolicyFileError
 from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.perception import TrackerSettings
 from qnav.lab.audit import audit
@@ -19,7 +22,7 @@ PROTOCOL = EvalSettings(episodes=8, num_worlds=8, max_episode_steps=60, seed=5)
 
 
 def test_exact_judgements_take_a_safe_action_in_every_decisive_state(tiny_run: Path) -> None:
-    rows = {row.judgement: row for row in audit(TINY_RUN_WORLD, tiny_run, PROTOCOL)}
+    rows = {row.judgement: row for row in audit(tiny_run, PROTOCOL)}
     assert set(rows) == {"alone", "doom labels", "collision shares", "forecast"}
     exact = [rows["doom labels"], rows["collision shares"]]
     assert sum(row.decisive for row in exact) > 0, "no decisive state met: nothing tested"
@@ -33,7 +36,7 @@ def test_auditing_a_drive_leaves_its_outcomes_as_the_test_protocols(
     tiny_run: Path, make_judge: Callable[[str], Path]
 ) -> None:
     judge = make_judge(TINY_RUN_WORLD.name)
-    rows = {row.judgement: row for row in audit(TINY_RUN_WORLD, tiny_run, PROTOCOL, judge)}
+    rows = {row.judgement: row for row in audit(tiny_run, PROTOCOL, judge)}
     network, run = load_network(tiny_run)
 
     def policy() -> TorchAgent:
@@ -51,3 +54,13 @@ def test_auditing_a_drive_leaves_its_outcomes_as_the_test_protocols(
     assert rows["judge file"].result == evaluate(TINY_RUN_WORLD, judged, PROTOCOL)
     alone = rows["alone"]
     assert alone.decisions == round(alone.result.mean_steps * alone.result.episodes)
+
+
+def test_a_judge_of_another_world_is_refused_before_any_drive(
+    tiny_run: Path, make_judge: Callable[[str], Path]
+) -> None:
+    other = make_judge("obstacles-increment")
+    with pytest.raises(PolicyFileError, match="increment dynamics"):
+        audit(tiny_run, PROTOCOL, other)
+    with pytest.raises(PolicyFileError, match="does not exist"):
+        audit(tiny_run, PROTOCOL, other.with_name("missing.onnx"))
