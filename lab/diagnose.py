@@ -44,7 +44,7 @@ from qnav.lab.decisive import (
 from qnav.lab.gauge import decisive_states
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, episode_outcomes
-from qnav.sim.world import Observation, observe, reset
+from qnav.sim.world import Observation, observe, reset, step
 from qnav.training.agent import TorchAgent, greedy_actions, policy_agent
 from qnav.training.algorithm import bootstrap_windows, double_dqn_target
 from qnav.training.collect import collect_round
@@ -76,6 +76,14 @@ class DecisiveReport:
     """What always driving forward scores (the plain share's prior)."""
     states: int
     """Decisive states judged."""
+    value_gap: float
+    """Median over them of the best safe action's Q minus the best doomed one's."""
+    target_ranks_safe: float
+    """Share of them where the one-step targets from the network's own values, r + gamma max Q
+    of each action's simulated next state, put the best safe action above the best doomed one:
+    how much of the ranking any one-step TD target from this network carries."""
+    target_gap: float
+    """Median over them of those targets' gap (best safe minus best doomed)."""
 
     def render(self) -> str:
         """One line for the terminal."""
@@ -84,14 +92,23 @@ class DecisiveReport:
             f"safe choices in {self.states} decisive states: {self.safe:.1%} ({drivers}), "
             f"balanced over doom patterns {self.balanced:.1%} (blind choices: 50%); "
             f"random {self.random:.1%}, always forward {self.forward:.1%}, "
-            f"go-to-target {self.go_to_target:.1%}"
+            f"go-to-target {self.go_to_target:.1%}\n"
+            f"  Q there, best safe minus best doomed action: median {self.value_gap:+.4f}; "
+            f"one-step targets from its own values rank the safe one first in "
+            f"{self.target_ranks_safe:.1%} (median gap {self.target_gap:+.4f})"
         )
 
 
-def decisive_report(network: QNetwork, states: DecisiveStates) -> DecisiveReport:
-    """Score the network's greedy choices on the decisive states."""
+def decisive_report(
+    network: QNetwork, states: DecisiveStates, world: WorldConfig, gamma: float
+) -> DecisiveReport:
+    """Score the network's greedy choices, its values and its one-step targets on the decisive
+    states of `world`."""
     network.eval()
-    mine = score(states, greedy_actions(network, states.policy_windows(network.obstacle_inputs)))
+    windows = states.policy_windows(network.obstacle_inputs)
+    mine = score(states, greedy_actions(network, windows))
+    targets = one_step_targets(network, world, states, gamma)
+    target_ranks_safe, target_gap = safe_ranking(targets, states.doomed)
     return DecisiveReport(
         safe=mine.safe,
         balanced=mine.balanced,
@@ -100,7 +117,54 @@ def decisive_report(network: QNetwork, states: DecisiveStates) -> DecisiveReport
         go_to_target=score(states, go_to_target_choices(states)).safe,
         forward=constant_choice(states, Action.FORWARD).safe,
         states=mine.states,
+        value_gap=safe_ranking(_q_values(network, windows), states.doomed)[1],
+        target_ranks_safe=target_ranks_safe,
+        target_gap=target_gap,
     )
+
+
+def safe_ranking(values: NDArray[np.floating], doomed: NDArray[np.bool_]) -> tuple[float, float]:
+    """Over decisive states, values (K, A) of the actions: the share where the best safe
+    action's value is above the best doomed one's, and the median of that gap."""
+    best_safe = np.where(doomed, -np.inf, values).max(axis=1)
+    best_doomed = np.where(doomed, values, -np.inf).max(axis=1)
+    gap = best_safe - best_doomed
+    return float(np.mean(gap > 0)), float(np.median(gap))
+
+
+def one_step_targets(
+    network: QNetwork, world: WorldConfig, states: DecisiveStates, gamma: float
+) -> NDArray[np.float64]:
+    """(K, A) r + gamma max_a' Q(s', a') of each action's step from each state, by the
+    simulator (the next window: the state's last k - 1 frames and the new one); r alone where
+    the step ends the episode."""
+    windows = states.policy_windows(network.obstacle_inputs)
+    scale_m = distance_scale_m(world.lidar)
+    targets = []
+    for action in range(NUM_ACTIONS):
+        _, seen, transition = step(world, states.world, np.full(len(windows), action))
+        frame = seen.frames(scale_m, network.obstacle_inputs)
+        later = _q_values(network, np.concatenate([windows[:, 1:], frame[:, None]], axis=1))
+        going_on = ~np.asarray(transition.terminated)
+        targets.append(transition.reward + gamma * going_on * later.max(axis=1))
+    return np.stack(targets, axis=1)
+
+
+def _q_values(
+    network: QNetwork, windows: NDArray[np.float32], chunk: int = 2048
+) -> NDArray[np.float32]:
+    """(K, A) the network's Q values of windows (K, k, F), a chunk at a time."""
+    with torch.no_grad():
+        return (
+            np.concatenate(
+                [
+                    network(torch.from_numpy(windows[start : start + chunk])).float().numpy()
+                    for start in range(0, len(windows), chunk)
+                ]
+            )
+            if len(windows)
+            else np.zeros((0, NUM_ACTIONS), np.float32)
+        )
 
 
 @dataclass(frozen=True)
@@ -200,7 +264,9 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
     actions, success, against_blind = _test_actions(network, settings)
     decisive = None
     if settings.world.obstacles.count and train.gauge_episodes:
-        decisive = decisive_report(network, decisive_states(world, train, progress=True))
+        decisive = decisive_report(
+            network, decisive_states(world, train, progress=True), world, train.gamma
+        )
     return Diagnosis(
         replay_td_mse=_td_mse(network, replay_batch, train.window),
         fresh_td_mse=_td_mse(network, fresh_batch, train.window),

@@ -18,7 +18,7 @@ from torch.nn import functional
 
 from qnav.training.config import TrainSettings
 from qnav.training.networks import QNetwork
-from qnav.training.replay import Alternatives, Batch
+from qnav.training.replay import Batch
 
 
 class DoubleDQN:
@@ -45,7 +45,6 @@ class DoubleDQN:
             loss_kind=settings.loss,
             grad_clip_norm=settings.grad_clip_norm,
             bf16=self.bf16,
-            every_action_weight=settings.every_action_weight,
         )
         if settings.target_smoothing:
             soft_update(self.target, self.online, settings.target_smoothing)
@@ -85,36 +84,6 @@ def double_dqn_target(
     return reward + discount * (~terminal).to(reward.dtype) * bootstrap
 
 
-def every_action_targets(
-    online: QNetwork,
-    target: QNetwork,
-    frames: Tensor,
-    alternatives: Alternatives,
-    *,
-    window: int,
-    online_features: Tensor,
-) -> Tensor:
-    """(N, A) one-step double-DQN targets of every action from s_t: each next window is s_t's
-    last k - 1 frames and the action's simulated frame, y = r + discount Q_target(s',
-    argmax Q_online(s')). `online_features` are the online network's of `frames`."""
-    new_frames = torch.from_numpy(alternatives.frames).to(frames.device)  # (N, A, F)
-    n, num_actions, _ = new_frames.shape
-
-    def next_q(network: QNetwork, earlier: Tensor) -> Tensor:
-        new = network.frame_features(new_frames.reshape(n * num_actions, 1, -1))
-        shared = earlier.repeat_interleave(num_actions, dim=0)
-        return network.q_from_features(torch.cat([shared, new.to(shared.dtype)], dim=1)).float()
-
-    with torch.no_grad():
-        q_online = next_q(online, online_features[:, 1:window])
-        q_target = next_q(target, target.frame_features(frames[:, 1:window]))
-        best = q_online.argmax(dim=1, keepdim=True)
-        bootstrap = q_target.gather(1, best).squeeze(1).reshape(n, num_actions)
-    reward = torch.from_numpy(alternatives.reward).to(frames.device)
-    discount = torch.from_numpy(alternatives.discount).to(frames.device)
-    return reward + discount * bootstrap
-
-
 def bootstrap_windows(features: Tensor, steps: Tensor, window: int) -> Tensor:
     """features (N, k + n, D) -> the windows (N, k, D) ending m steps after s_t."""
     index = steps[:, None] + torch.arange(window, device=features.device)[None, :]
@@ -140,14 +109,8 @@ def td_update(
     loss_kind: str = "mse",
     grad_clip_norm: float = 0.0,
     bf16: bool = False,
-    every_action_weight: float = 0.0,
 ) -> Update:
-    """One gradient step on a batch; returns its TD loss and per-transition TD errors.
-
-    Where the batch carries every action's simulated step (`Batch.alternatives`) and
-    `every_action_weight` > 0, the loss adds, at that weight, the squared one-step double-DQN
-    errors of all actions of s_t: the taken action's n-step return alone never says which of
-    the others would have been doomed."""
+    """One gradient step on a batch; returns its TD loss and per-transition TD errors."""
     device = next(online.parameters()).device
     frames = torch.from_numpy(batch.frames).to(device)
     action = torch.from_numpy(batch.action).to(device)
@@ -155,7 +118,8 @@ def td_update(
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
         # The windows of s_t and of the bootstrap state overlap: encode each frame once.
         features = online.frame_features(frames)
-        q = online.q_from_features(features[:, :window]).float()
+        summary = online.window_summary(features[:, :window])
+        q = online.head(summary).float()
         q_taken = q.gather(1, action.unsqueeze(1)).squeeze(1)
         with torch.no_grad():
             later = bootstrap_windows(features.detach(), steps, window)
@@ -176,19 +140,6 @@ def td_update(
     if batch.weight is not None:
         per_transition = per_transition * torch.from_numpy(batch.weight).to(device)
     loss = per_transition.mean()
-    if every_action_weight > 0 and batch.alternatives is not None:
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-            y_every = every_action_targets(
-                online,
-                target,
-                frames,
-                batch.alternatives,
-                window=window,
-                online_features=features.detach(),
-            )
-        valid = torch.from_numpy(batch.alternatives.valid).to(device)
-        if bool(valid.any()):
-            loss = loss + every_action_weight * functional.mse_loss(q[valid], y_every[valid])
     optimizer.zero_grad(set_to_none=True)
     loss.backward()  # type: ignore[no-untyped-call]
     if grad_clip_norm > 0:

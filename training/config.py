@@ -78,13 +78,6 @@ class TrainSettings:
     the onboard tracker estimates them (exact in simulation; `contracts.observation.
     obstacle_features`; paper: the lidar alone). Lifts the decisive-state gauge, not success
     (docs/learner.md, "Perception given"); policy files cannot carry it yet."""
-    every_action_weight: float = 0.0
-    """Weight of a second loss on every action's one-step target from each sampled state, its
-    step simulated among the re-drawn obstacles (`training.sampling.alternatives`; 0: off, the
-    taken action alone, as the paper)."""
-    obstacle_risk_head: bool = False
-    """Read the obstacle inputs through a per-obstacle doom network: Q = (1 - P) Q_free + P
-    r_collision (`training.networks.ObstacleRisk`; needs `obstacle_inputs`)."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
@@ -131,7 +124,6 @@ class TrainSettings:
         check_range(self, "epsilon_min", self.epsilon_min, 0.0, 1.0)
         check_range(self, "hold_steps", self.hold_steps, 1, 10_000)
         check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
-        check_range(self, "every_action_weight", self.every_action_weight, 0.0, 1e6)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)
@@ -144,11 +136,6 @@ class TrainSettings:
         check_range(self, "snapshot_every_episodes", self.snapshot_every_episodes, 0, 10**7)
         check_range(self, "final_eval_episodes", self.final_eval_episodes, 1, 10**7)
         check_range(self, "threads", self.threads, 1, 1024)
-        if self.obstacle_risk_head and not self.obstacle_inputs:
-            raise ConfigError(
-                "train.obstacle_risk_head = true reads the obstacle inputs: set "
-                "train.obstacle_inputs = true too"
-            )
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise ConfigError(f"train.device = {self.device!r}: choose auto, cpu, cuda or cuda:N")
 

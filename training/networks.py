@@ -19,12 +19,7 @@ from torch import Tensor, nn
 from torch.nn import functional
 
 from qnav.contracts.actions import NUM_ACTIONS
-from qnav.contracts.observation import (
-    OBSTACLE_FEATURES,
-    OBSTACLE_SLOT_FEATURES,
-    OBSTACLE_SLOTS,
-    TARGET_FEATURES,
-)
+from qnav.contracts.observation import OBSTACLE_FEATURES, TARGET_FEATURES
 from qnav.contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
 from qnav.sim.config import WorldConfig
 from qnav.training.config import ModelKind, TrainSettings
@@ -94,7 +89,6 @@ class QNetwork(nn.Module):
         num_beams: int | None,
         hidden_size: int = 512,
         obstacle_inputs: bool = False,
-        collision_value: float | None = None,
     ) -> None:
         super().__init__()
         self.kind: ModelKind = kind
@@ -113,13 +107,6 @@ class QNetwork(nn.Module):
         head_input = self.summary_size
         self.head = nn.Sequential(
             nn.Linear(head_input, hidden_size), nn.ReLU(), nn.Linear(hidden_size, NUM_ACTIONS)
-        )
-        if collision_value is not None and not obstacle_inputs:
-            raise ValueError("an obstacle risk head needs obstacle inputs")
-        self.risk = (
-            ObstacleRisk(self.summary_size, collision_value)
-            if collision_value is not None
-            else None
         )
 
     @property
@@ -145,59 +132,10 @@ class QNetwork(nn.Module):
 
     def q_from_features(self, features: Tensor) -> Tensor:
         """(N, k, D) features of one window -> (N, 3) Q values."""
-        summary = self.window_summary(features)
-        q: Tensor = self.head(summary)
-        if self.risk is not None:
-            q = self.risk(q, summary, features[..., -OBSTACLE_FEATURES:])
-        return q
+        return self.head(self.window_summary(features))  # type: ignore[no-any-return]
 
     def forward(self, frames: Tensor) -> Tensor:
         return self.q_from_features(self.frame_features(frames))
-
-
-class ObstacleRisk(nn.Module):
-    """Q = (1 - P) Q_free + P r_c, where P = 1 - prod_i (1 - p_i) is the chance that some
-    obstacle dooms the action and r_c the collision's value.
-
-    Each seen obstacle slot i, with its previous frame's slot and a small context read from the
-    window's summary (the car's own motion), goes through one shared network to p_i per action:
-    the structure "each obstacle, seen with the robot's own motion, may doom an action", which
-    learns doom from a few thousand labels where obstacles as slots into the LSTM stay at chance
-    (docs/log/learner-experiments.md, "What shape learns doom").
-    """
-
-    def __init__(self, summary_size: int, collision_value: float, width: int = 64) -> None:
-        super().__init__()
-        context = 16
-        self.collision_value = collision_value
-        self.context = nn.Linear(summary_size, context)
-        self.per_obstacle = nn.Sequential(
-            nn.Linear(2 * OBSTACLE_SLOT_FEATURES + context, width),
-            nn.ReLU(),
-            nn.Linear(width, width),
-            nn.ReLU(),
-            nn.Linear(width, NUM_ACTIONS),
-        )
-        # Start from "an obstacle rarely dooms" (p = 0.02): from even odds, five seen obstacles
-        # would give P = 0.97, and Q_free would start behind a factor of 0.03.
-        last = self.per_obstacle[-1]
-        assert isinstance(last, nn.Linear)
-        nn.init.constant_(last.bias, -4.0)
-
-    def doom_chance(self, summary: Tensor, obstacles: Tensor) -> Tensor:
-        """(N, S) summaries and (N, k, OBSTACLE_FEATURES) window slots -> P (N, 3)."""
-        slots = obstacles.reshape(*obstacles.shape[:-1], OBSTACLE_SLOTS, OBSTACLE_SLOT_FEATURES)
-        last = slots[:, -1]
-        previous = slots[:, -2] if slots.shape[1] > 1 else last
-        context = self.context(summary).unsqueeze(1).expand(-1, OBSTACLE_SLOTS, -1)
-        logits = self.per_obstacle(torch.cat([last, previous, context], dim=-1))
-        seen = last[..., :1]  # an empty slot dooms nothing
-        log_spared = functional.logsigmoid(-logits.float()) * seen.float()
-        return 1.0 - torch.exp(log_spared.sum(dim=1))
-
-    def forward(self, q_free: Tensor, summary: Tensor, obstacles: Tensor) -> Tensor:
-        doom = self.doom_chance(summary, obstacles)
-        return (1.0 - doom) * q_free.float() + doom * self.collision_value
 
 
 class StreamingQNetwork(nn.Module):
@@ -319,10 +257,4 @@ def lstm_last_output(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
 def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
     """The Q-network for this world and these settings (fresh weights)."""
     beams = world.lidar.num_beams if world.lidar else None
-    return QNetwork(
-        settings.model,
-        beams,
-        settings.hidden_size,
-        settings.obstacle_inputs,
-        world.reward.collision_reward if settings.obstacle_risk_head else None,
-    )
+    return QNetwork(settings.model, beams, settings.hidden_size, settings.obstacle_inputs)

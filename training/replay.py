@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from qnav.contracts.motion import Outcome, outcome, step_robot
+from qnav.contracts.motion import Outcome, outcome
 from qnav.contracts.observation import (
     OBSTACLE_FEATURES,
     distance_scale_m,
@@ -53,23 +53,6 @@ class Batch(NamedTuple):
     `EpisodeReplay.reprioritise`."""
     weight: NDArray[np.float32] | None = None
     """(N,) importance weights of a prioritized sample (None: uniform, all 1)."""
-    alternatives: Alternatives | None = None
-    """One simulated step of every action from s_t (`training.sampling.alternatives`)."""
-
-
-class Alternatives(NamedTuple):
-    """Every action's one step from s_t, simulated from the stored state among the sampled
-    obstacles (which never react to the robot): what the taken action alone never shows."""
-
-    frames: NDArray[np.float32]
-    """(N, A, F) the encoded frame after each action; the next window is s_t's last k - 1
-    frames and this one."""
-    reward: NDArray[np.float32]
-    """(N, A) each step's reward for the sampled target."""
-    discount: NDArray[np.float32]
-    """(N, A) gamma, or 0 where the step ends the episode (success or collision)."""
-    valid: NDArray[np.bool_]
-    """(N,) the transitions simulated (those among re-drawn obstacles, whose paths are known)."""
 
 
 class Seen(NamedTuple):
@@ -81,9 +64,6 @@ class Seen(NamedTuple):
     """(N, k + n) exact clearances."""
     obstacles: NDArray[np.float32] | None
     """(N, k + n, OBSTACLE_FEATURES) encoded obstacles (None: the network is not given them)."""
-    next_obstacles: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None = None
-    """Centres and velocities (N, M, 2) of the obstacles at s_t+1, and (N,) where they are known
-    (the re-drawn rows; None: nowhere)."""
 
 
 class EpisodeReplay:
@@ -99,8 +79,6 @@ class EpisodeReplay:
         self.num_beams = config.lidar.num_beams if config.lidar else 0
         self.max_range_m = distance_scale_m(config.lidar)
         self.pose = np.zeros((capacity_frames, 3))
-        self.velocity = np.zeros((capacity_frames, 2))
-        """(forward m/s, turn rad/s) at each frame, replayed from the stored actions."""
         self.scan = np.zeros((capacity_frames, self.num_beams), dtype=np.float32)
         self.clearance = np.zeros(capacity_frames)
         self.action = np.zeros(capacity_frames, dtype=np.int64)
@@ -136,7 +114,6 @@ class EpisodeReplay:
             )
         span = slice(self.size, self.size + frames)
         self.pose[span] = episode.pose
-        self.velocity[span] = replayed_velocities(self.config, episode.pose[0], episode.action)
         if episode.scan_m is not None:
             self.scan[span] = encode_scan(episode.scan_m, self.max_range_m)
         self.clearance[span] = episode.clearance_m
@@ -239,19 +216,3 @@ class EpisodeReplay:
             steps=steps,
             discount=(gamma**steps).astype(np.float32),
         )
-
-
-def replayed_velocities(
-    config: WorldConfig, first_pose: NDArray[np.float64], action: NDArray[np.integer]
-) -> NDArray[np.float64]:
-    """(T + 1, 2) the robot's velocity at each frame of an episode that started at rest at
-    `first_pose` (3,) and took `action` (T,): episodes keep poses, and the velocities follow
-    from them by the world's own dynamics."""
-    pose, velocity = first_pose[None].astype(np.float64), np.zeros((1, 2))
-    velocities = np.zeros((action.size + 1, 2))
-    for t in range(action.size):
-        pose, velocity = step_robot(
-            pose, velocity, action[t : t + 1], config.dynamics, config.control_period_s
-        )
-        velocities[t + 1] = velocity[0]
-    return velocities

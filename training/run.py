@@ -168,7 +168,6 @@ def _learn(
             obstacle_redraw_probability=settings.obstacle_redraw_probability,
             priority_exponent=settings.priority_exponent,
             priority_correction=settings.priority_correction(state.iterations),
-            every_action=settings.every_action_weight > 0,
         )
         state.iterations += 1
         update = dqn.update(batch, state.iterations)

@@ -46,10 +46,14 @@ REMOVED_SETTINGS: dict[str, object] = {
     "demonstration_margin": 0.05,
     "demonstration_loss_weight": 1.0,
     "encoder_init": "default",
+    "obstacle_risk_head": False,
+    "every_action_weight": 0.0,
 }
-"""Learner settings removed after `LAST_COMMIT_WITH_EXPERIMENTS` (docs/learner.md has what they
-measured), with the values that left them off: a run folder started before then reads as long as
-they are off."""
+"""Learner settings removed after `LAST_COMMIT_WITH_EXPERIMENTS` (or the commit `_REMOVED_AFTER`
+names; docs/learner.md has what they measured), with the values that left them off: a run folder
+started before then reads as long as they are off."""
+_REMOVED_AFTER = {"obstacle_risk_head": "cbd23ae", "every_action_weight": "cbd23ae"}
+"""The last commit with each setting removed later than `LAST_COMMIT_WITH_EXPERIMENTS`."""
 _SWITCHED_BY = {
     "next_scan_range_m": "next_scan_weight",
     "next_scan_sectors": "next_scan_weight",
@@ -123,7 +127,8 @@ def without_removed_settings(train: dict[str, Any], where: str) -> dict[str, Any
         if train.get(switch, REMOVED_SETTINGS[switch]) != REMOVED_SETTINGS[switch]:
             raise ConfigError(
                 f"{where}: train.{switch} = {train[switch]!r} is an experiment removed after "
-                f"commit {LAST_COMMIT_WITH_EXPERIMENTS} (docs/learner.md); check that commit "
+                f"commit {_REMOVED_AFTER.get(switch, LAST_COMMIT_WITH_EXPERIMENTS)} "
+                "(docs/learner.md); check that commit "
                 "out to resume or evaluate this run"
             )
     return kept

@@ -20,20 +20,13 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from qnav.contracts.actions import NUM_ACTIONS
-from qnav.contracts.motion import Outcome, move_obstacles, outcome, step_robot
-from qnav.contracts.observation import (
-    encode_scan,
-    encode_target,
-    obstacle_features,
-    target_features,
-)
+from qnav.contracts.motion import move_obstacles
+from qnav.contracts.observation import obstacle_features
 from qnav.sim.config import WorldConfig
-from qnav.sim.geometry import add_circles_to_scan, cast_lidar, clearance
-from qnav.sim.task import reward
+from qnav.sim.geometry import add_circles_to_scan
 from qnav.sim.world import obstacle_speeds, targets_around
 from qnav.training.config import Relabel
-from qnav.training.replay import Alternatives, Batch, EpisodeReplay, Seen
+from qnav.training.replay import Batch, EpisodeReplay, Seen
 
 _LOCAL_CANDIDATES = 64
 """Candidates per local target (as in the simulator's spawn)."""
@@ -57,15 +50,13 @@ def sample(
     obstacle_redraw_probability: float = 0.0,
     priority_exponent: float = 0.0,
     priority_correction: float = 1.0,
-    every_action: bool = False,
 ) -> Batch:
     """Random transitions of the replay, each with its own target drawn by `relabel` and, with
     probability `obstacle_redraw_probability`, fresh obstacles in place of its episode's own.
 
     Transitions are drawn uniformly, or with `priority_exponent` > 0 in proportion to their
     priority to that power, with importance weights (N p)^-`priority_correction` scaled to at
-    most 1 in `Batch.weight`. With `every_action`, the batch carries every action's simulated
-    step from s_t (`alternatives`) where the obstacles were re-drawn."""
+    most 1 in `Batch.weight`."""
     now, weight = choose_steps(replay, batch_size, rng, priority_exponent, priority_correction)
     redraw = None
     if obstacle_redraw_probability > 0.0 and replay.has_obstacles:
@@ -75,58 +66,7 @@ def sample(
     if redraw is not None and redraw.any():
         seen = redraw_obstacles_in_windows(replay, now, n_step, redraw, rng)
     batch = replay.transitions_at(now, targets, n_step, gamma, seen=seen)
-    others = None
-    if every_action and seen is not None and seen.next_obstacles is not None:
-        others = alternatives(replay, now, targets, seen.next_obstacles, gamma)
-    return batch._replace(stored=now, weight=weight, alternatives=others)
-
-
-def alternatives(
-    replay: EpisodeReplay,
-    now: NDArray[np.int64],
-    target: NDArray[np.float64],
-    next_obstacles: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]],
-    gamma: float,
-) -> Alternatives:
-    """Every action's step from the stored states `now` (N,) among the obstacles the sampled
-    step meets next (centres, velocities (N, M, 2), known where (N,)), for the targets (N, 2).
-
-    The obstacles never react to the robot, so their positions after the step are the same
-    whichever action it takes: the world's own dynamics, lidar, reward and termination give
-    the step of the actions the episode did not take, exactly as the simulator would have."""
-    config = replay.config
-    centres, velocities, valid = next_obstacles
-    rows = np.flatnonzero(valid)
-    num_actions = NUM_ACTIONS
-    n = now.size
-    pose = np.repeat(replay.pose[now[rows]], num_actions, axis=0)
-    velocity = np.repeat(replay.velocity[now[rows]], num_actions, axis=0)
-    action = np.tile(np.arange(num_actions), rows.size)
-    after, _ = step_robot(pose, velocity, action, config.dynamics, config.control_period_s)
-    xy = np.repeat(centres[rows], num_actions, axis=0)
-    radius = config.obstacles.radius_m
-    features = target_features(after, np.repeat(target[rows], num_actions, axis=0))
-    parts = []
-    if config.lidar is not None:
-        parts.append(
-            encode_scan(
-                cast_lidar(after, config.lidar, config.arena, xy, radius), replay.max_range_m
-            )
-        )
-    parts.append(encode_target(features, replay.max_range_m))
-    if replay.obstacle_inputs:
-        parts.append(obstacle_features(after, xy, np.repeat(velocities[rows], num_actions, axis=0)))
-    gap = clearance(after[:, :2], config.arena, xy, radius)
-    ends = outcome(features[:, 0], gap, config.robot_radius_m) != Outcome.RUNNING
-    frames = np.zeros((n, num_actions, sum(part.shape[-1] for part in parts)), np.float32)
-    frames[rows] = np.concatenate(parts, axis=-1).reshape(rows.size, num_actions, -1)
-    step_reward = np.zeros((n, num_actions), np.float32)
-    step_reward[rows] = reward(features[:, 0], gap, config.robot_radius_m, config.reward).reshape(
-        rows.size, num_actions
-    )
-    discount = np.zeros((n, num_actions), np.float32)
-    discount[rows] = np.where(ends, 0.0, gamma).reshape(rows.size, num_actions)
-    return Alternatives(frames, step_reward, discount, valid)
+    return batch._replace(stored=now, weight=weight)
 
 
 def choose_steps(
@@ -196,11 +136,7 @@ def redraw_obstacles_in_windows(
     )
     if obstacles is not None:
         obstacles[rows] = obstacle_features(pose, centres, velocities)
-    # The obstacles at s_t+1 (frame k of the window), for every action's step from s_t.
-    m = replay.config.obstacles.count
-    next_xy, next_velocity = np.zeros((now.size, m, 2)), np.zeros((now.size, m, 2))
-    next_xy[rows], next_velocity[rows] = centres[:, replay.window], velocities[:, replay.window]
-    return Seen(scans, clearances, obstacles, (next_xy, next_velocity, redraw.copy()))
+    return Seen(scans, clearances, obstacles)
 
 
 def draw_obstacle_paths(

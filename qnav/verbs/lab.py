@@ -139,7 +139,9 @@ def gauge(args: argparse.Namespace) -> int:
         network, settings = load_network(run)
         train = replace(settings.train, gauge_episodes=args.episodes)
         world = replace(settings.world, max_episode_steps=train.max_episode_steps)
-        report = decisive_report(network, decisive_states(world, train, progress=True))
+        report = decisive_report(
+            network, decisive_states(world, train, progress=True), world, train.gamma
+        )
         results = run / "results.json"
         test = json.loads(results.read_text())["test"]["success"] if results.exists() else None
         rows.append(
@@ -148,6 +150,9 @@ def gauge(args: argparse.Namespace) -> int:
                 "safe": report.safe,
                 "balanced": report.balanced,
                 **report.by_driver,
+                "value_gap": report.value_gap,
+                "target_ranks_safe": report.target_ranks_safe,
+                "target_gap": report.target_gap,
                 "test_success": test,
             }
         )

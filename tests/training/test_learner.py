@@ -3,16 +3,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from qnav.training.algorithm import (
-    DoubleDQN,
-    double_dqn_target,
-    every_action_targets,
-    soft_update,
-    td_update,
-)
+from qnav.training.algorithm import DoubleDQN, double_dqn_target, soft_update, td_update
 from qnav.training.config import PAPER
 from qnav.training.networks import QNetwork
-from qnav.training.replay import Alternatives, Batch
+from qnav.training.replay import Batch
 
 
 def test_double_dqn_evaluates_the_online_argmax_with_the_target_network() -> None:
@@ -89,39 +83,3 @@ def test_with_smoothing_the_target_follows_every_iteration_without_copies() -> N
         before, dqn.target.parameters(), dqn.online.parameters(), strict=True
     ):
         torch.testing.assert_close(new, old + 0.5 * (towards - old))
-
-
-def test_every_action_targets_give_the_taken_action_its_one_step_td_target() -> None:
-    """The taken action's simulated frame is the stored next frame, so its every-action target
-    is the one-step double-DQN target of the sampled transition."""
-    torch.manual_seed(0)
-    online, target = QNetwork("recurrent", None, 16), QNetwork("recurrent", None, 16)
-    rng = np.random.default_rng(0)
-    frames = rng.random((8, 6, online.frame_size), dtype=np.float32)
-    action = np.arange(8) % 3
-    others = Alternatives(
-        frames=rng.random((8, 3, online.frame_size), dtype=np.float32),
-        reward=rng.random((8, 3), dtype=np.float32),
-        discount=np.full((8, 3), 0.97, dtype=np.float32),
-        valid=np.ones(8, dtype=bool),
-    )
-    others.frames[np.arange(8), action] = frames[:, 5]
-    frames_t = torch.from_numpy(frames)
-    y_every = every_action_targets(
-        online,
-        target,
-        frames_t,
-        others,
-        window=5,
-        online_features=online.frame_features(frames_t),
-    )
-    with torch.no_grad():
-        y = double_dqn_target(
-            torch.from_numpy(others.reward[np.arange(8), action]),
-            torch.zeros(8, dtype=torch.bool),
-            online(frames_t[:, 1:]),
-            target(frames_t[:, 1:]),
-            0.97,
-        )
-    torch.testing.assert_close(y_every[np.arange(8), action], y)
-    assert not torch.allclose(y_every[:, 0], y_every[:, 1])

@@ -1,9 +1,6 @@
 import pytest
 import torch
 
-from qnav.contracts.errors import ConfigError
-from qnav.contracts.observation import OBSTACLE_FEATURES
-from qnav.training.config import TrainSettings
 from qnav.training.networks import QNetwork, StreamingQNetwork, conv_output_length
 
 
@@ -106,39 +103,3 @@ def test_the_head_reads_the_window_summary(kind: str) -> None:
     summary = network.window_summary(features)
     assert summary.shape == (4, network.summary_size)
     torch.testing.assert_close(network.head(summary), network(frames))
-
-
-def _risk_network() -> QNetwork:
-    torch.manual_seed(0)
-    return QNetwork("recurrent", None, hidden_size=32, obstacle_inputs=True, collision_value=-1.0)
-
-
-def test_without_seen_obstacles_the_risk_head_leaves_the_free_q() -> None:
-    network = _risk_network()
-    frames = torch.rand(6, 5, network.frame_size)
-    frames[..., -OBSTACLE_FEATURES:] = 0.0  # every slot empty
-    features = network.frame_features(frames)
-    free = network.head(network.window_summary(features))
-    assert torch.allclose(network(frames), free)
-
-
-def test_an_obstacle_sure_to_doom_an_action_gives_it_the_collisions_value() -> None:
-    network = _risk_network()
-    assert network.risk is not None
-    frames = torch.rand(6, 5, network.frame_size)
-    frames[..., -OBSTACLE_FEATURES] = 1.0  # the nearest slot is seen
-    last_layer = network.risk.per_obstacle[-1]
-    assert isinstance(last_layer, torch.nn.Linear)
-    with torch.no_grad():
-        last_layer.weight.zero_()
-        last_layer.bias.copy_(torch.tensor([60.0, -60.0, -60.0]))
-    q = network(frames)
-    assert torch.allclose(q[:, 0], torch.full((6,), -1.0), atol=1e-5)
-    features = network.frame_features(frames)
-    free = network.head(network.window_summary(features))
-    assert torch.allclose(q[:, 1:], free[:, 1:], atol=1e-5)
-
-
-def test_a_risk_head_without_obstacle_inputs_is_refused_by_name() -> None:
-    with pytest.raises(ConfigError, match=r"train\.obstacle_inputs"):
-        TrainSettings(obstacle_risk_head=True)

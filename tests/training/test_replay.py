@@ -4,7 +4,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qnav.contracts.motion import step_robot
 from qnav.contracts.observation import (
     OBSTACLE_FEATURES,
     OBSTACLE_POSITION_SCALE_M,
@@ -295,43 +294,3 @@ def test_collected_episodes_keep_their_obstacles_through_the_round_files(tmp_pat
         assert after.obstacle_xy is not None and before.obstacle_xy is not None
         np.testing.assert_array_equal(before.obstacle_xy, after.obstacle_xy)
         np.testing.assert_array_equal(before.obstacle_velocity, after.obstacle_velocity)
-
-
-def test_every_actions_simulated_step_reproduces_the_sampled_step_for_the_action_taken() -> None:
-    replay = _replay_with_obstacle_inputs()
-    batch = sample(
-        replay,
-        256,
-        np.random.default_rng(2),
-        "paper",
-        n_step=1,
-        obstacle_redraw_probability=1.0,
-        every_action=True,
-    )
-    others = batch.alternatives
-    assert others is not None and others.valid.all()
-    rows = np.arange(batch.action.size)
-    taken = batch.action
-    np.testing.assert_allclose(
-        others.frames[rows, taken], batch.frames[:, replay.window], atol=1e-4
-    )
-    np.testing.assert_allclose(others.reward[rows, taken], batch.reward, atol=1e-6)
-    np.testing.assert_array_equal(others.discount[rows, taken] == 0.0, batch.terminal)
-    # The actions not taken go elsewhere: their frames differ from the taken one's.
-    assert (
-        np.abs(others.frames[rows, (taken + 1) % 3] - others.frames[rows, taken]).max(1) > 0
-    ).all()
-
-
-def test_replayed_velocities_reproduce_the_stored_poses() -> None:
-    replay = _replay_with_obstacle_inputs()
-    now = replay.transitions()
-    pose, _ = step_robot(
-        replay.pose[now],
-        replay.velocity[now],
-        replay.action[now],
-        replay.config.dynamics,
-        replay.config.control_period_s,
-    )
-    np.testing.assert_allclose(pose, replay.pose[now + 1], atol=1e-9)
-    assert np.abs(replay.velocity[now]).max() > 0.1  # the inertia robot does move

@@ -40,6 +40,7 @@ def test_a_folder_from_before_the_removal_reads_while_the_removed_experiments_we
     older = (
         "mirror_probability = 0.0\nnext_scan_weight = 0.0\nnext_scan_sectors = 36\n"
         'demonstration_episodes = 0\ndemonstration_margin = 0.2\nencoder_init = "default"\n'
+        "obstacle_risk_head = false\nevery_action_weight = 0.0\n"
     )
     assert read_settings(_started_with(tmp_path, older)) == SETTINGS
 
@@ -58,3 +59,12 @@ def test_a_folder_that_used_a_removed_experiment_is_refused_by_name(
     with pytest.raises(ConfigError, match=name) as refused:
         read_settings(_started_with(tmp_path, line))
     assert LAST_COMMIT_WITH_EXPERIMENTS in str(refused.value)
+
+
+@pytest.mark.parametrize("line", ["obstacle_risk_head = true\n", "every_action_weight = 1.0\n"])
+def test_a_folder_of_a_later_removed_experiment_names_the_last_commit_that_has_it(
+    tmp_path: Path, line: str
+) -> None:
+    with pytest.raises(ConfigError, match=line.split(maxsplit=1)[0]) as refused:
+        read_settings(_started_with(tmp_path, line))
+    assert "cbd23ae" in str(refused.value)
