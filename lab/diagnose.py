@@ -86,7 +86,7 @@ class DecisiveReport:
     """Median over them of those targets' gap (best safe minus best doomed)."""
 
     def render(self) -> str:
-        """One line for the terminal."""
+        """Two lines for the terminal."""
         drivers = ", ".join(f"{name} {share:.0%}" for name, share in self.by_driver.items())
         return (
             f"safe choices in {self.states} decisive states: {self.safe:.1%} ({drivers}), "
@@ -154,17 +154,12 @@ def _q_values(
     network: QNetwork, windows: NDArray[np.float32], chunk: int = 2048
 ) -> NDArray[np.float32]:
     """(K, A) the network's Q values of windows (K, k, F), a chunk at a time."""
+    values = [np.zeros((0, NUM_ACTIONS), np.float32)]
     with torch.no_grad():
-        return (
-            np.concatenate(
-                [
-                    network(torch.from_numpy(windows[start : start + chunk])).float().numpy()
-                    for start in range(0, len(windows), chunk)
-                ]
-            )
-            if len(windows)
-            else np.zeros((0, NUM_ACTIONS), np.float32)
-        )
+        for start in range(0, len(windows), chunk):
+            q = network(torch.from_numpy(windows[start : start + chunk]))
+            values.append(q.float().numpy())
+    return np.concatenate(values)
 
 
 @dataclass(frozen=True)
