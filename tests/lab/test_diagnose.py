@@ -76,6 +76,7 @@ def test_qnav_diagnose_prints_the_gap_and_the_action_mix(tiny_run: Path) -> None
     assert "greedy test actions: forward" in result.stdout
     assert "against the blind go-to-target controller (" in result.stdout
     assert "dead lidar channels per convolution: " in result.stdout
+    assert "one-step targets from its own values rank the safe one first in" in result.stdout
 
 
 def test_the_ranking_compares_the_best_safe_action_with_the_best_doomed_one() -> None:
