@@ -45,7 +45,7 @@ from qnav.lab.gauge import decisive_states
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, episode_outcomes
 from qnav.sim.world import Observation, observe, reset, step
-from qnav.training.agent import TorchAgent, greedy_actions, policy_agent
+from qnav.training.agent import TorchAgent, policy_agent, q_values
 from qnav.training.algorithm import bootstrap_windows, double_dqn_target
 from qnav.training.collect import collect_round
 from qnav.training.episode_log import read_rounds
@@ -105,8 +105,8 @@ def decisive_report(
     """Score the network's greedy choices, its values and its one-step targets on the decisive
     states of `world`."""
     network.eval()
-    windows = states.policy_windows(network.obstacle_inputs)
-    mine = score(states, greedy_actions(network, windows))
+    q = q_values(network, states.policy_windows(network.obstacle_inputs))
+    mine = score(states, q.argmax(axis=1))
     targets = one_step_targets(network, world, states, gamma)
     target_ranks_safe, target_gap = safe_ranking(targets, states.doomed)
     return DecisiveReport(
@@ -117,7 +117,7 @@ def decisive_report(
         go_to_target=score(states, go_to_target_choices(states)).safe,
         forward=constant_choice(states, Action.FORWARD).safe,
         states=mine.states,
-        value_gap=safe_ranking(_q_values(network, windows), states.doomed)[1],
+        value_gap=safe_ranking(q, states.doomed)[1],
         target_ranks_safe=target_ranks_safe,
         target_gap=target_gap,
     )
@@ -144,22 +144,10 @@ def one_step_targets(
     for action in range(NUM_ACTIONS):
         _, seen, transition = step(world, states.world, np.full(len(windows), action))
         frame = seen.frames(scale_m, network.obstacle_inputs)
-        later = _q_values(network, np.concatenate([windows[:, 1:], frame[:, None]], axis=1))
+        later = q_values(network, np.concatenate([windows[:, 1:], frame[:, None]], axis=1))
         going_on = ~np.asarray(transition.terminated)
         targets.append(transition.reward + gamma * going_on * later.max(axis=1))
     return np.stack(targets, axis=1)
-
-
-def _q_values(
-    network: QNetwork, windows: NDArray[np.float32], chunk: int = 2048
-) -> NDArray[np.float32]:
-    """(K, A) the network's Q values of windows (K, k, F), a chunk at a time."""
-    values = [np.zeros((0, NUM_ACTIONS), np.float32)]
-    with torch.no_grad():
-        for start in range(0, len(windows), chunk):
-            q = network(torch.from_numpy(windows[start : start + chunk]))
-            values.append(q.float().numpy())
-    return np.concatenate(values)
 
 
 @dataclass(frozen=True)

@@ -14,17 +14,25 @@ from qnav.sim.world import Observation
 from qnav.training.networks import QNetwork
 
 
+def q_values(
+    network: QNetwork, windows: NDArray[np.float32], batch: int = 512
+) -> NDArray[np.float32]:
+    """The network's Q values (K, A) of many windows (K, k, F), a batch at a time."""
+    device = next(network.parameters()).device
+    parts = [np.zeros((0, NUM_ACTIONS), dtype=np.float32)]
+    with torch.no_grad():
+        for start in range(0, len(windows), batch):
+            chunk = torch.from_numpy(windows[start : start + batch]).to(device)
+            parts.append(network(chunk).float().cpu().numpy())
+    return np.concatenate(parts)
+
+
 def greedy_actions(
     network: QNetwork, windows: NDArray[np.float32], batch: int = 512
 ) -> NDArray[np.int64]:
     """The network's greedy action for each of many windows (K, k, F), a batch at a time."""
-    device = next(network.parameters()).device
-    parts = []
-    with torch.no_grad():
-        for start in range(0, len(windows), batch):
-            chunk = torch.from_numpy(windows[start : start + batch]).to(device)
-            parts.append(network(chunk).argmax(dim=1).cpu().numpy())
-    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+    actions: NDArray[np.int64] = q_values(network, windows, batch).argmax(axis=1).astype(np.int64)
+    return actions
 
 
 class TorchAgent:
