@@ -31,6 +31,7 @@ from tqdm import tqdm
 from qnav.contracts import lookahead
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.lookahead import (
+    LookaheadModel,
     Rollouts,
     candidate_sequences,
     random_blocks_needed,
@@ -38,7 +39,8 @@ from qnav.contracts.lookahead import (
 from qnav.sim import rng
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, drive
-from qnav.sim.world import Observation, WorldState, lookahead_model
+from qnav.sim.geometry import wall_segments
+from qnav.sim.world import Observation, WorldState
 
 F64 = NDArray[np.float64]
 
@@ -47,6 +49,20 @@ _SEQUENCE_STREAM = 211
 DOOM_HORIZON_S = 4.0
 """How far ahead `doomed_actions` looks: an action is doomed when every continuation collides
 within this time."""
+
+
+def lookahead_model(config: WorldConfig) -> LookaheadModel:
+    """What the look ahead knows of `config`'s world: all of it (its walls with their openings)."""
+    segments = wall_segments(config.arena)
+    return LookaheadModel(
+        dynamics=config.dynamics,
+        control_period_s=config.control_period_s,
+        robot_radius_m=config.robot_radius_m,
+        obstacle_radius_m=config.obstacles.radius_m,
+        room_size_m=config.arena.size_m,
+        wall_start=segments.start,
+        wall_end=segments.end,
+    )
 
 
 def held_sequences(horizon: int, random_count: int, rng: np.random.Generator) -> NDArray[np.int64]:

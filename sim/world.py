@@ -15,12 +15,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.lookahead import LookaheadModel
 from qnav.contracts.motion import Outcome, move_obstacles, outcome, step_robot
 from qnav.contracts.observation import encode_frame, obstacle_features, target_features
 from qnav.sim import rng
 from qnav.sim.config import WorldConfig
-from qnav.sim.geometry import cast_lidar, clearance, wall_segments
+from qnav.sim.geometry import cast_lidar, clearance
 from qnav.sim.task import reward
 
 F64 = NDArray[np.float64]
@@ -298,17 +297,3 @@ def take_rows(whole: Rows, index: NDArray[np.intp]) -> Rows:
     """The rows `index` of `whole` (arrays with one row per world), in that order."""
     fields: list[Any] = [None if array is None else array[index] for array in whole]
     return type(whole)(*fields)
-
-
-def lookahead_model(config: WorldConfig) -> LookaheadModel:
-    """What the look ahead knows of `config`'s world: all of it (its walls with their openings)."""
-    segments = wall_segments(config.arena)
-    return LookaheadModel(
-        dynamics=config.dynamics,
-        control_period_s=config.control_period_s,
-        robot_radius_m=config.robot_radius_m,
-        obstacle_radius_m=config.obstacles.radius_m,
-        room_size_m=config.arena.size_m,
-        wall_start=segments.start,
-        wall_end=segments.end,
-    )

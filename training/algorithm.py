@@ -18,7 +18,7 @@ from torch.nn import functional
 
 from qnav.training.config import TrainSettings
 from qnav.training.networks import QNetwork
-from qnav.training.replay import Batch, DoomBounds
+from qnav.training.replay import Batch
 
 
 class DoubleDQN:
@@ -45,7 +45,6 @@ class DoubleDQN:
             loss_kind=settings.loss,
             grad_clip_norm=settings.grad_clip_norm,
             bf16=self.bf16,
-            doom_bound_weight=settings.doom_bound_weight,
         )
         if settings.target_smoothing:
             soft_update(self.target, self.online, settings.target_smoothing)
@@ -110,13 +109,8 @@ def td_update(
     loss_kind: str = "mse",
     grad_clip_norm: float = 0.0,
     bf16: bool = False,
-    doom_bound_weight: float = 0.0,
 ) -> Update:
-    """One gradient step on a batch; returns its TD loss and per-transition TD errors.
-
-    Where the batch carries a search's verdict on every action (`Batch.doom`) and
-    `doom_bound_weight` > 0, the loss adds, at that weight, the mean squared excess of each
-    doomed action's value over its bound (`doom_excess`)."""
+    """One gradient step on a batch; returns its TD loss and per-transition TD errors."""
     device = next(online.parameters()).device
     frames = torch.from_numpy(batch.frames).to(device)
     action = torch.from_numpy(batch.action).to(device)
@@ -146,12 +140,6 @@ def td_update(
     if batch.weight is not None:
         per_transition = per_transition * torch.from_numpy(batch.weight).to(device)
     loss = per_transition.mean()
-    if doom_bound_weight > 0 and batch.doom is not None:
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-            floor = survivor_floor(online, target, batch.doom, device)
-        loss = loss + doom_bound_weight * (
-            doom_excess(q, batch.doom, device) + survivor_shortfall(q, floor, batch.doom, device)
-        )
     optimizer.zero_grad(set_to_none=True)
     loss.backward()  # type: ignore[no-untyped-call]
     if grad_clip_norm > 0:
@@ -161,43 +149,6 @@ def td_update(
     optimizer.step()
     td_error = (y - q_taken).detach().cpu().numpy().astype(np.float32)
     return Update(float(loss.item()), td_error)
-
-
-def doom_excess(q: Tensor, doom: DoomBounds, device: torch.device) -> Tensor:
-    """Mean over the doomed actions of (N, A) values `q` of max(0, Q - bound)^2: a one-sided
-    loss, as the bound says what a doomed action is worth at most, not what it is worth."""
-    doomed = torch.from_numpy(doom.doomed).to(device)
-    bound = torch.from_numpy(doom.bound).to(device)
-    if not bool(doomed.any()):
-        return q.new_zeros(())
-    excess = torch.relu(q - bound)[doomed]
-    return (excess**2).mean()
-
-
-def survivor_floor(
-    online: QNetwork, target: QNetwork, doom: DoomBounds, device: torch.device
-) -> Tensor:
-    """(P,) what each action that is not doomed is worth at least: its best surviving
-    continuation's k-step return plus the double-DQN value of the window those steps saw."""
-    frames = torch.from_numpy(doom.survivor_frames).to(device)
-    if not frames.shape[0]:
-        return torch.zeros(0, device=device)
-    with torch.no_grad():
-        best = online(frames).float().argmax(dim=1, keepdim=True)
-        value = target(frames).float().gather(1, best).squeeze(1)
-    reward = torch.from_numpy(doom.survivor_reward).to(device)
-    floor: Tensor = reward + torch.from_numpy(doom.survivor_discount).to(device) * value
-    return floor
-
-
-def survivor_shortfall(q: Tensor, floor: Tensor, doom: DoomBounds, device: torch.device) -> Tensor:
-    """Mean of max(0, floor - Q)^2 over the surviving actions: one-sided, as following one
-    continuation is one way to act, not the best."""
-    if not doom.survivor_index.size:
-        return q.new_zeros(())
-    index = torch.from_numpy(doom.survivor_index).to(device)
-    shortfall = torch.relu(floor.float() - q[index[:, 0], index[:, 1]])
-    return (shortfall**2).mean()
 
 
 def soft_update(target: QNetwork, online: QNetwork, rate: float) -> None:

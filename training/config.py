@@ -78,10 +78,6 @@ class TrainSettings:
     the onboard tracker estimates them (exact in simulation; `contracts.observation.
     obstacle_features`; paper: the lidar alone). Lifts the decisive-state gauge, not success
     (docs/learner.md, "Perception given"); policy files cannot carry it yet."""
-    doom_bound_weight: float = 0.0
-    """Experiment (issue 19): weight of a one-sided loss holding each action that a search over
-    continuations among the re-drawn obstacles finds doomed at or under the discounted
-    collision reward (`training.sampling.doom_bounds`; 0: none, as the paper)."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
@@ -128,7 +124,6 @@ class TrainSettings:
         check_range(self, "epsilon_min", self.epsilon_min, 0.0, 1.0)
         check_range(self, "hold_steps", self.hold_steps, 1, 10_000)
         check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
-        check_range(self, "doom_bound_weight", self.doom_bound_weight, 0.0, 1e6)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)

@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from qnav.contracts.motion import Outcome, outcome, step_robot
+from qnav.contracts.motion import Outcome, outcome
 from qnav.contracts.observation import (
     OBSTACLE_FEATURES,
     distance_scale_m,
@@ -53,29 +53,6 @@ class Batch(NamedTuple):
     `EpisodeReplay.reprioritise`."""
     weight: NDArray[np.float32] | None = None
     """(N,) importance weights of a prioritized sample (None: uniform, all 1)."""
-    doom: DoomBounds | None = None
-    """What a search over continuations says of every action at s_t (`training.sampling.
-    doom_bounds`), where the obstacles were re-drawn and their paths are known."""
-
-
-class DoomBounds(NamedTuple):
-    """Every action's fate at s_t by a search over continuations among known obstacles."""
-
-    doomed: NDArray[np.bool_]
-    """(N, A) every continuation searched after taking the action collides."""
-    bound: NDArray[np.float32]
-    """(N, A) the most a doomed action can be worth: the collision reward discounted to the
-    latest collision of its continuations (the shaping rewards before it are never positive)."""
-    survivor_index: NDArray[np.int64]
-    """(P, 2) the (row, action) pairs of the actions that are not doomed, each followed by its
-    best surviving continuation (by the look ahead's score)."""
-    survivor_frames: NDArray[np.float32]
-    """(P, k, F) the encoded frames of that continuation's first k steps: the window a value
-    after them is read from."""
-    survivor_reward: NDArray[np.float32]
-    """(P,) the discounted reward of those k steps for the sampled target."""
-    survivor_discount: NDArray[np.float32]
-    """(P,) gamma ** k, or 0 where the target was reached within them."""
 
 
 class Seen(NamedTuple):
@@ -87,9 +64,6 @@ class Seen(NamedTuple):
     """(N, k + n) exact clearances."""
     obstacles: NDArray[np.float32] | None
     """(N, k + n, OBSTACLE_FEATURES) encoded obstacles (None: the network is not given them)."""
-    obstacles_now: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None = None
-    """Centres and velocities (N, M, 2) of the obstacles at s_t, and (N,) where they are known
-    (the re-drawn rows; None: nowhere)."""
 
 
 class EpisodeReplay:
@@ -105,8 +79,6 @@ class EpisodeReplay:
         self.num_beams = config.lidar.num_beams if config.lidar else 0
         self.max_range_m = distance_scale_m(config.lidar)
         self.pose = np.zeros((capacity_frames, 3))
-        self.velocity = np.zeros((capacity_frames, 2))
-        """(forward m/s, turn rad/s) at each frame, replayed from the stored actions."""
         self.scan = np.zeros((capacity_frames, self.num_beams), dtype=np.float32)
         self.clearance = np.zeros(capacity_frames)
         self.action = np.zeros(capacity_frames, dtype=np.int64)
@@ -142,7 +114,6 @@ class EpisodeReplay:
             )
         span = slice(self.size, self.size + frames)
         self.pose[span] = episode.pose
-        self.velocity[span] = replayed_velocities(self.config, episode.pose[0], episode.action)
         if episode.scan_m is not None:
             self.scan[span] = encode_scan(episode.scan_m, self.max_range_m)
         self.clearance[span] = episode.clearance_m
@@ -245,19 +216,3 @@ class EpisodeReplay:
             steps=steps,
             discount=(gamma**steps).astype(np.float32),
         )
-
-
-def replayed_velocities(
-    config: WorldConfig, first_pose: NDArray[np.float64], action: NDArray[np.integer]
-) -> NDArray[np.float64]:
-    """(T + 1, 2) the robot's velocity at each frame of an episode that started at rest at
-    `first_pose` (3,) and took `action` (T,): episodes keep poses, and the velocities follow
-    from them by the world's own dynamics."""
-    pose, velocity = first_pose[None].astype(np.float64), np.zeros((1, 2))
-    velocities = np.zeros((action.size + 1, 2))
-    for t in range(action.size):
-        pose, velocity = step_robot(
-            pose, velocity, action[t : t + 1], config.dynamics, config.control_period_s
-        )
-        velocities[t + 1] = velocity[0]
-    return velocities

@@ -37,7 +37,7 @@ from qnav.training.episode_log import Episode
 from qnav.training.networks import QNetwork, make_network
 from qnav.training.replay import EpisodeReplay
 from qnav.training.run_folder import Progress, RunFolder, RunSettings, source_commit
-from qnav.training.sampling import DOOM_ROWS, sample
+from qnav.training.sampling import sample
 from qnav.training.validation import Gauge, Validation, evaluate_network
 
 REACHED_LEVELS = (0.5, 0.9, 0.99)
@@ -168,7 +168,6 @@ def _learn(
             obstacle_redraw_probability=settings.obstacle_redraw_probability,
             priority_exponent=settings.priority_exponent,
             priority_correction=settings.priority_correction(state.iterations),
-            doom_rows=DOOM_ROWS if settings.doom_bound_weight > 0 else 0,
         )
         state.iterations += 1
         update = dqn.update(batch, state.iterations)

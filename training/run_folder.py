@@ -48,11 +48,16 @@ REMOVED_SETTINGS: dict[str, object] = {
     "encoder_init": "default",
     "obstacle_risk_head": False,
     "every_action_weight": 0.0,
+    "doom_bound_weight": 0.0,
 }
 """Learner settings removed after `LAST_COMMIT_WITH_EXPERIMENTS` (or the commit `_REMOVED_AFTER`
 names; docs/learner.md has what they measured), with the values that left them off: a run folder
 started before then reads as long as they are off."""
-_REMOVED_AFTER = {"obstacle_risk_head": "cbd23ae", "every_action_weight": "cbd23ae"}
+_REMOVED_AFTER = {
+    "obstacle_risk_head": "cbd23ae",
+    "every_action_weight": "cbd23ae",
+    "doom_bound_weight": "97b3cd2",
+}
 """The last commit with each setting removed later than `LAST_COMMIT_WITH_EXPERIMENTS`."""
 _SWITCHED_BY = {
     "next_scan_range_m": "next_scan_weight",

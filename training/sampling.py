@@ -17,23 +17,16 @@ The reward and termination are then recomputed for that target and those obstacl
 
 from __future__ import annotations
 
-from dataclasses import replace
-from typing import NamedTuple
-
 import numpy as np
 from numpy.typing import NDArray
 
-from qnav.contracts import lookahead
-from qnav.contracts.actions import NUM_ACTIONS
-from qnav.contracts.lookahead import candidate_sequences, random_blocks_needed
-from qnav.contracts.motion import Outcome, move_obstacles
-from qnav.contracts.observation import encode_frame, obstacle_features
-from qnav.sim import world
+from qnav.contracts.motion import move_obstacles
+from qnav.contracts.observation import obstacle_features
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import add_circles_to_scan
-from qnav.sim.world import WorldState, lookahead_model, obstacle_speeds, targets_around
+from qnav.sim.world import obstacle_speeds, targets_around
 from qnav.training.config import Relabel
-from qnav.training.replay import Batch, DoomBounds, EpisodeReplay, Seen
+from qnav.training.replay import Batch, EpisodeReplay, Seen
 
 _LOCAL_CANDIDATES = 64
 """Candidates per local target (as in the simulator's spawn)."""
@@ -57,15 +50,13 @@ def sample(
     obstacle_redraw_probability: float = 0.0,
     priority_exponent: float = 0.0,
     priority_correction: float = 1.0,
-    doom_rows: int = 0,
 ) -> Batch:
     """Random transitions of the replay, each with its own target drawn by `relabel` and, with
     probability `obstacle_redraw_probability`, fresh obstacles in place of its episode's own.
 
     Transitions are drawn uniformly, or with `priority_exponent` > 0 in proportion to their
     priority to that power, with importance weights (N p)^-`priority_correction` scaled to at
-    most 1 in `Batch.weight`. With `doom_rows` > 0, up to that many of the transitions among
-    re-drawn obstacles carry every action's fate by a search over continuations (`doom_bounds`)."""
+    most 1 in `Batch.weight`."""
     now, weight = choose_steps(replay, batch_size, rng, priority_exponent, priority_correction)
     redraw = None
     if obstacle_redraw_probability > 0.0 and replay.has_obstacles:
@@ -75,128 +66,7 @@ def sample(
     if redraw is not None and redraw.any():
         seen = redraw_obstacles_in_windows(replay, now, n_step, redraw, rng)
     batch = replay.transitions_at(now, targets, n_step, gamma, seen=seen)
-    doom = None
-    if doom_rows > 0 and seen is not None and seen.obstacles_now is not None:
-        doom = doom_bounds(
-            replay, now, targets, seen.obstacles_now, gamma=gamma, max_rows=doom_rows, rng=rng
-        )
-    return batch._replace(stored=now, weight=weight, doom=doom)
-
-
-DOOM_HORIZON_S = 4.0
-"""How far ahead `doom_bounds` searches (as the planner's doom labels, `lab.oracle`)."""
-DOOM_ROWS = 64
-"""Transitions of a batch searched for `doom_bounds` (the search costs more than the rest of
-the batch's sampling)."""
-_DOOM_RANDOM_TAILS = 16
-"""Random continuations searched beside the structured ones."""
-
-
-def doom_bounds(
-    replay: EpisodeReplay,
-    now: NDArray[np.int64],
-    target: NDArray[np.float64],
-    obstacles_now: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]],
-    *,
-    gamma: float,
-    max_rows: int,
-    rng: np.random.Generator,
-) -> DoomBounds:
-    """Every action's fate from the stored states `now` (N,) for the targets (N, 2), among the
-    obstacles at s_t (centres, velocities (N, M, 2), known where (N,)), for up to `max_rows`
-    of the known rows: after each first action, the look ahead's structured continuations and a
-    few random ones are played for `DOOM_HORIZON_S` with the obstacles' exact future.
-
-    The obstacles never react to the robot, so the search is exact for every action, taken or
-    not. A doomed action (every continuation collides) is worth at most the collision reward
-    discounted to the latest collision: a bound from search that TD's own bootstrap never
-    carries (docs/learner.md)."""
-    config = replay.config
-    centres, velocities, known = obstacles_now
-    rows = np.flatnonzero(known)[:max_rows]
-    horizon = max(1, round(DOOM_HORIZON_S / config.control_period_s))
-    random = rng.integers(0, NUM_ACTIONS, size=(_DOOM_RANDOM_TAILS, random_blocks_needed(horizon)))
-    tails = np.unique(candidate_sequences(random, horizon)[:, : horizon - 1], axis=0)
-    first = np.repeat(np.arange(NUM_ACTIONS), tails.shape[0])
-    sequences = np.concatenate([first[:, None], np.tile(tails, (NUM_ACTIONS, 1))], axis=1)
-    start = Situation(
-        replay.pose[now[rows]],
-        replay.velocity[now[rows]],
-        target[rows],
-        centres[rows],
-        velocities[rows],
-    )
-    rollouts = lookahead.simulate(lookahead_model(config), start, sequences)
-    shape = (rows.size, NUM_ACTIONS, tails.shape[0])
-    collided = (rollouts.outcome == Outcome.COLLISION).reshape(shape)
-    latest = rollouts.end_step.reshape(shape).max(axis=2)
-    doomed = np.zeros((now.size, NUM_ACTIONS), dtype=bool)
-    doomed[rows] = collided.all(axis=2)
-    bound = np.zeros((now.size, NUM_ACTIONS), dtype=np.float32)
-    bound[rows] = config.reward.collision_reward * gamma ** (latest - 1.0)
-    # The best surviving continuation of each action that is not doomed, played for k steps in
-    # the simulator: its return plus a value after it is what the action is worth at least.
-    score = np.where(collided, -np.inf, rollouts.score.reshape(shape))
-    row, action = np.nonzero(~collided.all(axis=2))
-    best = score[row, action].argmax(axis=1)
-    played = sequences[action * tails.shape[0] + best, : replay.window]
-    frames, step_reward, discount = play(
-        replay, start_rows(start, row), played, replay.obstacle_inputs, gamma
-    )
-    return DoomBounds(
-        doomed,
-        bound,
-        np.stack([rows[row], action], axis=1),
-        frames,
-        step_reward,
-        discount,
-    )
-
-
-def start_rows(start: Situation, index: NDArray[np.int64]) -> Situation:
-    """The situations `index` (P,) of `start`."""
-    return Situation(*(np.asarray(field)[index] for field in start))
-
-
-def play(
-    replay: EpisodeReplay,
-    start: Situation,
-    actions: NDArray[np.int64],
-    obstacle_inputs: bool,
-    gamma: float,
-) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
-    """Play action sequences (P, T) from `start` in the simulator (`sim.world.step`): the encoded
-    frames (P, T, F), the discounted reward up to the first end (P,), and gamma ** T, or 0
-    where the sequence ended (reached the target or collided) within the T steps."""
-    config = replace(replay.config, max_episode_steps=10**7)
-    count = actions.shape[0]
-    zeros = np.zeros(count, dtype=np.int64)
-    state = WorldState(*start, steps=zeros, seed=zeros, episode=zeros)
-    frames, earned = [], np.zeros(count)
-    running = np.ones(count, dtype=bool)
-    for t in range(actions.shape[1]):
-        state, observation, transition = world.step(config, state, actions[:, t])
-        earned += running * gamma**t * transition.reward
-        running &= ~transition.terminated
-        parts = [
-            encode_frame(observation.scan_m, observation.target_features(), replay.max_range_m)
-        ]
-        if obstacle_inputs:
-            parts.append(observation.obstacle_features())
-        frames.append(np.concatenate(parts, axis=-1))
-    frames_array = np.stack(frames, axis=1).astype(np.float32)
-    discount = np.where(running, gamma ** actions.shape[1], 0.0).astype(np.float32)
-    return frames_array, earned.astype(np.float32), discount
-
-
-class Situation(NamedTuple):
-    """A look ahead's start (`contracts.lookahead.Situation`) from stored steps."""
-
-    pose: NDArray[np.float64]
-    velocity: NDArray[np.float64]
-    target_xy: NDArray[np.float64]
-    obstacle_xy: NDArray[np.float64]
-    obstacle_velocity: NDArray[np.float64]
+    return batch._replace(stored=now, weight=weight)
 
 
 def choose_steps(
@@ -266,11 +136,7 @@ def redraw_obstacles_in_windows(
     )
     if obstacles is not None:
         obstacles[rows] = obstacle_features(pose, centres, velocities)
-    m = replay.config.obstacles.count
-    centres_now, velocities_now = np.zeros((now.size, m, 2)), np.zeros((now.size, m, 2))
-    centres_now[rows] = centres[:, replay.window - 1]
-    velocities_now[rows] = velocities[:, replay.window - 1]
-    return Seen(scans, clearances, obstacles, (centres_now, velocities_now, redraw.copy()))
+    return Seen(scans, clearances, obstacles)
 
 
 def draw_obstacle_paths(

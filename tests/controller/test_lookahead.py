@@ -16,9 +16,10 @@ from qnav.controller.decision import Controller, Input, Reason
 from qnav.controller.lookahead import Lookahead, LookaheadSettings
 from qnav.controller.perception import TrackerSettings
 from qnav.controller.policy import PolicyRuntime
+from qnav.lab.oracle import lookahead_model
 from qnav.sim.config import scenario
 from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent
-from qnav.sim.world import lookahead_model, observe, reset, step
+from qnav.sim.world import observe, reset, step
 from qnav.simcar.car import scan_message
 from qnav.tracking import world_lookahead
 

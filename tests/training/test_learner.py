@@ -1,19 +1,12 @@
 from dataclasses import replace
 
 import numpy as np
-import pytest
 import torch
 
-from qnav.training.algorithm import (
-    DoubleDQN,
-    doom_excess,
-    double_dqn_target,
-    soft_update,
-    td_update,
-)
+from qnav.training.algorithm import DoubleDQN, double_dqn_target, soft_update, td_update
 from qnav.training.config import PAPER
 from qnav.training.networks import QNetwork
-from qnav.training.replay import Batch, DoomBounds
+from qnav.training.replay import Batch
 
 
 def test_double_dqn_evaluates_the_online_argmax_with_the_target_network() -> None:
@@ -90,22 +83,3 @@ def test_with_smoothing_the_target_follows_every_iteration_without_copies() -> N
         before, dqn.target.parameters(), dqn.online.parameters(), strict=True
     ):
         torch.testing.assert_close(new, old + 0.5 * (towards - old))
-
-
-def test_the_doom_loss_lowers_only_doomed_actions_valued_above_their_bound() -> None:
-    q = torch.tensor([[0.0, -0.5, -0.2], [0.1, 0.2, 0.3]], requires_grad=True)
-    doom = DoomBounds(
-        doomed=np.array([[True, True, False], [False, False, False]]),
-        bound=np.full((2, 3), -0.9, dtype=np.float32),
-        survivor_index=np.zeros((0, 2), dtype=np.int64),
-        survivor_frames=np.zeros((0, 5, 4), dtype=np.float32),
-        survivor_reward=np.zeros(0, dtype=np.float32),
-        survivor_discount=np.zeros(0, dtype=np.float32),
-    )
-    loss = doom_excess(q, doom, torch.device("cpu"))
-    loss.backward()  # type: ignore[no-untyped-call]
-    assert loss.item() == pytest.approx((0.9**2 + 0.4**2) / 2)
-    assert q.grad is not None
-    np.testing.assert_allclose(q.grad.numpy(), [[0.9, 0.4, 0.0], [0.0, 0.0, 0.0]], atol=1e-6)
-    below = doom._replace(bound=np.zeros((2, 3), dtype=np.float32))
-    assert doom_excess(q, below, torch.device("cpu")).item() == 0.0

@@ -4,7 +4,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qnav.contracts.motion import Outcome
 from qnav.contracts.observation import (
     OBSTACLE_FEATURES,
     OBSTACLE_POSITION_SCALE_M,
@@ -14,19 +13,11 @@ from qnav.contracts.observation import (
 from qnav.sim.config import scenario
 from qnav.sim.evaluate import RandomAgent
 from qnav.sim.geometry import cast_lidar, clearance
-from qnav.sim.world import WorldState, observe, reset, step
+from qnav.sim.world import observe, reset, step
 from qnav.training.collect import collect_round
 from qnav.training.episode_log import Episode, read_rounds, write_round
-from qnav.training.replay import EpisodeReplay, replayed_velocities
-from qnav.training.sampling import (
-    DOOM_HORIZON_S,
-    doom_bounds,
-    draw_obstacle_paths,
-    draw_targets,
-    redraw_obstacles_in_windows,
-    sample,
-    view_with_obstacles,
-)
+from qnav.training.replay import EpisodeReplay
+from qnav.training.sampling import draw_obstacle_paths, draw_targets, sample, view_with_obstacles
 
 CONFIG = scenario("walls-increment")
 
@@ -303,58 +294,3 @@ def test_collected_episodes_keep_their_obstacles_through_the_round_files(tmp_pat
         assert after.obstacle_xy is not None and before.obstacle_xy is not None
         np.testing.assert_array_equal(before.obstacle_xy, after.obstacle_xy)
         np.testing.assert_array_equal(before.obstacle_velocity, after.obstacle_velocity)
-
-
-def test_replayed_velocities_are_those_the_simulator_had() -> None:
-    config = replace(OBSTACLES, max_episode_steps=40)
-    state = reset(config, np.array([3]), np.array([0]))
-    actions = np.random.default_rng(3).integers(0, 3, 40)
-    velocities = [state.velocity[0]]
-    for action in actions:
-        state, _, _ = step(config, state, action[None])
-        velocities.append(state.velocity[0])
-    np.testing.assert_allclose(
-        replayed_velocities(config, reset(config, np.array([3]), np.array([0])).pose[0], actions),
-        np.array(velocities),
-    )
-
-
-def test_a_doomed_action_collides_whatever_is_held_after_it_and_earns_at_most_its_bound() -> None:
-    replay = EpisodeReplay(OBSTACLES, 10_000, window=5)
-    for seed in range(6):
-        replay.add(_obstacle_episode(seed))
-    rng = np.random.default_rng(0)
-    now = replay.transitions()
-    targets = draw_targets(replay, now, rng, "paper")
-    seen = redraw_obstacles_in_windows(replay, now, 3, np.ones(now.size, dtype=bool), rng)
-    assert seen.obstacles_now is not None
-    doom = doom_bounds(
-        replay, now, targets, seen.obstacles_now, gamma=0.97, max_rows=now.size, rng=rng
-    )
-    centres, velocities, _ = seen.obstacles_now
-    rows, doomed_action = np.nonzero(doom.doomed)
-    assert rows.size >= 20  # random driving among moving obstacles dooms many steps
-    assert not doom.doomed.all(axis=1).all()
-    horizon = round(DOOM_HORIZON_S / OBSTACLES.control_period_s)
-    config = replace(OBSTACLES, max_episode_steps=10_000)
-    for row, first in zip(rows[:40], doomed_action[:40], strict=True):
-        for held in range(3):
-            state = WorldState(
-                pose=replay.pose[now[row]][None],
-                velocity=replay.velocity[now[row]][None],
-                target_xy=targets[row][None],
-                obstacle_xy=centres[row][None],
-                obstacle_velocity=velocities[row][None],
-                steps=np.zeros(1, dtype=np.int64),
-                seed=np.zeros(1, dtype=np.int64),
-                episode=np.zeros(1, dtype=np.int64),
-            )
-            earned, collided = 0.0, False
-            for t, action in enumerate([first] + [held] * (horizon - 1)):
-                state, _, transition = step(config, state, np.array([action]))
-                earned += 0.97**t * float(transition.reward[0])
-                if transition.terminated[0]:
-                    collided = transition.outcome[0] == Outcome.COLLISION
-                    break
-            assert collided, (row, first, held)
-            assert earned <= doom.bound[row, first] + 1e-6

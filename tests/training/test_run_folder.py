@@ -61,10 +61,17 @@ def test_a_folder_that_used_a_removed_experiment_is_refused_by_name(
     assert LAST_COMMIT_WITH_EXPERIMENTS in str(refused.value)
 
 
-@pytest.mark.parametrize("line", ["obstacle_risk_head = true\n", "every_action_weight = 1.0\n"])
+@pytest.mark.parametrize(
+    ("line", "commit"),
+    [
+        ("obstacle_risk_head = true\n", "cbd23ae"),
+        ("every_action_weight = 1.0\n", "cbd23ae"),
+        ("doom_bound_weight = 1.0\n", "97b3cd2"),
+    ],
+)
 def test_a_folder_of_a_later_removed_experiment_names_the_last_commit_that_has_it(
-    tmp_path: Path, line: str
+    tmp_path: Path, line: str, commit: str
 ) -> None:
     with pytest.raises(ConfigError, match=line.split(maxsplit=1)[0]) as refused:
         read_settings(_started_with(tmp_path, line))
-    assert "cbd23ae" in str(refused.value)
+    assert commit in str(refused.value)
