@@ -485,6 +485,27 @@ def _load(results_root: Path) -> dict[str, dict[str, Any]]:
     return {p.stem: json.loads(p.read_text()) for p in sorted(results_root.glob("*.json"))}
 
 
+JUDGED_FOLDER = "judged"
+"""Under the results folder: `qnav eval --json` of each obstacle study run's recurrent DQN judged
+by its own doom judge file, `{scenario}-recurrent-seed{K}.json` (`judged_tests`)."""
+JUDGED_COMMAND = (
+    "qnav eval --policy RUN --lookahead judge --judge FILE --episodes 1000 --json > "
+    f"results/{JUDGED_FOLDER}/SCENARIO-recurrent-seedK.json"
+)
+"""How a judged result is made; FILE from `qnav lab label ... --probe-set
+probe.redrawn_from=RUN --export FILE` (docs/learner.md, "The doom judge on the car")."""
+
+
+def judged_tests(results_root: Path, scenario: str) -> list[dict[str, float]]:
+    """The judged recurrent DQN's test results of a scenario, one per seed (beyond the paper:
+    the judge is fitted to the planner's labels of the run's own episodes)."""
+    folder = results_root / JUDGED_FOLDER
+    return [
+        json.loads(path.read_text())
+        for path in sorted(folder.glob(f"{scenario}-recurrent-seed*.json"))
+    ]
+
+
 def _cells(tests: list[dict[str, float]]) -> list[str]:
     """'mean +- std' of success, collision and unfinished over runs."""
     cells = []
@@ -582,7 +603,11 @@ def headroom_taken(success: float, blind: float, oracle: float) -> float:
     return (success - blind) / (oracle - blind)
 
 
-def _goal_lines(results: dict[str, dict[str, Any]], references: dict[str, References]) -> list[str]:
+def _goal_lines(
+    results: dict[str, dict[str, Any]],
+    references: dict[str, References],
+    results_root: Path | None = None,
+) -> list[str]:
     """The issues' goals, each with what the finished runs reach."""
     lines = [
         "## Goals",
@@ -632,6 +657,20 @@ def _goal_lines(results: dict[str, dict[str, Any]], references: dict[str, Refere
             _row(label, f"{taken:.2f} (blind {blind:.3f}, oracle {oracle:.3f})", len(runs),
                  _verdict(taken >= HEADROOM_GOAL))
         )  # fmt: skip
+    for scenario in (s for s in SCENARIOS if s.startswith("obstacles")):
+        judged = judged_tests(results_root, scenario) if results_root else []
+        bounds = references.get(scenario)
+        if not judged or bounds is None or bounds.blind is None or bounds.oracle is None:
+            continue
+        goal = paper.RECURRENT[scenario][0][0]
+        mean = float(np.mean([t["success"] for t in judged]))
+        taken = headroom_taken(mean, bounds.blind["success"], bounds.oracle["success"])
+        lines.append(
+            _row(f"Table {paper.TABLES[scenario]}, beyond the paper: recurrent judged reaches "
+                 f"the paper's {goal:g} and >= {HEADROOM_GOAL:g} of the headroom",
+                 f"{mean:.3f}, headroom {taken:.2f}", len(judged),
+                 _verdict(mean >= goal and taken >= HEADROOM_GOAL))
+        )  # fmt: skip
     walls = [
         r
         for s in SCENARIOS
@@ -676,6 +715,19 @@ def _reference_rows(scenario: str, bounds: References | None) -> list[str]:
     return rows
 
 
+def _judged_line(judged: list[dict[str, float]]) -> list[str]:
+    """What the judged row is, where there is one."""
+    if not judged:
+        return []
+    return [
+        "",
+        "Judged: each run's DQN acting where its own doom judge file, fitted to the planner's "
+        "labels at the run's own 600 episodes, keeps its action, and the judge's choice where it "
+        "judges the action doomed; on the onboard tracker, over the test protocol's layouts "
+        f"(`{JUDGED_COMMAND}`; docs/learner.md).",
+    ]
+
+
 def _gauge_line(results: dict[str, dict[str, Any]], scenario: str) -> list[str]:
     """The decisive-state gauge of the shipped networks, per model (runs that recorded it)."""
     cells = []
@@ -718,7 +770,7 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
         "paper's method stops near the blind go-to-target controller's level (the Go-to-target "
         "rows; docs/learner.md, 'The re-pinned obstacle world').",
         "",
-        *_goal_lines(results, references),
+        *_goal_lines(results, references, results_root),
     ]
     for scenario in SCENARIOS:
         lines += [f"## Table {paper.TABLES[scenario]}: {scenario}", "", header, rule]
@@ -743,7 +795,13 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
                     "",
                 )
             )
-        lines += [*_gauge_line(results, scenario), ""]
+        judged = judged_tests(results_root, scenario)
+        if judged:
+            lines.append(
+                _row(f"Recurrent, judged (beyond the paper; {int(judged[0]['episodes'])} "
+                     "episodes)", len(judged), *_cells(judged), "")
+            )  # fmt: skip
+        lines += [*_gauge_line(results, scenario), *_judged_line(judged), ""]
     lines += [
         "## Generalisation and random test actions",
         "",
