@@ -174,9 +174,7 @@ def test_judged_results_get_their_own_row_and_goal_beside_the_papers_method(
     bounds = References(_fractions(0.05, 1000), blind=_fractions(0.65), oracle=_fractions(0.95))
     text = results_markdown(tmp_path, {"obstacles-inertia": bounds})
     table = text.split("## Table I:")[1].split("##")[0]
-    assert (
-        "| Recurrent, judged (beyond the paper; 1000 episodes) | 2 | 0.810 +- 0.010 |" in table
-    )
+    assert "| Recurrent, judged (beyond the paper; 1000 episodes) | 2 | 0.810 +- 0.010 |" in table
     assert "| Recurrent | 1 | 0.660 +- 0.000 |" in table  # the paper's method keeps its rows
     assert (
         "| Table I, beyond the paper: recurrent judged reaches the paper's 0.872 and >= 0.8 of "
