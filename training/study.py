@@ -606,9 +606,10 @@ def headroom_taken(success: float, blind: float, oracle: float) -> float:
 def _goal_lines(
     results: dict[str, dict[str, Any]],
     references: dict[str, References],
-    results_root: Path | None = None,
+    judged: dict[str, list[dict[str, float]]],
 ) -> list[str]:
-    """The issues' goals, each with what the finished runs reach."""
+    """The issues' goals, each with what the finished runs reach (and the judged DQN's tests,
+    per scenario, `judged_tests`)."""
     lines = [
         "## Goals",
         "",
@@ -657,18 +658,17 @@ def _goal_lines(
             _row(label, f"{taken:.2f} (blind {blind:.3f}, oracle {oracle:.3f})", len(runs),
                  _verdict(taken >= HEADROOM_GOAL))
         )  # fmt: skip
-    for scenario in (s for s in SCENARIOS if s.startswith("obstacles")):
-        judged = judged_tests(results_root, scenario) if results_root else []
+    for scenario, tests in judged.items():
         bounds = references.get(scenario)
-        if not judged or bounds is None or bounds.blind is None or bounds.oracle is None:
+        if not tests or bounds is None or bounds.blind is None or bounds.oracle is None:
             continue
         goal = paper.RECURRENT[scenario][0][0]
-        mean = float(np.mean([t["success"] for t in judged]))
+        mean = float(np.mean([t["success"] for t in tests]))
         taken = headroom_taken(mean, bounds.blind["success"], bounds.oracle["success"])
         lines.append(
             _row(f"Table {paper.TABLES[scenario]}, beyond the paper: recurrent judged reaches "
                  f"the paper's {goal:g} and >= {HEADROOM_GOAL:g} of the headroom",
-                 f"{mean:.3f}, headroom {taken:.2f}", len(judged),
+                 f"{mean:.3f}, headroom {taken:.2f}", len(tests),
                  _verdict(mean >= goal and taken >= HEADROOM_GOAL))
         )  # fmt: skip
     walls = [
@@ -749,6 +749,7 @@ def _gauge_line(results: dict[str, dict[str, Any]], scenario: str) -> list[str]:
 def results_markdown(results_root: Path, references: dict[str, References]) -> str:
     """docs/results.md: our tables beside the paper's."""
     results = _load(results_root)
+    judged = {scenario: judged_tests(results_root, scenario) for scenario in SCENARIOS}
     header = _row("agent", "n", "success", "collision", "unfinished", "paper s / c / u")
     rule = _row(*["---"] * 6)
     lines = [
@@ -770,7 +771,7 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
         "paper's method stops near the blind go-to-target controller's level (the Go-to-target "
         "rows; docs/learner.md, 'The re-pinned obstacle world').",
         "",
-        *_goal_lines(results, references, results_root),
+        *_goal_lines(results, references, judged),
     ]
     for scenario in SCENARIOS:
         lines += [f"## Table {paper.TABLES[scenario]}: {scenario}", "", header, rule]
@@ -795,13 +796,13 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
                     "",
                 )
             )
-        judged = judged_tests(results_root, scenario)
-        if judged:
+        tests = judged[scenario]
+        if tests:
             lines.append(
-                _row(f"Recurrent, judged (beyond the paper; {int(judged[0]['episodes'])} "
-                     "episodes)", len(judged), *_cells(judged), "")
+                _row(f"Recurrent, judged (beyond the paper; {int(tests[0]['episodes'])} "
+                     "episodes)", len(tests), *_cells(tests), "")
             )  # fmt: skip
-        lines += [*_gauge_line(results, scenario), *_judged_line(judged), ""]
+        lines += [*_gauge_line(results, scenario), *_judged_line(tests), ""]
     lines += [
         "## Generalisation and random test actions",
         "",
