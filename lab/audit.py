@@ -107,10 +107,13 @@ def audit(
     protocol: EvalSettings,
     judge_file: Path | None = None,
     progress: bool = False,
+    judgements: tuple[Judgement, ...] = JUDGEMENTS,
 ) -> list[Audit]:
-    """Drive the run's greedy policy over `protocol`'s layouts in its world under each judgement
-    (module docstring), the same layouts for all. Every drive is set up before the first runs,
-    so a judge file that is missing or judges another world is refused at once."""
+    """Drive the run's greedy policy over `protocol`'s layouts in its world under each of
+    `judgements` (module docstring; "alone" by itself measures how many decisive states the
+    policy drives into and how it chooses there), the same layouts for all. Every drive is set
+    up before the first runs, so a judge file that is missing or judges another world is
+    refused at once."""
     from qnav.training.agent import policy_agent
     from qnav.training.run_folder import load_network
 
@@ -119,7 +122,7 @@ def audit(
     worlds = min(protocol.num_worlds, protocol.episodes)
     judged: tuple[Judgement, ...] = ("judge file",) if judge_file is not None else ()
     drives = []
-    for judgement in JUDGEMENTS + judged:
+    for judgement in judgements + judged:
         policy = policy_agent(network, world, worlds, run.train.window, seed=protocol.seed)
         agent: Agent = policy
         if judgement in ("forecast", "judge file"):

@@ -466,6 +466,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     audit.add_argument("--episodes", type=int, default=500, help="episodes per judgement (500)")
     audit.add_argument(
+        "--judgements",
+        default="alone,doom labels,collision shares,forecast",
+        help="comma-separated, of alone, doom labels, collision shares, forecast (all; "
+        "`--judgements alone`: the policy's own exposure to decisive states, in a fifth of the "
+        "time)",
+    )
+    audit.add_argument(
         "--seed", type=int, default=12345, help="layouts' seed (12345: the test protocol's)"
     )
     _flag(audit, "--json", "print one JSON object per judgement")

@@ -8,7 +8,7 @@ import json
 import sys
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import parse_assignments, with_overrides
@@ -58,24 +58,43 @@ def diagnose(args: argparse.Namespace) -> int:
 
 def audit(args: argparse.Namespace) -> int:
     """A run's policy driven under each judgement of doom, its decisive states counted."""
+    from qnav.lab.audit import JUDGEMENTS, Judgement
     from qnav.lab.audit import audit as drive
     from qnav.sim.evaluate import EvalSettings
+    from qnav.training.study import parse_choices
 
+    # parse_choices keeps only names of JUDGEMENTS, so each is a Judgement.
+    judgements = cast(
+        tuple[Judgement, ...], parse_choices("--judgements", args.judgements, JUDGEMENTS)
+    )
     protocol = EvalSettings(episodes=args.episodes, seed=args.seed)
-    audits = drive(args.run, protocol, args.judge, progress=not args.json)
+    audits = drive(args.run, protocol, args.judge, progress=not args.json, judgements=judgements)
     if args.json:
         for row in audits:
-            print(json.dumps({**row._asdict(), "result": row.result.fractions()}))
+            per_episode = row.decisive / args.episodes
+            print(
+                json.dumps(
+                    {
+                        **row._asdict(),
+                        "result": row.result.fractions(),
+                        "decisive_per_episode": per_episode,
+                    }
+                )
+            )
         return 0
     layouts = f"{args.episodes} episodes (seed {args.seed})"
     print(f"the greedy policy of {args.run} in its world, {layouts}")
     if args.judge is not None:
         print(f"  judge file: {args.judge}")
-    print(f"  {'judgement':<24} success  decisive states  taken safe  policy safe  overruled")
+    print(
+        f"  {'judgement':<24} success  decisive states  per episode  taken safe  policy safe  "
+        "overruled"
+    )
     for row in audits:
         print(
             f"  {row.judgement:<24} {row.result.success:7.3f}  {row.decisive:15d}  "
-            f"{row.taken_safe:10.3f}  {row.policy_safe:11.3f}  {row.overruled:9.3f}"
+            f"{row.decisive / args.episodes:11.2f}  {row.taken_safe:10.3f}  "
+            f"{row.policy_safe:11.3f}  {row.overruled:9.3f}"
         )
     return 0
 

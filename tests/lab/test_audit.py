@@ -64,3 +64,9 @@ def test_a_judge_of_another_world_is_refused_before_any_drive(
         audit(tiny_run, PROTOCOL, other)
     with pytest.raises(PolicyFileError, match="does not exist"):
         audit(tiny_run, PROTOCOL, other.with_name("missing.onnx"))
+
+
+def test_auditing_the_policy_alone_gives_the_full_audits_alone_row(tiny_run: Path) -> None:
+    (alone,) = audit(tiny_run, PROTOCOL, judgements=("alone",))
+    full = {row.judgement: row for row in audit(tiny_run, PROTOCOL)}
+    assert alone == full["alone"]
