@@ -467,8 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     audit.add_argument("--episodes", type=int, default=500, help="episodes per judgement (500)")
     audit.add_argument(
         "--judgements",
-        default="alone,doom labels,collision shares,forecast",
-        help="comma-separated, of alone, doom labels, collision shares, forecast (all; "
+        help="comma-separated, of alone, doom labels, collision shares, forecast (default: all; "
         "`--judgements alone`: the policy's own exposure to decisive states, in a fifth of the "
         "time)",
     )

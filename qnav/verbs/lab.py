@@ -63,10 +63,12 @@ def audit(args: argparse.Namespace) -> int:
     from qnav.sim.evaluate import EvalSettings
     from qnav.training.study import parse_choices
 
-    # parse_choices keeps only names of JUDGEMENTS, so each is a Judgement.
-    judgements = cast(
-        tuple[Judgement, ...], parse_choices("--judgements", args.judgements, JUDGEMENTS)
-    )
+    judgements = JUDGEMENTS
+    if args.judgements is not None:
+        # parse_choices keeps only names of JUDGEMENTS, so each is a Judgement.
+        judgements = cast(
+            tuple[Judgement, ...], parse_choices("--judgements", args.judgements, JUDGEMENTS)
+        )
     protocol = EvalSettings(episodes=args.episodes, seed=args.seed)
     audits = drive(args.run, protocol, args.judge, progress=not args.json, judgements=judgements)
     if args.json:
