@@ -105,9 +105,10 @@ def decisive_report(
     """Score the network's greedy choices, its values and its one-step targets on the decisive
     states of `world`."""
     network.eval()
-    q = q_values(network, states.policy_windows(network.obstacle_inputs))
+    windows = states.policy_windows(network.obstacle_inputs)
+    q = q_values(network, windows)
     mine = score(states, q.argmax(axis=1))
-    targets = one_step_targets(network, world, states, gamma)
+    targets = one_step_targets(network, world, states, windows, gamma)
     target_ranks_safe, target_gap = safe_ranking(targets, states.doomed)
     return DecisiveReport(
         safe=mine.safe,
@@ -133,12 +134,15 @@ def safe_ranking(values: NDArray[np.floating], doomed: NDArray[np.bool_]) -> tup
 
 
 def one_step_targets(
-    network: QNetwork, world: WorldConfig, states: DecisiveStates, gamma: float
+    network: QNetwork,
+    world: WorldConfig,
+    states: DecisiveStates,
+    windows: NDArray[np.float32],
+    gamma: float,
 ) -> NDArray[np.float64]:
     """(K, A) r + gamma max_a' Q(s', a') of each action's step from each state, by the
-    simulator (the next window: the state's last k - 1 frames and the new one); r alone where
-    the step ends the episode."""
-    windows = states.policy_windows(network.obstacle_inputs)
+    simulator (the next window: the state's last k - 1 frames of `windows`, the network's view
+    of `states`, and the new one); r alone where the step ends the episode."""
     scale_m = distance_scale_m(world.lidar)
     targets = []
     for action in range(NUM_ACTIONS):
