@@ -15,7 +15,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.actions import NUM_ACTIONS
-from qnav.contracts.motion import Dynamics, Outcome, clearance, move_obstacles, outcome, step_robot
+from qnav.contracts.motion import (
+    Dynamics,
+    Outcome,
+    distance_to_segments,
+    move_obstacles,
+    outcome,
+    step_robot,
+)
 
 F64 = NDArray[np.float64]
 
@@ -23,6 +30,11 @@ HOLDS = (1, 3, 6, 10)
 """Steps the first action of a structured sequence is held before the second takes over."""
 RANDOM_HOLD_STEPS = 3
 """Steps each action of a random candidate sequence is held."""
+SCORED_CLEARANCE_M = 1.0
+"""Clearance from surfaces beyond which a sequence that survives scores no better."""
+_WALL_MARGIN_M = 1e-6
+"""Slack on the walls' lower bound against rounding (`simulate` skips walls farther than the
+clearance that counts by at least this)."""
 
 
 class LookaheadModel(NamedTuple):
@@ -114,7 +126,15 @@ def random_blocks_needed(horizon: int) -> int:
 
 def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int64]) -> Rollouts:
     """Play every candidate sequence, (S, H) shared by all worlds or (N, S, H) per world, from
-    each world of `state`, the obstacles moving straight on and bouncing off the room's walls."""
+    each world of `state`, the obstacles moving straight on and bouncing off the room's walls.
+
+    Two things keep it cheap without changing a bit of the result. The obstacles' motion does
+    not depend on the robot's, so it is computed once per world, not once per candidate. And a
+    wall only matters to a candidate within `SCORED_CLEARANCE_M` of it (nearer, it caps the
+    score's clearance or collides), which a candidate that started `d` from every wall and has
+    driven a path of length `s` cannot be while `d - s` is at least that: the walls are measured
+    only for the candidates that may be (a robot larger than that clearance widens it).
+    """
     worlds = state.pose.shape[0]
     if sequences.ndim == 2:
         sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
@@ -122,8 +142,7 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
     actions = sequences.reshape(worlds * candidates, horizon)  # world-major like the states
     pose = np.repeat(state.pose, candidates, axis=0)
     velocity = np.repeat(state.velocity, candidates, axis=0)
-    obstacles = np.repeat(state.obstacle_xy, candidates, axis=0)
-    obstacle_velocity = np.repeat(state.obstacle_velocity, candidates, axis=0)
+    obstacles, obstacle_velocity = state.obstacle_xy, state.obstacle_velocity
     target = np.repeat(state.target_xy, candidates, axis=0)
     count = worlds * candidates
     result = np.full(count, Outcome.RUNNING, dtype=np.int8)
@@ -131,7 +150,12 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
     score = np.zeros(count)
     alive = np.ones(count, dtype=bool)
     distance = gap = np.zeros(count)
+    start_wall_m = np.repeat(
+        distance_to_segments(state.pose[:, :2], model.wall_start, model.wall_end), candidates
+    )
+    driven_m = np.zeros(count)
     for h in range(horizon):
+        previous_xy = pose[:, :2]
         pose, velocity = step_robot(
             pose, velocity, actions[:, h], model.dynamics, model.control_period_s
         )
@@ -142,10 +166,9 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
             model.room_size_m,
             model.control_period_s,
         )
+        driven_m = driven_m + np.hypot(*(pose[:, :2] - previous_xy).T)
         distance = np.linalg.norm(target - pose[:, :2], axis=1)
-        gap = clearance(
-            pose[:, :2], model.wall_start, model.wall_end, obstacles, model.obstacle_radius_m
-        )
+        gap = _clearance(model, pose[:, :2], obstacles, start_wall_m - driven_m)
         now = outcome(distance, gap, model.robot_radius_m)
         ended = alive & (now != Outcome.RUNNING)
         result[ended] = now[ended]
@@ -153,9 +176,32 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
         score[ended & (now == Outcome.SUCCESS)] = 1000.0 - h
         score[ended & (now == Outcome.COLLISION)] = -1000.0 + h
         alive &= ~ended
-    score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], 1.0)
+    score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], SCORED_CLEARANCE_M)
     shape = (worlds, candidates)
     return Rollouts(result.reshape(shape), end_step.reshape(shape), score.reshape(shape))
+
+
+def _clearance(model: LookaheadModel, xy: F64, obstacles: F64, wall_bound_m: F64) -> F64:
+    """Each candidate's (C = N * S, 2) distance to the nearest surface, its world's obstacles
+    (N, M, 2) and the walls where `wall_bound_m` (C,), a lower bound of its wall distance, does
+    not put them beyond `SCORED_CLEARANCE_M` (there the walls are left out, which changes neither
+    the score nor the outcome: `simulate`)."""
+    worlds = obstacles.shape[0]
+    gap = np.full(xy.shape[0], np.inf)
+    if obstacles.shape[1]:
+        # Obstacles first (M, N, S): the minimum over them runs along whole rows of candidates,
+        # where a reduction over a short last axis would loop per candidate.
+        centres = obstacles.transpose(1, 0, 2)[:, :, None]
+        ox = centres[..., 0] - xy[:, 0].reshape(worlds, -1)
+        oy = centres[..., 1] - xy[:, 1].reshape(worlds, -1)
+        nearest = np.sqrt((ox * ox + oy * oy).min(axis=0)) - model.obstacle_radius_m
+        gap = nearest.reshape(-1)
+    reach_m = max(SCORED_CLEARANCE_M, model.robot_radius_m) + _WALL_MARGIN_M
+    near = np.flatnonzero(wall_bound_m < reach_m)
+    if near.size:
+        walls = distance_to_segments(xy[near], model.wall_start, model.wall_end)
+        gap[near] = np.minimum(walls, gap[near])
+    return gap
 
 
 def best_first_actions(

@@ -921,6 +921,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--decisions", type=int, default=2000, help="timed decisions (2000)"
     )
     bench_lookahead.add_argument(
+        "--cars",
+        type=int,
+        default=20,
+        help="cars driven side by side, each timed alone and all forecast at once (20)",
+    )
+    bench_lookahead.add_argument(
         "--judge",
         type=Path,
         metavar="FILE.onnx",

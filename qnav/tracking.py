@@ -168,7 +168,9 @@ def time_lookahead(
     """Wall time of the controller's look ahead per decision, one car at a time as the daemon
     runs it: the tracker's update, the shield's forecast and the plan (and with a doom `judge`
     file, its judgement of the shield's belief), on the perception probe's drive (go-to-target
-    with held random actions); median and 99th percentile, milliseconds."""
+    with held random actions) of `worlds` cars; median and 99th percentile, milliseconds. Also
+    the shield's forecast of all the cars at once, per car ("shield_batched"): what the lab's
+    evaluations and labels pay per state."""
     tracker = TrackerSettings(obstacle_radius_m=world.obstacles.radius_m)
 
     def car(mode: Literal["shield", "plan"]) -> Lookahead:
@@ -179,7 +181,7 @@ def time_lookahead(
     batched = BatchedWorld(world, worlds, seed=seed)
     observation = batched.reset(seed)
     driver = WanderingGoToTarget(worlds, 0.3, seed)
-    times: dict[str, list[float]] = {"track": [], "shield": [], "plan": []}
+    times: dict[str, list[float]] = {"track": [], "shield": [], "plan": [], "shield_batched": []}
     if judging is not None:
         times["judge"] = []
     while len(times["plan"]) < decisions:
@@ -208,6 +210,10 @@ def time_lookahead(
             times["track"].append(tracked - started)
             times["shield"].append(shielded - tracked)
             times["plan"].append(planned - observed)
+        shields = [shield for shield, _ in pairs]
+        started = time.perf_counter()
+        risks_of(shields, list(observation.target_xy))
+        times["shield_batched"].append((time.perf_counter() - started) / len(shields))
         observation = batched.step(driver(observation.target_features())).observation
     report: dict[str, float] = {"decisions": float(len(times["plan"]))}
     for name, values in times.items():

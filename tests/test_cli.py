@@ -66,7 +66,7 @@ def test_bench_lookahead_json_times_each_part_of_the_decision(make_judge) -> Non
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["decisions"] >= 40
-    for part in ("track", "shield", "plan", "judge"):
+    for part in ("track", "shield", "plan", "judge", "shield_batched"):
         assert 0 < report[f"{part}_ms_p50"] <= report[f"{part}_ms_p99"]
 
 
