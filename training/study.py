@@ -25,7 +25,7 @@ import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -485,21 +485,48 @@ def _load(results_root: Path) -> dict[str, dict[str, Any]]:
     return {p.stem: json.loads(p.read_text()) for p in sorted(results_root.glob("*.json"))}
 
 
-JUDGED_FOLDER = "judged"
-"""Under the results folder: `qnav eval --json` of each obstacle study run's recurrent DQN judged
-by its own doom judge file, `{scenario}-recurrent-seed{K}.json` (`judged_tests`)."""
-JUDGED_COMMAND = (
-    "qnav eval --policy RUN --lookahead judge --judge FILE --episodes 1000 --json > "
-    f"results/{JUDGED_FOLDER}/SCENARIO-recurrent-seedK.json"
+class BeyondThePaper(NamedTuple):
+    """A method beyond the paper's, measured on each obstacle study run's recurrent DQN: its
+    rows and goal line in docs/results.md come from `results/{folder}/SCENARIO-recurrent-seedK.json`
+    (`qnav eval --json` of that run with `command`'s look ahead)."""
+
+    folder: str
+    """Under the results folder; also the row's name ("Recurrent, {folder}")."""
+    command: str
+    """How one result is made."""
+    what: str
+    """What the row measures, a sentence for the results page."""
+
+
+BEYOND_THE_PAPER = (
+    BeyondThePaper(
+        "judged",
+        "qnav eval --policy RUN --lookahead judge --judge FILE --episodes 1000 --json > "
+        "results/judged/SCENARIO-recurrent-seedK.json",
+        "each run's DQN acting where its own doom judge file (FILE from `qnav lab label ... "
+        "--probe-set probe.redrawn_from=RUN --export FILE`), fitted to the planner's labels at "
+        "the run's own 600 episodes, keeps its action, and the judge's choice where it judges the "
+        "action doomed; on the onboard tracker, over the test protocol's layouts (learned; "
+        "docs/learner.md, 'The doom judge on the car')",
+    ),
+    BeyondThePaper(
+        "shielded",
+        "qnav eval --policy RUN --lookahead shield --episodes 1000 --json > "
+        "results/shielded/SCENARIO-recurrent-seedK.json",
+        "each run's DQN shielded by the controller's look ahead: its best-valued action among "
+        "those whose forecast (the onboard tracker's obstacles, moving straight on for 4 s) "
+        "collides least, over the test protocol's layouts (the policy learned, the forecast not; "
+        "docs/controller.md, 'Moving obstacles: the look ahead')",
+    ),
 )
-"""How a judged result is made; FILE from `qnav lab label ... --probe-set
-probe.redrawn_from=RUN --export FILE` (docs/learner.md, "The doom judge on the car")."""
+"""The rows beyond the paper's method, in the order the tables show them."""
 
 
-def judged_tests(results_root: Path, scenario: str) -> list[dict[str, float]]:
-    """The judged recurrent DQN's test results of a scenario, one per seed (beyond the paper:
-    the judge is fitted to the planner's labels of the run's own episodes)."""
-    folder = results_root / JUDGED_FOLDER
+def beyond_tests(
+    results_root: Path, scenario: str, method: BeyondThePaper
+) -> list[dict[str, float]]:
+    """A method beyond the paper's: its test results in a scenario, one per study seed."""
+    folder = results_root / method.folder
     return [
         json.loads(path.read_text())
         for path in sorted(folder.glob(f"{scenario}-recurrent-seed*.json"))
@@ -606,10 +633,10 @@ def headroom_taken(success: float, blind: float, oracle: float) -> float:
 def _goal_lines(
     results: dict[str, dict[str, Any]],
     references: dict[str, References],
-    judged: dict[str, list[dict[str, float]]],
+    beyond: dict[tuple[str, str], list[dict[str, float]]],
 ) -> list[str]:
-    """The issues' goals, each with what the finished runs reach (and the judged DQN's tests,
-    per scenario, `judged_tests`)."""
+    """The issues' goals, each with what the finished runs reach (and the tests of the methods
+    beyond the paper's, by (method folder, scenario): `beyond_tests`)."""
     lines = [
         "## Goals",
         "",
@@ -658,7 +685,7 @@ def _goal_lines(
             _row(label, f"{taken:.2f} (blind {blind:.3f}, oracle {oracle:.3f})", len(runs),
                  _verdict(taken >= HEADROOM_GOAL))
         )  # fmt: skip
-    for scenario, tests in judged.items():
+    for (method, scenario), tests in beyond.items():
         bounds = references.get(scenario)
         if not tests or bounds is None or bounds.blind is None or bounds.oracle is None:
             continue
@@ -666,7 +693,7 @@ def _goal_lines(
         mean = float(np.mean([t["success"] for t in tests]))
         taken = headroom_taken(mean, bounds.blind["success"], bounds.oracle["success"])
         lines.append(
-            _row(f"Table {paper.TABLES[scenario]}, beyond the paper: recurrent judged reaches "
+            _row(f"Table {paper.TABLES[scenario]}, beyond the paper: recurrent {method} reaches "
                  f"the paper's {goal:g} and >= {HEADROOM_GOAL:g} of the headroom",
                  f"{mean:.3f}, headroom {taken:.2f}", len(tests),
                  _verdict(mean >= goal and taken >= HEADROOM_GOAL))
@@ -715,17 +742,18 @@ def _reference_rows(scenario: str, bounds: References | None) -> list[str]:
     return rows
 
 
-def _judged_line(judged: list[dict[str, float]]) -> list[str]:
-    """What the judged row is, where there is one."""
-    if not judged:
-        return []
-    return [
-        "",
-        "Judged: each run's DQN acting where its own doom judge file, fitted to the planner's "
-        "labels at the run's own 600 episodes, keeps its action, and the judge's choice where it "
-        "judges the action doomed; on the onboard tracker, over the test protocol's layouts "
-        f"(`{JUDGED_COMMAND}`; docs/learner.md).",
-    ]
+def _beyond_lines(
+    scenario: str, beyond: dict[tuple[str, str], list[dict[str, float]]]
+) -> list[str]:
+    """What each row beyond the paper in a scenario's table is, where there is one."""
+    lines = []
+    for method in BEYOND_THE_PAPER:
+        if beyond[method.folder, scenario]:
+            lines += [
+                "",
+                f"{method.folder.capitalize()}: {method.what}. Each result: `{method.command}`.",
+            ]
+    return lines
 
 
 def _gauge_line(results: dict[str, dict[str, Any]], scenario: str) -> list[str]:
@@ -749,7 +777,11 @@ def _gauge_line(results: dict[str, dict[str, Any]], scenario: str) -> list[str]:
 def results_markdown(results_root: Path, references: dict[str, References]) -> str:
     """docs/results.md: our tables beside the paper's."""
     results = _load(results_root)
-    judged = {scenario: judged_tests(results_root, scenario) for scenario in SCENARIOS}
+    beyond = {
+        (method.folder, scenario): beyond_tests(results_root, scenario, method)
+        for method in BEYOND_THE_PAPER
+        for scenario in SCENARIOS
+    }
     header = _row("agent", "n", "success", "collision", "unfinished", "paper s / c / u")
     rule = _row(*["---"] * 6)
     lines = [
@@ -771,7 +803,7 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
         "paper's method stops near the blind go-to-target controller's level (the Go-to-target "
         "rows; docs/learner.md, 'The re-pinned obstacle world').",
         "",
-        *_goal_lines(results, references, judged),
+        *_goal_lines(results, references, beyond),
     ]
     for scenario in SCENARIOS:
         lines += [f"## Table {paper.TABLES[scenario]}: {scenario}", "", header, rule]
@@ -796,13 +828,14 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
                     "",
                 )
             )
-        tests = judged[scenario]
-        if tests:
-            lines.append(
-                _row(f"Recurrent, judged (beyond the paper; {int(tests[0]['episodes'])} "
-                     "episodes)", len(tests), *_cells(tests), "")
-            )  # fmt: skip
-        lines += [*_gauge_line(results, scenario), *_judged_line(tests), ""]
+        for method in BEYOND_THE_PAPER:
+            tests = beyond[method.folder, scenario]
+            if tests:
+                lines.append(
+                    _row(f"Recurrent, {method.folder} (beyond the paper; "
+                         f"{int(tests[0]['episodes'])} episodes)", len(tests), *_cells(tests), "")
+                )  # fmt: skip
+        lines += [*_gauge_line(results, scenario), *_beyond_lines(scenario, beyond), ""]
     lines += [
         "## Generalisation and random test actions",
         "",
