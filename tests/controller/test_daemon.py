@@ -84,6 +84,20 @@ class Listener:
             time.sleep(0.02)
         raise AssertionError(f"no such status within {timeout} s; last: {self.statuses[-1:]}")
 
+    def wait_for_command(
+        self, predicate: Callable[[wire.Twist2D], bool], timeout: float = 15.0
+    ) -> wire.Twist2D:
+        """The first command received that satisfies `predicate`, once it has come (commands and
+        statuses are separate subscriptions: a status may arrive before the command it reports)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                for command in self.commands:
+                    if predicate(command):
+                        return command
+            time.sleep(0.02)
+        raise AssertionError(f"no such command within {timeout} s; last: {self.commands[-1:]}")
+
 
 def reason_is(*reasons: str) -> Callable[[dict[str, Any]], bool]:
     return lambda status: status["reason"] in reasons
@@ -115,7 +129,10 @@ def stop_sends_stop(daemon: subprocess.Popen[str], number: int, listener: Listen
     _, stderr = daemon.communicate(timeout=20)
     assert daemon.returncode == 0, stderr
     listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
-    time.sleep(0.1)
+    # The daemon has exited, so whatever command is last once delivery settles was its last.
+    deadline = time.monotonic() + 5
+    while listener.commands[-1] != wire.STOP and time.monotonic() < deadline:
+        time.sleep(0.02)
     with listener.lock:
         assert listener.commands[-1] == wire.STOP
     return stderr
@@ -168,16 +185,15 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
     try:
         first = listener.wait_for(lambda s: True, timeout=30)
         assert first["reason"] == "no_scan"
-        assert listener.commands[0] == wire.STOP
+        assert listener.wait_for_command(lambda command: True) == wire.STOP  # the first of all
 
         feeder = start_feeder(processes, endpoint)
         assert feeder.stdin is not None
         driving = listener.wait_for(reason_is("policy"))
         assert driving["action"] in ("forward", "left", "right")
         assert len(driving["q_values"]) == 3
-        with listener.lock:
-            command = listener.commands[-1]
-        assert (command.linear_mps, command.angular_radps) in action_commands(policy)
+        actions = action_commands(policy)
+        listener.wait_for_command(lambda c: (c.linear_mps, c.angular_radps) in actions)
         health = qnav_health(tmp_path / "health.json")
         assert health.returncode == 0 and "controller" in health.stdout, health.stdout
 
