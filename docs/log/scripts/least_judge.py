@@ -4,7 +4,8 @@ P(action is not doomed), from the collision shares a label folder already holds,
 a judge file (the controller's judge rule then keeps the policy's action unless the fit doubts it
 is among the least colliding: the shield's rule with learned risks).
 
-Usage: least_judge.py FOLDER JUDGE_FILE_LIKE OUT_PREFIX TOLERANCE THRESHOLD[,THRESHOLD...]
+Usage: least_judge.py FOLDER JUDGE_FILE_LIKE OUT_PREFIX TOLERANCE THRESHOLD[,THRESHOLD...] [NEAR]
+(NEAR: label "unsafe" where at least that share of the continuations collide, instead)
 (all labelled states of every round, not only the doom-decisive ones the label fit keeps)
 """
 
@@ -40,6 +41,8 @@ def main() -> None:
     inputs = (torch.from_numpy(np.concatenate(context)), torch.from_numpy(np.concatenate(slots)))
     least = shares <= shares.min(axis=1, keepdims=True) + tolerance
     pseudo = np.where(least, 0.0, 1.0)  # "doomed" = not among the least colliding
+    if len(sys.argv) > 6:  # near doom instead: "doomed" = at least this share of them collide
+        pseudo = np.where(shares >= float(sys.argv[6]), 1.0, 0.0)
     differ = is_decisive(pseudo == 1.0)
     print(f"{len(shares)} states, {differ.sum()} where the least colliding actions are not all "
           f"({is_decisive(shares == 1.0).sum()} doom-decisive)", flush=True)

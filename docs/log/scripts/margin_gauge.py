@@ -66,6 +66,11 @@ class MarginJudged:
             judged_share[counted] = collision_shares(self.judge_world, rows)
         preferred = self.policy.act(observation)
         judged = judged_actions(preferred, doom_label_safety(judged_share), 0.5)
+        if self.rule.startswith("share"):  # "share0.9": doomed where at least 0.9 of them collide
+            doom_share = float(self.rule[5:])
+            safety = np.where(judged_share >= doom_share, 0.5 - judged_share / 4,
+                              1 - judged_share / 2)
+            judged = judged_actions(preferred, safety, 0.5)
         if self.rule == "shield":
             judged = shielded_actions(self.policy.last_q, judged_share, 0.0)
         missed = self.random.random(len(preferred)) < self.miss
