@@ -62,6 +62,11 @@ class Audit(NamedTuple):
     overruled: float
     """Share of all decisions where the action taken was not the policy's."""
 
+    @property
+    def decisive_per_episode(self) -> float:
+        """Decisive states met per episode: the policy's exposure, beside how it chose there."""
+        return self.decisive / max(self.result.episodes, 1)
+
 
 class _Labelled:
     """An agent acting for a greedy Q agent (the policy itself, or the look ahead around it),

@@ -488,21 +488,28 @@ def _load(results_root: Path) -> dict[str, dict[str, Any]]:
 class BeyondThePaper(NamedTuple):
     """A method beyond the paper's, measured on each obstacle study run's recurrent DQN: its
     rows and goal line in docs/results.md come from `results/{folder}/SCENARIO-recurrent-seedK.json`
-    (`qnav eval --json` of that run with `command`'s look ahead)."""
+    (`command`: `qnav eval --json` of that run with the look ahead)."""
 
     folder: str
     """Under the results folder; also the row's name ("Recurrent, {folder}")."""
-    command: str
-    """How one result is made."""
+    lookahead: str
+    """`qnav eval`'s look ahead options that make one result."""
     what: str
     """What the row measures, a sentence for the results page."""
+
+    @property
+    def command(self) -> str:
+        """How one result is made."""
+        return (
+            f"qnav eval --policy RUN {self.lookahead} --episodes 1000 --json > "
+            f"results/{self.folder}/SCENARIO-recurrent-seedK.json"
+        )
 
 
 BEYOND_THE_PAPER = (
     BeyondThePaper(
         "judged",
-        "qnav eval --policy RUN --lookahead judge --judge FILE --episodes 1000 --json > "
-        "results/judged/SCENARIO-recurrent-seedK.json",
+        "--lookahead judge --judge FILE",
         "each run's DQN acting where its own doom judge file (FILE from `qnav lab label ... "
         "--probe-set probe.redrawn_from=RUN --export FILE`), fitted to the planner's labels at "
         "the run's own 600 episodes, keeps its action, and the judge's choice where it judges the "
@@ -511,8 +518,7 @@ BEYOND_THE_PAPER = (
     ),
     BeyondThePaper(
         "shielded",
-        "qnav eval --policy RUN --lookahead shield --episodes 1000 --json > "
-        "results/shielded/SCENARIO-recurrent-seedK.json",
+        "--lookahead shield",
         "each run's DQN shielded by the controller's look ahead: its best-valued action among "
         "those whose forecast (the onboard tracker's obstacles, moving straight on for 4 s) "
         "collides least, over the test protocol's layouts (the policy learned, the forecast not; "

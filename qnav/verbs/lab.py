@@ -73,13 +73,12 @@ def audit(args: argparse.Namespace) -> int:
     audits = drive(args.run, protocol, args.judge, progress=not args.json, judgements=judgements)
     if args.json:
         for row in audits:
-            per_episode = row.decisive / args.episodes
             print(
                 json.dumps(
                     {
                         **row._asdict(),
                         "result": row.result.fractions(),
-                        "decisive_per_episode": per_episode,
+                        "decisive_per_episode": row.decisive_per_episode,
                     }
                 )
             )
@@ -95,7 +94,7 @@ def audit(args: argparse.Namespace) -> int:
     for row in audits:
         print(
             f"  {row.judgement:<24} {row.result.success:7.3f}  {row.decisive:15d}  "
-            f"{row.decisive / args.episodes:11.2f}  {row.taken_safe:10.3f}  "
+            f"{row.decisive_per_episode:11.2f}  {row.taken_safe:10.3f}  "
             f"{row.policy_safe:11.3f}  {row.overruled:9.3f}"
         )
     return 0

@@ -131,7 +131,10 @@ def stop_sends_stop(daemon: subprocess.Popen[str], number: int, listener: Listen
     listener.wait_for(reason_is("shutdown"), timeout=5, since=before)
     # The daemon has exited, so whatever command is last once delivery settles was its last.
     deadline = time.monotonic() + 5
-    while listener.commands[-1] != wire.STOP and time.monotonic() < deadline:
+    while time.monotonic() < deadline:
+        with listener.lock:
+            if listener.commands[-1] == wire.STOP:
+                break
         time.sleep(0.02)
     with listener.lock:
         assert listener.commands[-1] == wire.STOP

@@ -70,3 +70,4 @@ def test_auditing_the_policy_alone_gives_the_full_audits_alone_row(tiny_run: Pat
     (alone,) = audit(tiny_run, PROTOCOL, judgements=("alone",))
     full = {row.judgement: row for row in audit(tiny_run, PROTOCOL)}
     assert alone == full["alone"]
+    assert alone.decisive_per_episode == alone.decisive / PROTOCOL.episodes
