@@ -236,9 +236,15 @@ def collision_shares(
 
 
 def shielded_actions(
-    q: NDArray[np.floating], collision_share: NDArray[np.floating], tolerance: float
+    q: NDArray[np.floating], collision_share: NDArray[np.floating], overrule_share: float
 ) -> NDArray[np.int64]:
-    """(N,) the highest-valued action among those whose share of colliding continuations is
-    within `tolerance` of the safest action's."""
-    allowed = collision_share <= collision_share.min(axis=1, keepdims=True) + tolerance
-    return np.asarray(np.where(allowed, q, -np.inf).argmax(axis=1), dtype=np.int64)
+    """(N,) the highest-valued action, unless at least `overrule_share` of the continuations after
+    it collide: then the highest-valued among the least colliding. (0 overrules whenever a
+    safer action exists; a band below which the policy's own action stands does better, as an
+    overruled policy drives where it was not trained: docs/controller.md.)"""
+    rows = np.arange(len(q))
+    preferred = np.asarray(q).argmax(axis=1)
+    least = collision_share <= collision_share.min(axis=1, keepdims=True)
+    safest = np.where(least, q, -np.inf).argmax(axis=1)
+    keep = collision_share[rows, preferred] < overrule_share
+    return np.asarray(np.where(keep, preferred, safest), dtype=np.int64)

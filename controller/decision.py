@@ -475,8 +475,8 @@ class Controller:
                 risks = tuple((1.0 - safe).tolist())
             else:
                 shares = self.lookahead.risks(target_xy)
-                tolerance = self.lookahead_settings.tolerance
-                safest = shielded_actions(decision.q_values[None], shares[None], tolerance)
+                overrule_share = self.lookahead_settings.overrule_share
+                safest = shielded_actions(decision.q_values[None], shares[None], overrule_share)
                 action = Action(int(safest[0]))
                 risks = tuple(shares.tolist())
             self.counters.overruled += int(action != decision.action)

@@ -11,7 +11,8 @@ simulator's oracle plans with) do. Each decision:
 3. every first action is followed by the same continuations (the structured ones and random ones
    drawn from a seeded generator restarted with each episode) over `shield_horizon_s`, and the
    share of them that collide is that action's risk;
-4. the policy's best-valued action among the least risky is taken (`shielded_actions`);
+4. the policy's best-valued action is taken unless its risk reaches `overrule_share`, then its
+   best-valued among the least risky (`shielded_actions`);
    or, in "plan" mode, the first action of the best-scoring candidate sequence over
    `plan_horizon_s` (the simulator's oracle planner, on the perceived state), whatever the
    policy's values.
@@ -60,8 +61,9 @@ class LookaheadSettings:
     SECTION = "lookahead"
 
     mode: Literal["off", "shield", "plan", "judge"] = "off"
-    """"off": the policy decides alone. "shield": the policy's best-valued action among the
-    least likely to collide (the forecast overrules it only there). "plan": the first action of
+    """"off": the policy decides alone. "shield": the policy's best-valued action, unless
+    `overrule_share` of the continuations after it collide: then its best-valued among the least
+    likely to collide. "plan": the first action of
     the best-scoring candidate sequence (reach the target early, collide late or never, else end
     near the target and clear of surfaces), the policy's values reported but not used. "judge":
     the policy's action unless `judge_file` judges it doomed, then the action it judges safest
@@ -79,9 +81,11 @@ class LookaheadSettings:
     episodes each, 2026-12-03; docs/controller.md)."""
     random_sequences: int = 64
     """Random continuations tried after each first action, beside the structured ones."""
-    tolerance: float = 0.0
-    """Actions whose share of colliding continuations is within this of the safest action's
-    count as safe too (the policy picks among them)."""
+    overrule_share: float = 0.3
+    """In mode "shield", the forecast overrules the policy only where at least this share of
+    the continuations after its action collide (0: wherever a safer action exists; 0.3 against
+    0: 0.882 against 0.854 success in obstacles-inertia, 0.852 against 0.829 in
+    obstacles-increment, docs/controller.md)."""
     seed: int = 0
     """Seed of the random continuations (the generator restarts with every episode)."""
 
@@ -97,7 +101,7 @@ class LookaheadSettings:
         check_range(self, "shield_horizon_s", self.shield_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "plan_horizon_s", self.plan_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "random_sequences", self.random_sequences, 0, 100_000)
-        check_range(self, "tolerance", self.tolerance, 0.0, 1.0)
+        check_range(self, "overrule_share", self.overrule_share, 0.0, 1.0)
 
 
 FAR_AWAY_M = 1e4

@@ -221,8 +221,9 @@ def _lookahead_option(parser: argparse.ArgumentParser, where: str) -> None:
         choices=["off", "shield", "plan", "judge"],
         default="off",
         help=f"{where}the controller's look ahead (lookahead.mode): the obstacle tracker feeds "
-        "a forecast; shield takes the policy's best-valued action among the least likely to "
-        "collide within 4 s, plan takes the planner's (10 s ahead); judge keeps the policy's "
+        "a forecast; shield keeps the policy's action unless 0.3 of its continuations collide "
+        "within 4 s, then takes its best-valued among the least likely to collide; plan takes "
+        "the planner's (10 s ahead); judge keeps the policy's "
         "action unless the doom judge file (--judge) finds it doomed",
     )
     parser.add_argument(

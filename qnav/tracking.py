@@ -89,7 +89,8 @@ class LookaheadAgent:
     """A learned policy with the controller's look ahead (`controller.lookahead`, one per world,
     as each car runs it), in `lookahead.mode`: "shield", each action's share of colliding
     continuations is forecast from the tracker's obstacles and the room's walls and the policy's
-    best-valued action among the safest wins; "plan", the planner on that state decides;
+    best-valued action stands unless it is too risky (`lookahead.overrule_share`), then its
+    best-valued among the safest; "plan", the planner on that state decides;
     "judge", the doom judge file judges each action from that state and the policy's action is
     kept unless judged doomed (the inner agent then needs no Q values: go-to-target will do).
     """
@@ -151,7 +152,7 @@ class LookaheadAgent:
             action = judged_actions(chosen, safe, self.cars[0].judge.contract.threshold)
         else:
             shares = risks_of(self.cars, targets)
-            action = shielded_actions(self.inner.last_q, shares, self.settings.tolerance)
+            action = shielded_actions(self.inner.last_q, shares, self.settings.overrule_share)
         self.overruled += int(np.sum(action != chosen))
         self.decisions += action.size
         self.steps += 1

@@ -23,7 +23,14 @@ def test_the_shield_takes_the_best_valued_of_the_least_risky_actions() -> None:
     q = np.array([[3.0, 2.0, 1.0], [3.0, 2.0, 1.0], [3.0, 2.0, 1.0]])
     shares = np.array([[0.0, 0.0, 0.0], [1.0, 0.2, 0.2], [1.0, 0.5, 0.2]])
     assert shielded_actions(q, shares, 0.0).tolist() == [0, 1, 2]
-    assert shielded_actions(q, shares, 0.3).tolist() == [0, 1, 1]
+
+
+def test_the_shield_keeps_the_policys_action_below_the_overrule_share() -> None:
+    q = np.array([[3.0, 2.0, 1.0], [3.0, 2.0, 1.0], [1.0, 2.0, 3.0]])
+    shares = np.array([[0.29, 0.0, 0.0], [0.3, 0.2, 0.1], [0.0, 0.0, 1.0]])
+    assert shielded_actions(q, shares, 0.3).tolist() == [0, 2, 1]
+    assert shielded_actions(q, shares, 0.0).tolist() == [1, 2, 1]
+    assert shielded_actions(q, shares, 1.0).tolist() == [0, 0, 1]
 
 
 class _GoToTargetValues:

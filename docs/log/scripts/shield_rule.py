@@ -1,0 +1,110 @@
+# Ad hoc measurement of issue 19 (2026-12-06); runs against the commit adding
+# lookahead.overrule_share, and later.
+"""Which rule should the controller's forecast serve? The shielded DQN (the forecast on the
+onboard tracker, `qnav eval --lookahead shield`) takes the DQN's best-valued action among the
+least colliding; with exact shares the near-doom rule (keep the DQN's action unless at least q
+of its continuations collide, else the least colliding) did better (0.945 against 0.925,
+margin_gauge.py). Gauge: the same forecast on the same tracker, only the rule changed.
+
+Usage: shield_rule.py RUN EPISODES SEED RULE[,RULE...]
+RULE: "shield" (tolerance 0, the committed rule), "tolT" (the shield with tolerance T),
+"nearQ" (keep the DQN's action unless its share >= Q, else the least colliding, ties by value:
+`lookahead.overrule_share` = Q); a "truth:" prefix
+forecasts from the true state instead of the tracker's (`lab.oracle.collision_shares`, the
+labels' continuations): what perception costs the rule; an "hS:" prefix forecasts S seconds
+ahead instead of `lookahead.shield_horizon_s` (4 s).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from qnav.contracts.lookahead import shielded_actions
+from qnav.contracts.motion import Outcome
+from qnav.controller.lookahead import LookaheadSettings, risks_of
+from qnav.controller.perception import TrackerSettings
+from qnav.lab.oracle import collision_shares
+from qnav.sim.evaluate import EvalResult, EvalSettings, episode_outcomes
+from qnav.sim.world import take_rows
+from qnav.tracking import LookaheadAgent, noisy
+from qnav.training.agent import policy_agent
+from qnav.training.run_folder import load_network
+
+
+def ruled(q_values, shares, chosen, rule):  # type: ignore[no-untyped-def]
+    if rule == "shield":  # the rule before lookahead.overrule_share: overrule wherever safer
+        return shielded_actions(q_values, shares, 0.0)
+    if rule.startswith("near"):  # the committed rule since, at this overrule share
+        return shielded_actions(q_values, shares, float(rule[4:]))
+    assert rule.startswith("tol"), rule  # the former lookahead.tolerance
+    allowed = shares <= shares.min(axis=1, keepdims=True) + float(rule[3:])
+    return np.where(allowed, q_values, -np.inf).argmax(axis=1)
+
+
+class RuledShield(LookaheadAgent):
+    rule = "shield"
+    truth = False
+    state = None
+    counting = np.zeros(0, dtype=bool)
+
+    def watch(self, state, counting):  # type: ignore[no-untyped-def]
+        self.state, self.counting = state, counting.copy()
+
+    def act(self, observation):  # type: ignore[no-untyped-def]
+        chosen = self.inner.act(observation)
+        scans = noisy(observation.scan_m, self.range_noise_m, self._noise)
+        times_s = self.steps * self.world.control_period_s
+        for row, car in enumerate(self.cars):
+            car.observe(float(times_s[row]), observation.pose[row], float(times_s[row]), scans[row])
+        if self.truth:
+            counted = np.flatnonzero(self.counting)
+            shares = np.zeros((len(chosen), 3))
+            shares[counted] = collision_shares(self.world, take_rows(self.state, counted))
+        else:
+            shares = risks_of(self.cars, list(observation.target_xy))
+        action = ruled(self.inner.last_q, shares, chosen, self.rule)
+        self.overruled += int(np.sum(action != chosen))
+        self.decisions += action.size
+        self.steps += 1
+        return action
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    run, episodes, seed = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+    network, folder = load_network(run)
+    world = folder.world
+    settings = EvalSettings(episodes=episodes, seed=seed)
+    worlds = min(settings.num_worlds, episodes)
+    for named in sys.argv[4].split(","):
+        started = time.time()
+        rule = named
+        policy = policy_agent(network, world, worlds, folder.train.window, hold_steps=1, seed=seed)
+        horizon_s = 4.0
+        if rule.startswith("h"):
+            horizon_s, rule = float(rule[1:].split(":")[0]), rule.split(":", 1)[1]
+        lookahead = LookaheadSettings(mode="shield", shield_horizon_s=horizon_s)
+        agent = RuledShield(policy, world, worlds, tracker=TrackerSettings(),
+                            lookahead=lookahead, seed=seed)
+        agent.truth = rule.startswith("truth:")
+        agent.rule = rule.removeprefix("truth:")
+        label = f"h{horizon_s:g}:{rule}"
+        outcomes, steps = episode_outcomes(world, agent, settings, watch=agent.watch)
+        result = EvalResult.of_outcomes(outcomes, steps)
+        collided = steps[outcomes == Outcome.COLLISION]
+        print(json.dumps({"run": str(run), "rule": label, "seed": seed, "episodes": episodes,
+                          "success": result.success, "collision": result.collision,
+                          "overruled": agent.overruled_share,
+                          "collisions_by_step_5_10_20": [int((collided <= k).sum())
+                                                         for k in (5, 10, 20)],
+                          "minutes": round((time.time() - started) / 60, 1)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
