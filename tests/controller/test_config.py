@@ -59,6 +59,8 @@ def test_a_relative_policy_path_is_taken_from_the_settings_files_folder(tmp_path
         ("[safety]\nscan_timeout = 1.0\n", "scan_timeout"),
         ('[zenoh]\nlisten = ["localhost"]\n', "zenoh.listen"),
         ('[topics]\nscan = "scan/*"\n', "topics.scan"),
+        ("[lookahead]\noverrule_share = 1.5\n", "lookahead.overrule_share"),
+        ("[lookahead]\ntolerance = 0.1\n", "lookahead.tolerance"),  # removed on 2026-12-06
         ("[controller]\n", "controller.policy"),
         ('[controller]\npolicy = "missing.onnx"\n', "controller.policy"),
     ],

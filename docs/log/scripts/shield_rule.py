@@ -12,7 +12,11 @@ RULE: "shield" (tolerance 0, the committed rule), "tolT" (the shield with tolera
 `lookahead.overrule_share` = Q); a "truth:" prefix
 forecasts from the true state instead of the tracker's (`lab.oracle.collision_shares`, the
 labels' continuations): what perception costs the rule; an "hS:" prefix forecasts S seconds
-ahead instead of `lookahead.shield_horizon_s` (4 s).
+ahead instead of `lookahead.shield_horizon_s` (4 s); an "fN:" prefix averages the risks over
+N headings of a track seen once (`lookahead.first_sight_headings`, 8; 0: it stands still), an
+"sV:" prefix at V m/s (`lookahead.first_sight_speed_mps`, 1);
+a "v0:" prefix gives the tracks of each
+episode's first decision (seen once: no velocity yet) the true velocities.
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ def ruled(q_values, shares, chosen, rule):  # type: ignore[no-untyped-def]
 class RuledShield(LookaheadAgent):
     rule = "shield"
     truth = False
+    first_known = False
     state = None
     counting = np.zeros(0, dtype=bool)
 
@@ -62,6 +67,11 @@ class RuledShield(LookaheadAgent):
         times_s = self.steps * self.world.control_period_s
         for row, car in enumerate(self.cars):
             car.observe(float(times_s[row]), observation.pose[row], float(times_s[row]), scans[row])
+        if self.first_known:  # the first decision's tracks get the true velocities
+            for row in np.flatnonzero(self.steps == 0):
+                for track in self.cars[row].tracker._tracks:
+                    gaps = np.linalg.norm(self.state.obstacle_xy[row] - track.centres[-1], axis=1)
+                    track.velocity = self.state.obstacle_velocity[row, gaps.argmin()].copy()
         if self.truth:
             counted = np.flatnonzero(self.counting)
             shares = np.zeros((len(chosen), 3))
@@ -84,26 +94,51 @@ def main() -> None:
     worlds = min(settings.num_worlds, episodes)
     for named in sys.argv[4].split(","):
         started = time.time()
-        rule = named
         policy = policy_agent(network, world, worlds, folder.train.window, hold_steps=1, seed=seed)
-        horizon_s = 4.0
-        if rule.startswith("h"):
-            horizon_s, rule = float(rule[1:].split(":")[0]), rule.split(":", 1)[1]
-        lookahead = LookaheadSettings(mode="shield", shield_horizon_s=horizon_s)
-        agent = RuledShield(policy, world, worlds, tracker=TrackerSettings(),
-                            lookahead=lookahead, seed=seed)
-        agent.truth = rule.startswith("truth:")
-        agent.rule = rule.removeprefix("truth:")
-        label = f"h{horizon_s:g}:{rule}"
+        *prefixes, rule = named.split(":")
+        horizon_s = next((float(p[1:]) for p in prefixes if p.startswith("h")), 4.0)
+        headings = next((int(p[1:]) for p in prefixes if p.startswith("f")), 8)
+        speed = next((float(p[1:]) for p in prefixes if p.startswith("s")), 1.0)
+        lookahead = LookaheadSettings(
+            mode="shield",
+            shield_horizon_s=horizon_s,
+            first_sight_headings=headings,
+            first_sight_speed_mps=speed,
+        )
+        agent = RuledShield(
+            policy, world, worlds, tracker=TrackerSettings(), lookahead=lookahead, seed=seed
+        )
+        agent.first_known = "v0" in prefixes
+        agent.truth = "truth" in prefixes
+        agent.rule = rule
+        label = ":".join(
+            [
+                f"h{horizon_s:g}",
+                f"f{headings}",
+                f"s{speed:g}",
+                *sorted(set(prefixes) & {"v0", "truth"}),
+                rule,
+            ]
+        )
         outcomes, steps = episode_outcomes(world, agent, settings, watch=agent.watch)
         result = EvalResult.of_outcomes(outcomes, steps)
         collided = steps[outcomes == Outcome.COLLISION]
-        print(json.dumps({"run": str(run), "rule": label, "seed": seed, "episodes": episodes,
-                          "success": result.success, "collision": result.collision,
-                          "overruled": agent.overruled_share,
-                          "collisions_by_step_5_10_20": [int((collided <= k).sum())
-                                                         for k in (5, 10, 20)],
-                          "minutes": round((time.time() - started) / 60, 1)}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "run": str(run),
+                    "rule": label,
+                    "seed": seed,
+                    "episodes": episodes,
+                    "success": result.success,
+                    "collision": result.collision,
+                    "overruled": agent.overruled_share,
+                    "collisions_by_step_5_10_20": [int((collided <= k).sum()) for k in (5, 10, 20)],
+                    "minutes": round((time.time() - started) / 60, 1),
+                }
+            ),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
