@@ -61,13 +61,12 @@ class LookaheadSettings:
     SECTION = "lookahead"
 
     mode: Literal["off", "shield", "plan", "judge"] = "off"
-    """"off": the policy decides alone. "shield": the policy's best-valued action, unless
-    `overrule_share` of the continuations after it collide: then its best-valued among the least
-    likely to collide. "plan": the first action of
-    the best-scoring candidate sequence (reach the target early, collide late or never, else end
-    near the target and clear of surfaces), the policy's values reported but not used. "judge":
-    the policy's action unless `judge_file` judges it doomed, then the action it judges safest
-    (learned, no forecast)."""
+    """"off": the policy decides alone. "shield": the policy's best-valued action, unless at
+    least `overrule_share` of the continuations after it collide: then its best-valued among the
+    least likely to collide. "plan": the first action of the best-scoring candidate sequence
+    (reach the target early, collide late or never, else end near the target and clear of
+    surfaces), the policy's values reported but not used. "judge": the policy's action unless
+    `judge_file` judges it doomed, then the action it judges safest (learned, no forecast)."""
     judge_file: str = ""
     """With mode "judge": the doom judge file (`qnav lab label FOLDER ... --export FILE`)."""
     room_size_m: float = 10.0
