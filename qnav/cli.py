@@ -222,7 +222,7 @@ def _lookahead_option(parser: argparse.ArgumentParser, where: str) -> None:
         default="off",
         help=f"{where}the controller's look ahead (lookahead.mode): the obstacle tracker feeds "
         "a forecast; shield keeps the policy's action unless 0.3 of its continuations collide "
-        "within 4 s, then takes its best-valued among the least likely to collide; plan takes "
+        "within 6 s, then takes its best-valued among the least likely to collide; plan takes "
         "the planner's (10 s ahead); judge keeps the policy's "
         "action unless the doom judge file (--judge) finds it doomed",
     )

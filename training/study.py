@@ -521,7 +521,7 @@ BEYOND_THE_PAPER = (
         "--lookahead shield",
         "each run's DQN shielded by the controller's look ahead: its greedy action unless at "
         "least 0.3 of the continuations after it collide in the forecast (the onboard tracker's "
-        "obstacles, moving straight on for 4 s), then its best-valued among those colliding "
+        "obstacles, moving straight on for 6 s), then its best-valued among those colliding "
         "least, over the test protocol's layouts (the policy learned, the forecast not; "
         "docs/controller.md, 'Moving obstacles: the look ahead')",
     ),

@@ -7,16 +7,16 @@ of its continuations collide, else the least colliding) did better (0.945 agains
 margin_gauge.py). Gauge: the same forecast on the same tracker, only the rule changed.
 
 Usage: shield_rule.py RUN EPISODES SEED RULE[,RULE...]
-RULE: "shield" (tolerance 0, the committed rule), "tolT" (the shield with tolerance T),
+RULE: "shield" (overrule wherever a safer action exists: the rule before overrule_share),
+"tolT" (the shield with tolerance T),
 "nearQ" (keep the DQN's action unless its share >= Q, else the least colliding, ties by value:
 `lookahead.overrule_share` = Q); a "truth:" prefix
 forecasts from the true state instead of the tracker's (`lab.oracle.collision_shares`, the
 labels' continuations): what perception costs the rule; an "hS:" prefix forecasts S seconds
-ahead instead of `lookahead.shield_horizon_s` (4 s); an "fN:" prefix averages the risks over
-N headings of a track seen once (`lookahead.first_sight_headings`, 8; 0: it stands still), an
-"sV:" prefix at V m/s (`lookahead.first_sight_speed_mps`, 1);
-a "v0:" prefix gives the tracks of each
-episode's first decision (seen once: no velocity yet) the true velocities.
+ahead instead of `lookahead.shield_horizon_s` (6 s; 4 s before 2026-12-06); a "v0:" prefix
+gives the tracks of each episode's first decision (seen once: no velocity yet) the true
+velocities. (The log's figures for headings of a track seen once, "f8" / "s1.5", came from a
+package change tried and reverted.)
 """
 
 from __future__ import annotations
@@ -96,15 +96,9 @@ def main() -> None:
         started = time.time()
         policy = policy_agent(network, world, worlds, folder.train.window, hold_steps=1, seed=seed)
         *prefixes, rule = named.split(":")
-        horizon_s = next((float(p[1:]) for p in prefixes if p.startswith("h")), 4.0)
-        headings = next((int(p[1:]) for p in prefixes if p.startswith("f")), 8)
-        speed = next((float(p[1:]) for p in prefixes if p.startswith("s")), 1.0)
-        lookahead = LookaheadSettings(
-            mode="shield",
-            shield_horizon_s=horizon_s,
-            first_sight_headings=headings,
-            first_sight_speed_mps=speed,
-        )
+        default_s = LookaheadSettings().shield_horizon_s
+        horizon_s = next((float(p[1:]) for p in prefixes if p.startswith("h")), default_s)
+        lookahead = LookaheadSettings(mode="shield", shield_horizon_s=horizon_s)
         agent = RuledShield(
             policy, world, worlds, tracker=TrackerSettings(), lookahead=lookahead, seed=seed
         )
@@ -114,8 +108,6 @@ def main() -> None:
         label = ":".join(
             [
                 f"h{horizon_s:g}",
-                f"f{headings}",
-                f"s{speed:g}",
                 *sorted(set(prefixes) & {"v0", "truth"}),
                 rule,
             ]
