@@ -85,23 +85,33 @@ class RuledShield(LookaheadAgent):
         return action
 
 
+def shielded(  # type: ignore[no-untyped-def]
+    run: Path, episodes: int, seed: int, lookahead: LookaheadSettings, kind=None
+):
+    """(agent, world, settings): `run`'s greedy DQN shielded by the controller's look ahead as
+    `kind` (RuledShield by default), over `episodes` layouts of `seed`."""
+    network, folder = load_network(run)
+    settings = EvalSettings(episodes=episodes, seed=seed)
+    worlds = min(settings.num_worlds, episodes)
+    policy = policy_agent(
+        network, folder.world, worlds, folder.train.window, hold_steps=1, seed=seed
+    )
+    agent = (kind or RuledShield)(
+        policy, folder.world, worlds, tracker=TrackerSettings(), lookahead=lookahead, seed=seed
+    )
+    return agent, folder.world, settings
+
+
 def main() -> None:
     torch.set_num_threads(1)
     run, episodes, seed = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
-    network, folder = load_network(run)
-    world = folder.world
-    settings = EvalSettings(episodes=episodes, seed=seed)
-    worlds = min(settings.num_worlds, episodes)
     for named in sys.argv[4].split(","):
         started = time.time()
-        policy = policy_agent(network, world, worlds, folder.train.window, hold_steps=1, seed=seed)
         *prefixes, rule = named.split(":")
         default_s = LookaheadSettings().shield_horizon_s
         horizon_s = next((float(p[1:]) for p in prefixes if p.startswith("h")), default_s)
         lookahead = LookaheadSettings(mode="shield", shield_horizon_s=horizon_s)
-        agent = RuledShield(
-            policy, world, worlds, tracker=TrackerSettings(), lookahead=lookahead, seed=seed
-        )
+        agent, world, settings = shielded(run, episodes, seed, lookahead)
         agent.first_known = "v0" in prefixes
         agent.truth = "truth" in prefixes
         agent.rule = rule

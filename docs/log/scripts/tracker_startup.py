@@ -14,25 +14,23 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from shield_rule import RuledShield, shielded  # this folder, where the script runs from
 
 from qnav.controller.lookahead import LookaheadSettings
-from qnav.controller.perception import TrackerSettings
-from qnav.sim.evaluate import EvalSettings, episode_outcomes
-from qnav.tracking import LookaheadAgent
-from qnav.training.agent import policy_agent
-from qnav.training.run_folder import load_network
+from qnav.sim.evaluate import episode_outcomes
 
 RANGE_M = 3.0
 STEPS = 12
 
 
-class Watched(LookaheadAgent):
-    state = None
-    counting = np.zeros(0, dtype=bool)
+class Watched(RuledShield):
+    """The committed shield, tabulating the tracker against the truth by step of the episode:
+    per step, [obstacles, missed, position errors, velocity errors]."""
 
-    def watch(self, state, counting):  # type: ignore[no-untyped-def]
-        self.state, self.counting = state, counting.copy()
-        self.table = getattr(self, "table", {k: [0, 0, [], []] for k in range(STEPS)})
+    def __init__(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)
+        self.rule = f"near{self.settings.overrule_share}"
+        self.table = {k: [0, 0, [], []] for k in range(STEPS)}
 
     def act(self, observation):  # type: ignore[no-untyped-def]
         action = super().act(observation)
@@ -64,21 +62,21 @@ class Watched(LookaheadAgent):
 def main() -> None:
     torch.set_num_threads(1)
     run, episodes, seed = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
-    network, folder = load_network(run)
-    world = folder.world
-    settings = EvalSettings(episodes=episodes, seed=seed)
-    worlds = min(settings.num_worlds, episodes)
-    policy = policy_agent(network, world, worlds, folder.train.window, hold_steps=1, seed=seed)
-    agent = Watched(policy, world, worlds, tracker=TrackerSettings(),
-                    lookahead=LookaheadSettings(mode="shield"), seed=seed)
+    lookahead = LookaheadSettings(mode="shield")
+    agent, world, settings = shielded(run, episodes, seed, lookahead, Watched)
     episode_outcomes(world, agent, settings, watch=agent.watch)
     print(f"{run}, {episodes} episodes: true obstacles within {RANGE_M} m of the car, by step")
-    print("step | obstacles | missed | position error median / p90 m | velocity error median / p90 m/s")
+    print(
+        "step | obstacles | missed | position error median / p90 m | "
+        "velocity error median / p90 m/s"
+    )
     for step, (count, missed, position, velocity) in agent.table.items():
         p = np.percentile(position, [50, 90]) if position else [np.nan] * 2
         v = np.percentile(velocity, [50, 90]) if velocity else [np.nan] * 2
-        print(f"{step} | {count} | {missed / max(count, 1):.3f} | {p[0]:.3f} / {p[1]:.3f} | "
-              f"{v[0]:.3f} / {v[1]:.3f}")
+        print(
+            f"{step} | {count} | {missed / max(count, 1):.3f} | {p[0]:.3f} / {p[1]:.3f} | "
+            f"{v[0]:.3f} / {v[1]:.3f}"
+        )
 
 
 if __name__ == "__main__":
