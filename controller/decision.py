@@ -14,7 +14,8 @@ and writes no log: callers pass the time and do the I/O.
 
 Safety rules, checked in this order by `decide` (the first that applies names the stop in
 `status.reason`; every stop also restarts the policy's window, so a resumed run starts a fresh
-episode):
+episode, while the look ahead's obstacle tracker, if any, goes on taking every scan through the
+stop):
 
 1. `estop_latched`: an emergency stop was pressed (Bool true on the estop topic, or any
    malformed payload there: someone tried to press it), and has not been released on purpose:
@@ -385,6 +386,19 @@ class Controller:
             )
         self._scan, self._scan_stamp_s = resampled.ranges_m, scan.stamp_s
         self._mark(Input.SCAN, None, now)
+        self._track(now)
+
+    def _track(self, now: float) -> None:
+        """Give the look ahead the newest scan and pose, driving or not (a car at rest keeps
+        tracking: `controller.lookahead`), if the pose is fresh enough to place the scan in the
+        room (a scan already tracked is not tracked again)."""
+        pose: Pose2D | None = self._latest[Input.POSE].value
+        age = self._latest[Input.POSE].age(now)
+        if self.lookahead is None or pose is None or age is None or age > self.pose_timeout_s:
+            return
+        assert self._scan is not None and self._scan_stamp_s is not None  # just taken
+        xy_yaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
+        self.lookahead.observe(pose.stamp_s, xy_yaw, self._scan_stamp_s, self._scan)
 
     def _check_frame(self, what: str, value: Pose2D) -> None:
         wire.check_position(what, value, self.safety.max_position_m, "safety.max_position_m")
@@ -460,9 +474,7 @@ class Controller:
         self.counters.policy_steps += 1
         action, risks = decision.action, None
         if self.lookahead is not None:
-            assert self._scan is not None and self._scan_stamp_s is not None  # rules 2-3 held
-            xy_yaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
-            self.lookahead.observe(pose.stamp_s, xy_yaw, self._scan_stamp_s, self._scan)
+            self._track(now)  # the newest pose (rules 2-3 held: it and the scan are fresh)
             target_xy = np.array([target.x_m, target.y_m])
             if self.lookahead_settings.mode == "plan":
                 action = Action(self.lookahead.plan(target_xy))
@@ -573,10 +585,9 @@ class Controller:
         return math.hypot(target.x_m - pose.x_m, target.y_m - pose.y_m)
 
     def _restart_window(self) -> None:
+        """Restart the policy's window (the look ahead keeps its tracks: `_track`)."""
         if not self._window_fresh:
             self.runtime.reset()
-            if self.lookahead is not None:
-                self.lookahead.restart()
             self._window_fresh = True
 
     def _new_lookahead(self, runtime: PolicyRuntime, tracker: TrackerSettings) -> Lookahead | None:
@@ -598,6 +609,7 @@ class Controller:
             control_period_s=contract.control_period_s,
             beam_angles_rad=beam_angles(contract.num_beams),
             judge_backend=runtime.backend_name,
+            max_scan_gap_s=self.scan_timeout_s,
         )
         if lookahead.judge is not None:
             lookahead.judge.check_fits(

@@ -7,9 +7,9 @@ forecast with the training world's own motion model (`contracts.lookahead`, the 
 simulator's oracle plans with) do. Each decision:
 
 1. a new scan updates the obstacle tracks (room frame, from the motion-capture pose);
-2. the car's own speed and turn rate come from its poses at the last three decisions;
+2. the car's own speed and turn rate come from its last three poses;
 3. every first action is followed by the same continuations (the structured ones and random ones
-   drawn from a seeded generator restarted with each episode) over `shield_horizon_s`, and the
+   drawn from a seeded generator restarted with the tracking) over `shield_horizon_s`, and the
    share of them that collide is that action's risk;
 4. the policy's best-valued action is taken unless its risk reaches `overrule_share`, then its
    best-valued among the least risky (`shielded_actions`);
@@ -22,7 +22,11 @@ action's P(safe) from the same perceived state, and the policy's action is kept 
 doomed (`contracts.judge_file.judged_actions`).
 
 `Lookahead` holds one car's state; the controller (`controller.decision`) calls it, and the
-simulator's in-process evaluation runs the same class (`qnav.tracking.LookaheadAgent`).
+simulator's in-process evaluation runs the same class (`qnav.tracking.LookaheadAgent`). Step 1
+runs on every scan, decision or not: a car waiting at rest keeps tracking, so its first
+decision after a stop already knows how the obstacles move (a track's velocity needs a second
+scan). Tracking restarts only when the scans break off (`max_scan_gap_s`): tracks and poses
+from before a gap are no longer where the room is.
 """
 
 from __future__ import annotations
@@ -88,7 +92,8 @@ class LookaheadSettings:
     0, forecasting 4 s: 0.882 against 0.854 success in obstacles-inertia, 0.852 against 0.829 in
     obstacles-increment, docs/controller.md)."""
     seed: int = 0
-    """Seed of the random continuations (the generator restarts with every episode)."""
+    """Seed of the random continuations (the generator restarts with the tracking: a new episode,
+    or the scans broke off)."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("off", "shield", "plan", "judge"):
@@ -138,8 +143,12 @@ class Lookahead:
         control_period_s: float,
         beam_angles_rad: F64,
         judge_backend: Backend = "onnxruntime",
+        max_scan_gap_s: float = math.inf,
     ) -> None:
         self.settings = settings
+        self.max_scan_gap_s = max_scan_gap_s
+        """A scan taken longer than this after the last tracked one (or before it) restarts the
+        tracking (the controller's scan timeout: the span after which it stops the car)."""
         self.tracker_settings = tracker
         walls = box_walls(settings.room_size_m)
         self.walls = walls
@@ -164,7 +173,8 @@ class Lookahead:
         self.restart()
 
     def restart(self) -> None:
-        """Forget the tracks and poses and restart the continuations' generator: a new episode."""
+        """Forget the tracks and poses and restart the continuations' generator: a new episode,
+        or the scans broke off."""
         self.tracker = ObstacleTracker(self.tracker_settings, self.walls, self.beam_angles_rad)
         self._random = np.random.default_rng(self.settings.seed)
         self._poses: list[F64] = []
@@ -174,9 +184,13 @@ class Lookahead:
     def observe(
         self, pose_time_s: float, pose: F64, scan_time_s: float, scan_m: NDArray[np.floating]
     ) -> None:
-        """Take in the newest pose (x, y, heading) and scan (ranges along `beam_angles_rad`)
-        at a decision, with the times they were taken: a scan already tracked is not tracked
-        again, and a pose no newer than the last is not kept."""
+        """Take in the newest pose (x, y, heading) and scan (ranges along `beam_angles_rad`),
+        with the times they were taken: a scan already tracked is not tracked again, a pose no
+        newer than the last is not kept, and a scan after a gap (`max_scan_gap_s`) restarts the
+        tracking first."""
+        last_s = self._scan_time_s
+        if last_s is not None and not 0.0 <= scan_time_s - last_s <= self.max_scan_gap_s:
+            self.restart()
         if scan_time_s != self._scan_time_s:
             self.tracker.update(scan_time_s, scan_m, pose)
             self._scan_time_s = scan_time_s

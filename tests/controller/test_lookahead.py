@@ -8,18 +8,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from qnav.contracts import wire
 from qnav.contracts.errors import PolicyFileError
 from qnav.contracts.lookahead import collision_shares
+from qnav.contracts.motion import move_obstacles
 from qnav.controller.decision import Controller, Input, Reason
 from qnav.controller.lookahead import Lookahead, LookaheadSettings
 from qnav.controller.perception import TrackerSettings
 from qnav.controller.policy import PolicyRuntime
 from qnav.lab.oracle import lookahead_model
-from qnav.sim.config import scenario
+from qnav.sim.config import WorldConfig, scenario
 from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent
-from qnav.sim.world import observe, reset, step
+from qnav.sim.world import WorldState, observe, reset, step
 from qnav.simcar.car import scan_message
 from qnav.tracking import world_lookahead
 
@@ -95,10 +97,14 @@ def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes
     settings = LookaheadSettings(mode=mode, room_size_m=world.arena.size_m, judge_file=judge)  # type: ignore[arg-type]
     period, test = world.control_period_s, EvalSettings()
     overruled = 0
+    # One controller for all episodes, stamped as the lockstep stack stamps them (episode i at
+    # (i + 1) * 1000 s): the gap between two episodes' scans restarts its tracking, as the
+    # in-process agent restarts with each episode.
+    controller = Controller(
+        PolicyRuntime(OBSTACLES_POLICY), lookahead=settings, tracker=TrackerSettings()
+    )
     for episode in (0, 1, 2):
-        controller = Controller(
-            PolicyRuntime(OBSTACLES_POLICY), lookahead=settings, tracker=TrackerSettings()
-        )
+        overruled_before = controller.counters.overruled
         agent = LookaheadAgent(
             StreamPolicyAgent(PolicyRuntime(OBSTACLES_POLICY), 1),
             world,
@@ -111,7 +117,7 @@ def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes
         observation = observe(world, state)
         tx, ty = state.target_xy[0]
         for k in range(60):
-            now = k * period
+            now = (episode + 1) * 1000.0 + k * period
             (x, y, yaw), scan = state.pose[0], observation.scan_m
             assert scan is not None
             target = wire.Pose2D(now, "map", tx, ty)
@@ -129,6 +135,82 @@ def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes
             state, observation, transition = step(world, state, expected)
             if transition.terminated[0]:
                 break
-        overruled += controller.counters.overruled
-        assert controller.counters.overruled == agent.overruled
+        assert controller.counters.overruled - overruled_before == agent.overruled
+        overruled += agent.overruled
     assert overruled > 0, "the look ahead overruled nothing: these episodes test no shield"
+
+
+def _at_rest(world_name: str, seconds: float) -> tuple[Controller, WorldState, float]:
+    """A shielding controller fed `seconds` of scans and poses, no target, while the car stands
+    and the obstacles move; the world as it is at the end, and the time."""
+    world = scenario(world_name)
+    assert world.lidar is not None
+    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
+    controller = Controller(
+        PolicyRuntime(OBSTACLES_POLICY),
+        lookahead=settings,
+        tracker=TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
+    )
+    state = reset(world, np.array([EvalSettings().seed]), np.array([4]))
+    period, now = world.control_period_s, 0.0
+    for k in range(round(seconds / period)):
+        now = k * period
+        _send_pose_and_scan(controller, world, state, now)
+        assert controller.decide(now).status.reason == Reason.NO_TARGET
+        xy, velocity = move_obstacles(
+            state.obstacle_xy,
+            state.obstacle_velocity,
+            world.obstacles.radius_m,
+            world.arena.size_m,
+            period,
+        )
+        state = state._replace(obstacle_xy=xy, obstacle_velocity=velocity)
+    return controller, state, now + period
+
+
+def _send_pose_and_scan(
+    controller: Controller, world: WorldConfig, state: WorldState, now: float
+) -> None:
+    assert world.lidar is not None
+    x, y, yaw = state.pose[0]
+    controller.receive(Input.POSE, wire.encode_pose_msg(wire.Pose2D(now, "map", x, y, yaw)), now)
+    scan = observe(world, state).scan_m
+    assert scan is not None
+    message = scan_message(scan[0], now, "laser", world.lidar.max_range_m)
+    controller.receive(Input.SCAN, message, now)
+
+
+def _seen(state: WorldState, within_m: float = 6.0) -> NDArray[np.bool_]:
+    return np.asarray(np.linalg.norm(state.obstacle_xy[0] - state.pose[0, :2], axis=1) < within_m)
+
+
+def test_a_car_at_rest_keeps_tracking_so_its_first_decision_knows_how_obstacles_move() -> None:
+    world = scenario("obstacles-inertia")
+    controller, state, now = _at_rest(world.name, 1.0)
+    _send_pose_and_scan(controller, world, state, now)
+    tx, ty = state.target_xy[0]
+    controller.receive(Input.TARGET, wire.encode_pose_msg(wire.Pose2D(now, "map", tx, ty)), now)
+    assert controller.decide(now).status.reason == Reason.POLICY
+    assert controller.lookahead is not None
+    belief = controller.lookahead.belief(state.target_xy[0])
+    seen = _seen(state)
+    assert np.linalg.norm(state.obstacle_velocity[0][seen], axis=1).min() > 0.1  # all move
+    for xy, velocity in zip(
+        state.obstacle_xy[0][seen], state.obstacle_velocity[0][seen], strict=True
+    ):
+        nearest = np.argmin(np.linalg.norm(belief.obstacle_xy[0] - xy, axis=1))
+        np.testing.assert_allclose(belief.obstacle_xy[0, nearest], xy, atol=1e-6)
+        np.testing.assert_allclose(belief.obstacle_velocity[0, nearest], velocity, atol=1e-6)
+
+
+@pytest.mark.parametrize("gap", ["a pause longer than the scan timeout", "a stamp gone back"])
+def test_tracking_starts_again_when_the_scans_break_off(gap: str) -> None:
+    world = scenario("obstacles-inertia")
+    controller, state, now = _at_rest(world.name, 1.0)
+    assert controller.lookahead is not None
+    assert np.abs(controller.lookahead.tracker.tracks().velocity_mps).max() > 0.1
+    later = now + controller.scan_timeout_s + 0.01 if gap.startswith("a pause") else now - 5.0
+    _send_pose_and_scan(controller, world, state, later)
+    tracks = controller.lookahead.tracker.tracks()
+    assert len(tracks.xy_m) >= _seen(state).sum()
+    np.testing.assert_array_equal(tracks.velocity_mps, 0.0)  # every track seen once
