@@ -486,8 +486,8 @@ def _load(results_root: Path) -> dict[str, dict[str, Any]]:
 
 
 class BeyondThePaper(NamedTuple):
-    """A method beyond the paper's, measured on each obstacle study run's recurrent DQN: its
-    rows and goal line in docs/results.md come from `results/{folder}/SCENARIO-recurrent-seedK.json`
+    """A method beyond the paper's, measured on each obstacle study run's DQN: its rows and
+    goal lines in docs/results.md come from `results/{folder}/SCENARIO-MODEL-seedK.json`
     (`command`: `qnav eval --json` of that run with the look ahead)."""
 
     folder: str
@@ -502,7 +502,7 @@ class BeyondThePaper(NamedTuple):
         """How one result is made."""
         return (
             f"qnav eval --policy RUN {self.lookahead} --episodes 1000 --json > "
-            f"results/{self.folder}/SCENARIO-recurrent-seedK.json"
+            f"results/{self.folder}/SCENARIO-MODEL-seedK.json"
         )
 
 
@@ -529,14 +529,19 @@ BEYOND_THE_PAPER = (
 """The rows beyond the paper's method, in the order the tables show them."""
 
 
+Beyond = dict[tuple[str, str, str], list[dict[str, float]]]
+"""Tests of the methods beyond the paper's by (method folder, model, scenario): `beyond_tests`."""
+
+
 def beyond_tests(
-    results_root: Path, scenario: str, method: BeyondThePaper
+    results_root: Path, scenario: str, method: BeyondThePaper, model: str = "recurrent"
 ) -> list[dict[str, float]]:
-    """A method beyond the paper's: its test results in a scenario, one per study seed."""
+    """A method beyond the paper's on one model's study runs: its test results in a scenario,
+    one per seed."""
     folder = results_root / method.folder
     return [
         json.loads(path.read_text())
-        for path in sorted(folder.glob(f"{scenario}-recurrent-seed*.json"))
+        for path in sorted(folder.glob(f"{scenario}-{model}-seed*.json"))
     ]
 
 
@@ -640,10 +645,10 @@ def headroom_taken(success: float, blind: float, oracle: float) -> float:
 def _goal_lines(
     results: dict[str, dict[str, Any]],
     references: dict[str, References],
-    beyond: dict[tuple[str, str], list[dict[str, float]]],
+    beyond: Beyond,
 ) -> list[str]:
-    """The issues' goals, each with what the finished runs reach (and the tests of the methods
-    beyond the paper's, by (method folder, scenario): `beyond_tests`)."""
+    """The issues' goals, each with what the finished runs reach (and the methods beyond the
+    paper's)."""
     lines = [
         "## Goals",
         "",
@@ -692,8 +697,23 @@ def _goal_lines(
             _row(label, f"{taken:.2f} (blind {blind:.3f}, oracle {oracle:.3f})", len(runs),
                  _verdict(taken >= HEADROOM_GOAL))
         )  # fmt: skip
-    for (method, scenario), tests in beyond.items():
+    for (method, model, scenario), tests in beyond.items():
         bounds = references.get(scenario)
+        if model != "recurrent":
+            continue
+        feedforward = beyond[method, "feedforward", scenario]
+        margin = RECURRENT_MARGIN.get(scenario, 0.0)
+        if tests and feedforward and margin:
+            recurrent_mean, feedforward_mean = (
+                float(np.mean([t["success"] for t in runs])) for runs in (tests, feedforward)
+            )
+            lines.append(
+                _row(f"Table {paper.TABLES[scenario]}, beyond the paper: recurrent {method} beats "
+                     f"feedforward {method} by >= {margin:g}",
+                     f"{recurrent_mean:.3f} vs {feedforward_mean:.3f}",
+                     f"{len(tests)} + {len(feedforward)}",
+                     _verdict(recurrent_mean - feedforward_mean >= margin))
+            )  # fmt: skip
         if not tests or bounds is None or bounds.blind is None or bounds.oracle is None:
             continue
         goal = paper.RECURRENT[scenario][0][0]
@@ -749,13 +769,11 @@ def _reference_rows(scenario: str, bounds: References | None) -> list[str]:
     return rows
 
 
-def _beyond_lines(
-    scenario: str, beyond: dict[tuple[str, str], list[dict[str, float]]]
-) -> list[str]:
+def _beyond_lines(scenario: str, beyond: Beyond) -> list[str]:
     """What each row beyond the paper in a scenario's table is, where there is one."""
     lines = []
     for method in BEYOND_THE_PAPER:
-        if beyond[method.folder, scenario]:
+        if any(beyond[method.folder, model, scenario] for model in MODELS):
             lines += [
                 "",
                 f"{method.folder.capitalize()}: {method.what}. Each result: `{method.command}`.",
@@ -785,8 +803,9 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
     """docs/results.md: our tables beside the paper's."""
     results = _load(results_root)
     beyond = {
-        (method.folder, scenario): beyond_tests(results_root, scenario, method)
+        (method.folder, model, scenario): beyond_tests(results_root, scenario, method, model)
         for method in BEYOND_THE_PAPER
+        for model in MODELS
         for scenario in SCENARIOS
     }
     header = _row("agent", "n", "success", "collision", "unfinished", "paper s / c / u")
@@ -835,11 +854,11 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
                     "",
                 )
             )
-        for method in BEYOND_THE_PAPER:
-            tests = beyond[method.folder, scenario]
+        for method, model in itertools.product(BEYOND_THE_PAPER, reversed(MODELS)):
+            tests = beyond[method.folder, model, scenario]
             if tests:
                 lines.append(
-                    _row(f"Recurrent, {method.folder} (beyond the paper; "
+                    _row(f"{model.capitalize()}, {method.folder} (beyond the paper; "
                          f"{int(tests[0]['episodes'])} episodes)", len(tests), *_cells(tests), "")
                 )  # fmt: skip
         lines += [*_gauge_line(results, scenario), *_beyond_lines(scenario, beyond), ""]
