@@ -15,7 +15,10 @@ forecasts from the true state instead of the tracker's (`lab.oracle.collision_sh
 labels' continuations): what perception costs the rule; an "hS:" prefix forecasts S seconds
 ahead instead of `lookahead.shield_horizon_s` (6 s; 4 s before 2026-12-06); a "v0:" prefix
 gives the tracks of each episode's first decision (seen once: no velocity yet) the true
-velocities. (The log's figures for headings of a track seen once, "f8" / "s1.5", came from a
+velocities; a "restN:" prefix lets each car stand at its start for N control periods before
+the episode, its tracker taking the scans there while the obstacles move (the controller's
+tracking at rest, 2026-12-06: the obstacles' earlier places are their motion run backwards).
+(The log's figures for headings of a track seen once, "f8" / "s1.5", came from a
 package change tried and reverted.)
 """
 
@@ -30,12 +33,12 @@ import numpy as np
 import torch
 
 from qnav.contracts.lookahead import shielded_actions
-from qnav.contracts.motion import Outcome
+from qnav.contracts.motion import Outcome, move_obstacles
 from qnav.controller.lookahead import LookaheadSettings, risks_of
 from qnav.controller.perception import TrackerSettings
 from qnav.lab.oracle import collision_shares
 from qnav.sim.evaluate import EvalResult, EvalSettings, episode_outcomes
-from qnav.sim.world import take_rows
+from qnav.sim.world import observe, take_rows
 from qnav.tracking import LookaheadAgent, noisy
 from qnav.training.agent import policy_agent
 from qnav.training.run_folder import load_network
@@ -55,6 +58,7 @@ class RuledShield(LookaheadAgent):
     rule = "shield"
     truth = False
     first_known = False
+    rest_periods = 0
     state = None
     counting = np.zeros(0, dtype=bool)
 
@@ -65,6 +69,9 @@ class RuledShield(LookaheadAgent):
         chosen = self.inner.act(observation)
         scans = noisy(observation.scan_m, self.range_noise_m, self._noise)
         times_s = self.steps * self.world.control_period_s
+        if self.rest_periods:
+            for row in np.flatnonzero(self.steps == 0):
+                self.stand(row)
         for row, car in enumerate(self.cars):
             car.observe(float(times_s[row]), observation.pose[row], float(times_s[row]), scans[row])
         if self.first_known:  # the first decision's tracks get the true velocities
@@ -83,6 +90,24 @@ class RuledShield(LookaheadAgent):
         self.decisions += action.size
         self.steps += 1
         return action
+
+    def stand(self, row):  # type: ignore[no-untyped-def]
+        """`rest_periods` scans from the start pose before the episode, the obstacles where they
+        were then."""
+        world, period = self.world, self.world.control_period_s
+        state = take_rows(self.state, np.array([row]))
+        xy, velocity = state.obstacle_xy, state.obstacle_velocity
+        before = []
+        for _ in range(self.rest_periods):
+            xy, velocity = move_obstacles(
+                xy, -velocity, world.obstacles.radius_m, world.arena.size_m, period
+            )
+            velocity = -velocity
+            before.append(observe(world, state._replace(obstacle_xy=xy)).scan_m[0])
+        for k, clean in enumerate(reversed(before)):
+            time_s = (k - self.rest_periods) * period
+            scan = noisy(clean[None], self.range_noise_m, self._noise)[0]
+            self.cars[row].observe(time_s, state.pose[0], time_s, scan)
 
 
 def shielded(  # type: ignore[no-untyped-def]
@@ -113,12 +138,13 @@ def main() -> None:
         lookahead = LookaheadSettings(mode="shield", shield_horizon_s=horizon_s)
         agent, world, settings = shielded(run, episodes, seed, lookahead)
         agent.first_known = "v0" in prefixes
+        agent.rest_periods = next((int(p[4:]) for p in prefixes if p.startswith("rest")), 0)
         agent.truth = "truth" in prefixes
         agent.rule = rule
         label = ":".join(
             [
                 f"h{horizon_s:g}",
-                *sorted(set(prefixes) & {"v0", "truth"}),
+                *sorted(p for p in prefixes if p in ("v0", "truth") or p.startswith("rest")),
                 rule,
             ]
         )
