@@ -53,11 +53,13 @@ class TrackerSettings:
     max_obstacle_speed_mps: float = 2.0
     """Fastest obstacle expected: a track seen once (no velocity yet) reaches this far."""
     velocity_frames: int = 5
-    """Most recent centres a velocity is fitted to."""
+    """Most recent centres a velocity is fitted to, one per scan tracked (5: 0.8 s of a 5 Hz
+    lidar; with a faster lidar raise it in proportion to keep the span)."""
     straight_tolerance_m: float = 0.03
     """Largest residual of a centre from the fitted line for a stretch to count as straight."""
     coast_frames: int = 3
-    """Frames a track is kept (moved by its velocity) without a detection."""
+    """Scans a track is kept (moved by its velocity) without a detection (3: 0.6 s at 5 Hz;
+    scale it with the lidar's rate as `velocity_frames`)."""
 
     def __post_init__(self) -> None:
         check_range(

@@ -17,7 +17,10 @@ ahead instead of `lookahead.shield_horizon_s` (6 s; 4 s before 2026-12-06); a "v
 gives the tracks of each episode's first decision (seen once: no velocity yet) the true
 velocities; a "restN:" prefix lets each car stand at its start for N control periods before
 the episode, its tracker taking the scans there while the obstacles move (the controller's
-tracking at rest, 2026-12-06: the obstacles' earlier places are their motion run backwards).
+tracking at rest, 2026-12-06: the obstacles' earlier places are their motion run backwards);
+a "still:" prefix forecasts every track standing where it was last seen (velocity zero, the
+tracker itself untouched): what a perceiver without memory of earlier frames could give the
+forecast.
 (The log's figures for headings of a track seen once, "f8" / "s1.5", came from a
 package change tried and reverted.)
 """
@@ -59,6 +62,7 @@ class RuledShield(LookaheadAgent):
     truth = False
     first_known = False
     rest_periods = 0
+    still = False
     state = None
     counting = np.zeros(0, dtype=bool)
 
@@ -83,6 +87,13 @@ class RuledShield(LookaheadAgent):
             counted = np.flatnonzero(self.counting)
             shares = np.zeros((len(chosen), 3))
             shares[counted] = collision_shares(self.world, take_rows(self.state, counted))
+        elif self.still:  # one frame's perception: positions, no velocities
+            kept = [(t, t.velocity) for car in self.cars for t in car.tracker._tracks]
+            for track, _ in kept:
+                track.velocity = np.zeros(2)
+            shares = risks_of(self.cars, list(observation.target_xy))
+            for track, velocity in kept:
+                track.velocity = velocity
         else:
             shares = risks_of(self.cars, list(observation.target_xy))
         action = ruled(self.inner.last_q, shares, chosen, self.rule)
@@ -140,11 +151,14 @@ def main() -> None:
         agent.first_known = "v0" in prefixes
         agent.rest_periods = next((int(p[4:]) for p in prefixes if p.startswith("rest")), 0)
         agent.truth = "truth" in prefixes
+        agent.still = "still" in prefixes
         agent.rule = rule
         label = ":".join(
             [
                 f"h{horizon_s:g}",
-                *sorted(p for p in prefixes if p in ("v0", "truth") or p.startswith("rest")),
+                *sorted(
+                    p for p in prefixes if p in ("v0", "truth", "still") or p.startswith("rest")
+                ),
                 rule,
             ]
         )
