@@ -166,6 +166,8 @@ class Scan:
     """Readings above this are no return."""
     ranges_m: NDArray[np.float32]
     """The readings."""
+    time_increment_s: float = 0.0
+    """Time between consecutive readings (a rotating lidar's; 0: all taken at the stamp)."""
 
 
 _SCAN_FLOATS = cdr.Layout("7f")
@@ -185,8 +187,8 @@ def encode_scan_msg(scan: Scan) -> bytes:
         scan.angle_min_rad,
         angle_max,
         scan.angle_increment_rad,
-        0.0,  # time_increment
-        0.0,  # scan_time
+        scan.time_increment_s,
+        0.0,  # scan_time (the time between scans): not known here
         scan.range_min_m,
         scan.range_max_m,
     )
@@ -196,14 +198,17 @@ def encode_scan_msg(scan: Scan) -> bytes:
 
 
 def decode_scan_msg(payload: bytes) -> Scan:
-    """A LaserScan; `WireError` if malformed, empty or with a zero or non-finite increment.
+    """A LaserScan; `WireError` if malformed, empty, with a zero or non-finite angle increment,
+    or with a negative or non-finite time increment.
 
     The readings may be anything (NaN and infinities have meanings, REP 117); whether the scan
     is plausible for the lidar is the controller's to judge (`[lidar]` settings).
     """
     reader = cdr.Reader(payload)
     stamp_s, frame_id = _read_header(reader)
-    angle_min, _, increment, _, _, range_min, range_max = reader.unpack(_SCAN_FLOATS, 4)
+    angle_min, _, increment, time_increment, _, range_min, range_max = reader.unpack(
+        _SCAN_FLOATS, 4
+    )
     ranges = reader.float32_sequence()
     reader.float32_sequence()  # intensities: unused, but they must be there
     reader.finish()
@@ -211,7 +216,11 @@ def decode_scan_msg(payload: bytes) -> Scan:
         raise WireError("LaserScan has no ranges")
     if not math.isfinite(increment) or increment == 0.0 or not math.isfinite(angle_min):
         raise WireError(f"LaserScan has an unusable angle_increment {increment}")
-    return Scan(stamp_s, frame_id, angle_min, increment, range_min, range_max, ranges)
+    if not (math.isfinite(time_increment) and time_increment >= 0.0):
+        raise WireError(f"LaserScan has an unusable time_increment {time_increment}")
+    return Scan(
+        stamp_s, frame_id, angle_min, increment, range_min, range_max, ranges, time_increment
+    )
 
 
 @dataclass(frozen=True)

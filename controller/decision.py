@@ -263,6 +263,8 @@ class Controller:
         self._latest = {i: _Latest() for i in Input}
         self._scan: NDArray[np.float32] | None = None
         self._scan_stamp_s: float | None = None
+        self._scan_delays_s: NDArray[np.float64] | None = None
+        """When each of the newest scan's beams was taken after its stamp (None: at it)."""
         self.estop_latched = self.safety.estop_start_latched
         self.estop_pressed: bool | None = None
         self.target_reached = False
@@ -378,6 +380,12 @@ class Controller:
                 f"scan covers {count * increment:.4g} rad (less than lidar.min_field_of_view_rad "
                 f"= {self.lidar.min_field_of_view_rad:.4g})"
             )
+        turn_s = scan.time_increment_s * (count - 1)
+        if turn_s > self.scan_timeout_s:
+            raise WireError(
+                f"scan's readings span {turn_s:.4g} s (time_increment {scan.time_increment_s:.4g}"
+                f" s), longer than safety.scan_timeout_s = {self.scan_timeout_s:.4g} s"
+            )
         resampled = resample_scan(scan, self.scan_rules)
         if resampled.invalid_fraction > self.lidar.max_invalid_fraction:
             raise WireError(
@@ -385,6 +393,7 @@ class Controller:
                 f"lidar.max_invalid_fraction = {self.lidar.max_invalid_fraction})"
             )
         self._scan, self._scan_stamp_s = resampled.ranges_m, scan.stamp_s
+        self._scan_delays_s = resampled.delays_s
         self._mark(Input.SCAN, None, now)
         self._track(now)
 
@@ -398,7 +407,9 @@ class Controller:
             return
         assert self._scan is not None and self._scan_stamp_s is not None  # just taken
         xy_yaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
-        self.lookahead.observe(pose.stamp_s, xy_yaw, self._scan_stamp_s, self._scan)
+        self.lookahead.observe(
+            pose.stamp_s, xy_yaw, self._scan_stamp_s, self._scan, self._scan_delays_s
+        )
 
     def _check_frame(self, what: str, value: Pose2D) -> None:
         wire.check_position(what, value, self.safety.max_position_m, "safety.max_position_m")

@@ -52,7 +52,13 @@ from qnav.contracts.lookahead import (
 from qnav.contracts.motion import Dynamics, InertiaDynamics
 from qnav.contracts.settings import check_range
 from qnav.controller.judge import DoomJudge
-from qnav.controller.perception import ObstacleTracker, TrackerSettings, box_walls, own_velocity
+from qnav.controller.perception import (
+    ObstacleTracker,
+    TrackerSettings,
+    beam_poses,
+    box_walls,
+    own_velocity,
+)
 from qnav.controller.policy import Backend
 
 F64 = NDArray[np.float64]
@@ -182,21 +188,35 @@ class Lookahead:
         self._scan_time_s: float | None = None
 
     def observe(
-        self, pose_time_s: float, pose: F64, scan_time_s: float, scan_m: NDArray[np.floating]
+        self,
+        pose_time_s: float,
+        pose: F64,
+        scan_time_s: float,
+        scan_m: NDArray[np.floating],
+        beam_delays_s: F64 | None = None,
     ) -> None:
         """Take in the newest pose (x, y, heading) and scan (ranges along `beam_angles_rad`),
         with the times they were taken: a scan already tracked is not tracked again, a pose no
         newer than the last is not kept, and a scan after a gap (`max_scan_gap_s`) restarts the
-        tracking first."""
+        tracking first. A rotating lidar's scan, whose beams were taken `beam_delays_s` (B,)
+        after its stamp (`controller.scan.Resampled.delays_s`), is placed beam by beam from the
+        car's pose at each beam's time, on the line through its last two poses."""
         last_s = self._scan_time_s
         if last_s is not None and not 0.0 <= scan_time_s - last_s <= self.max_scan_gap_s:
             self.restart()
-        if scan_time_s != self._scan_time_s:
-            self.tracker.update(scan_time_s, scan_m, pose)
-            self._scan_time_s = scan_time_s
         if not self._pose_times_s or pose_time_s > self._pose_times_s[-1]:
             self._poses = [*self._poses[-2:], np.asarray(pose, dtype=np.float64)]
             self._pose_times_s = [*self._pose_times_s[-2:], pose_time_s]
+        if scan_time_s != self._scan_time_s:
+            if beam_delays_s is not None and len(self._poses) > 1:
+                beam_times_s = scan_time_s + beam_delays_s
+                poses = beam_poses(
+                    np.array(self._poses[-2:]), np.array(self._pose_times_s[-2:]), beam_times_s
+                )
+                self.tracker.update(scan_time_s, scan_m, poses, beam_times_s)
+            else:
+                self.tracker.update(scan_time_s, scan_m, pose)
+            self._scan_time_s = scan_time_s
 
     def belief(self, target_xy: F64) -> Belief:
         """The state the forecast starts from (after at least one `observe`)."""

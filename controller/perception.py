@@ -82,10 +82,22 @@ def box_walls(size_m: float) -> F64:
 
 
 def scan_points(scan_m: NDArray[np.floating], pose: F64, beam_angles_rad: F64) -> F64:
-    """(B, 2) each return's position in the room's frame (nan where there is no return)."""
+    """(B, 2) each return's position in the room's frame (nan where there is no return), seen
+    from `pose`: the scan's one pose (3,), or each beam's own (B, 3) (`beam_poses`)."""
     ranges = np.where(np.isfinite(scan_m), scan_m, np.nan).astype(np.float64)
-    angle = pose[2] + beam_angles_rad
-    return np.stack([pose[0] + ranges * np.cos(angle), pose[1] + ranges * np.sin(angle)], axis=1)
+    angle = pose[..., 2] + beam_angles_rad
+    return np.stack(
+        [pose[..., 0] + ranges * np.cos(angle), pose[..., 1] + ranges * np.sin(angle)], axis=1
+    )
+
+
+def beam_poses(poses: F64, times_s: F64, beam_times_s: F64) -> F64:
+    """(B, 3) the car's pose when each beam was taken, on the line through its last two poses
+    (2, 3) taken at `times_s` (2,): a rotating lidar's beams leave over its turn, while the car
+    moves, so each return is placed from where the car was at its own time."""
+    rate = (poses[1] - poses[0]) / (times_s[1] - times_s[0])
+    rate[2] = math.remainder(float(poses[1, 2] - poses[0, 2]), math.tau) / (times_s[1] - times_s[0])
+    return np.asarray(poses[1] + (beam_times_s - times_s[1])[:, None] * rate)
 
 
 def distance_to_walls(points: F64, walls: F64) -> F64:
@@ -256,6 +268,28 @@ def own_velocity(poses: F64, intervals_s: F64) -> F64:
     return velocity
 
 
+def seen_once(centres: F64, seen_s: F64, diameter_m: float, span_s: float) -> NDArray[np.int64]:
+    """Indices of the detections (D, 2) to keep from a rotating lidar's scan, whose beams at the
+    seam (its first and last) may see one obstacle twice, a turn apart: of two detections less
+    than a diameter apart and seen more than half the scan's span (`span_s`) apart in time, the
+    later (obstacles that overlap are seen at once, and both are kept)."""
+    kept: list[int] = []
+    for index in np.argsort(-seen_s, kind="stable"):
+        twice = any(
+            np.linalg.norm(centres[index] - centres[other]) < diameter_m
+            and seen_s[other] - seen_s[index] > span_s / 2
+            for other in kept
+        )
+        if not twice:
+            kept.append(int(index))
+    return np.array(sorted(kept), dtype=np.int64)
+
+
+def _sensor_xy(pose: F64, beams: NDArray[np.int64]) -> F64:
+    """Where the lidar was while it took `beams`: the scan's pose, or their poses' mean."""
+    return pose[:2] if pose.ndim == 1 else np.asarray(pose[beams, :2].mean(axis=0))
+
+
 class Tracks(NamedTuple):
     """What the tracker believes now, in the room's frame."""
 
@@ -288,28 +322,55 @@ class ObstacleTracker:
         self._time_s = 0.0
 
     def detect(self, scan_m: NDArray[np.floating], pose: F64) -> F64:
-        """(D, 2) obstacle centres found in one scan."""
+        """(D, 2) obstacle centres found in one scan seen from `pose` (as `scan_points`)."""
+        return self._detect(scan_m, pose)[0]
+
+    def _detect(
+        self, scan_m: NDArray[np.floating], pose: F64
+    ) -> tuple[F64, list[NDArray[np.int64]]]:
+        """`detect`'s centres, and the beams each was found in."""
         s = self.settings
         points = scan_points(scan_m, pose, self.beam_angles_rad)
         runs = clusters(points, off_the_walls(points, self.walls, s.wall_band_m), s.cluster_gap_m)
         pieces = [
             piece
             for run in runs
-            for piece in split_wide(run, points, pose[:2], s.obstacle_radius_m)
+            for piece in split_wide(run, points, _sensor_xy(pose, run), s.obstacle_radius_m)
             if len(piece) >= s.min_returns
         ]
-        centres = [fit_circle(points[piece], pose[:2], s.obstacle_radius_m) for piece in pieces]
-        return np.array(centres, dtype=np.float64).reshape(-1, 2)
+        centres = [
+            fit_circle(points[piece], _sensor_xy(pose, piece), s.obstacle_radius_m)
+            for piece in pieces
+        ]
+        return np.array(centres, dtype=np.float64).reshape(-1, 2), pieces
 
-    def update(self, time_s: float, scan_m: NDArray[np.floating], pose: F64) -> Tracks:
-        """Take in a scan taken at `time_s` from `pose`; the tracks as they are now."""
+    def update(
+        self,
+        time_s: float,
+        scan_m: NDArray[np.floating],
+        pose: F64,
+        beam_times_s: F64 | None = None,
+    ) -> Tracks:
+        """Take in a scan taken at `time_s` from `pose`, or beam by beam at `beam_times_s` (B,)
+        from each beam's pose (B, 3) (`beam_poses`); the tracks as they are at its last beam."""
         s = self.settings
-        detections = self.detect(scan_m, pose)
-        predicted = np.array([t.predicted(time_s) for t in self._tracks]).reshape(-1, 2)
+        detections, pieces = self._detect(scan_m, pose)
+        if beam_times_s is None:
+            seen_s = np.full(len(detections), time_s)
+        else:  # each obstacle where it was when the beams that found it were taken
+            seen_s = np.array([beam_times_s[piece].mean() for piece in pieces])
+            time_s = float(beam_times_s.max())
+            span_s = float(np.ptp(beam_times_s))
+            latest = seen_once(detections, seen_s, 2 * s.obstacle_radius_m, span_s)
+            detections, seen_s = detections[latest], seen_s[latest]
+        last = np.array([t.centres[-1] for t in self._tracks]).reshape(-1, 2)
+        velocity = np.array([t.velocity for t in self._tracks]).reshape(-1, 2)
+        elapsed_s = seen_s[None] - np.array([t.times_s[-1] for t in self._tracks])[:, None]
+        predicted = last[:, None] + velocity[:, None] * elapsed_s[..., None]  # (tracks, found, 2)
         taken_tracks: set[int] = set()
         taken_detections: set[int] = set()
         if len(predicted) and len(detections):
-            distance = np.linalg.norm(predicted[:, None] - detections[None], axis=2)
+            distance = np.linalg.norm(predicted - detections[None], axis=2)
             gate = np.array([self._gate_m(track, time_s) for track in self._tracks])
             distance[distance > gate[:, None]] = np.inf
             for flat in np.argsort(distance, axis=None):
@@ -320,7 +381,7 @@ class ObstacleTracker:
                     continue
                 taken_tracks.add(row)
                 taken_detections.add(detection)
-                self._extend(self._tracks[row], time_s, detections[detection])
+                self._extend(self._tracks[row], float(seen_s[detection]), detections[detection])
         kept = []
         for index, track in enumerate(self._tracks):
             if index not in taken_tracks:
@@ -331,7 +392,7 @@ class ObstacleTracker:
             if index not in taken_detections:
                 kept.append(
                     _Track(
-                        deque([time_s], maxlen=s.velocity_frames),
+                        deque([float(seen_s[index])], maxlen=s.velocity_frames),
                         deque([centre], maxlen=s.velocity_frames),
                     )
                 )

@@ -19,6 +19,10 @@ clockwise scan) and mounting. The rule, the same for finer and coarser scans:
    one or two readings around it.
 4. A beam that no valid reading overlaps (outside a partial field of view, or only invalid
    readings) reads `lidar.uncovered_range_m` (+inf by default: no return).
+5. A rotating lidar takes its readings one after another (LaserScan's time_increment): beam j
+   was taken the index of its first overlapping reading times time_increment after the stamp
+   (`Resampled.delays_s`), which the obstacle tracker uses to place each beam from where the car
+   was then (`controller.lookahead`).
 
 The mapping from readings to beams depends only on the scan's layout, so it is computed once
 per layout and cached; resampling a scan is then a few passes over its readings to clean
@@ -65,6 +69,9 @@ class Resampled:
     """(num_beams,) ranges; +inf is no return."""
     invalid_fraction: float
     """Fraction of the scan's readings that were invalid (NaN, or below range_min if so ruled)."""
+    delays_s: NDArray[np.float64] | None = None
+    """(num_beams,) when each beam was taken, in seconds after the stamp (None: all at the
+    stamp, a scan without a time_increment)."""
 
 
 _BELOW_RANGE_MIN: dict[BelowRangeMin, float] = {
@@ -116,7 +123,18 @@ def resample_scan(scan: Scan, rules: ScanRules) -> Resampled:
     for column in range(1, index.shape[1]):
         np.fmin(beams, values[index[:, column]], out=beams)
     beams[np.isnan(beams)] = rules.uncovered_range_m  # no valid reading overlaps the beam
-    return Resampled(beams.astype(np.float32), invalid_fraction)
+    delays_s = None
+    if scan.time_increment_s > 0.0:
+        delays_s = scan.time_increment_s * first_readings(index, len(scan.ranges_m))
+    return Resampled(beams.astype(np.float32), invalid_fraction, delays_s)
+
+
+def first_readings(index: NDArray[np.intp], count: int) -> NDArray[np.float64]:
+    """(num_beams,) the index of the first reading overlapping each beam (`beam_index`'s table
+    over `count` readings; 0 for a beam none overlaps). The first, not the mean: a beam at the
+    scan's seam overlaps its last reading and its first, a whole turn apart."""
+    first = np.where(index < count, index, count).min(axis=1)
+    return np.where(first < count, first, 0).astype(np.float64)
 
 
 @lru_cache(maxsize=16)

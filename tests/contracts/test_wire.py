@@ -9,6 +9,7 @@ JSON), because those payloads can release a stop or move the car.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Callable
@@ -46,7 +47,7 @@ def rosbags_scan_bytes(
         angle_min=scan.angle_min_rad,
         angle_max=scan.angle_min_rad + scan.angle_increment_rad * max(count - 1, 0),
         angle_increment=scan.angle_increment_rad,
-        time_increment=0.0,
+        time_increment=scan.time_increment_s,
         scan_time=0.0,
         range_min=scan.range_min_m,
         range_max=scan.range_max_m,
@@ -66,6 +67,9 @@ def rosbags_scan(payload: bytes) -> wire.Scan:
         raise wire.WireError("LaserScan has no ranges")
     if not math.isfinite(increment) or increment == 0.0 or not math.isfinite(message.angle_min):
         raise wire.WireError(f"LaserScan has an unusable angle_increment {increment}")
+    time_increment = float(message.time_increment)
+    if not (math.isfinite(time_increment) and time_increment >= 0.0):
+        raise wire.WireError(f"LaserScan has an unusable time_increment {time_increment}")
     header = message.header
     return wire.Scan(
         stamp_s=float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9,
@@ -75,6 +79,7 @@ def rosbags_scan(payload: bytes) -> wire.Scan:
         range_min_m=float(message.range_min),
         range_max_m=float(message.range_max),
         ranges_m=ranges,
+        time_increment_s=time_increment,
     )
 
 
@@ -143,7 +148,10 @@ def scans() -> list[wire.Scan]:
         frame = FRAMES[i % len(FRAMES)]
         angle_min, increment = (-math.pi, 2 * math.pi / count) if i % 2 else (0.3, -0.01)
         stamp = 1e6 + i * 0.123456789
-        result.append(wire.Scan(stamp, frame, angle_min, increment, 0.1, 30.0, ranges))
+        turn_s = 0.1 if i % 3 else 0.0  # a rotating lidar's 10 Hz turn, or all at the stamp
+        result.append(
+            wire.Scan(stamp, frame, angle_min, increment, 0.1, 30.0, ranges, turn_s / count)
+        )
     return result
 
 
@@ -205,6 +213,11 @@ def test_the_scan_decoder_refuses_whatever_rosbags_refuses_and_more() -> None:
     empty = wire.Scan(5.5, "laser", -1.0, 0.25, 0.1, 30.0, np.zeros(0, dtype=np.float32))
     zero = wire.Scan(5.5, "laser", -1.0, 0.0, 0.1, 30.0, np.ones(3, dtype=np.float32))
     broken += [rosbags_scan_bytes(empty), rosbags_scan_bytes(zero)]
+    for time_increment in (-1e-4, math.nan, math.inf):  # a time that runs back, or none
+        timed = wire.Scan(5.5, "laser", -1.0, 0.25, 0.1, 30.0, np.ones(3, np.float32), 0.0)
+        timed = dataclasses.replace(timed, time_increment_s=time_increment)
+        broken.append(rosbags_scan_bytes(timed))
+        assert outcome(wire.decode_scan_msg, broken[-1])[0] == "error"
     for candidate in broken:
         refused_if_rosbags_refuses(wire.decode_scan_msg, rosbags_scan, candidate)
     # Rosbags reads these; they are not one well-formed LaserScan.

@@ -287,9 +287,12 @@ def scan_layout(
     increment: float = 2 * math.pi / 720,
     range_min: float = 0.1,
     range_max: float = 30.0,
+    time_increment: float = 0.0,
 ) -> bytes:
     ranges = np.full(count, 3.0, dtype=np.float32)
-    return wire.encode_scan_msg(Scan(0.0, "laser", 0.0, increment, range_min, range_max, ranges))
+    return wire.encode_scan_msg(
+        Scan(0.0, "laser", 0.0, increment, range_min, range_max, ranges, time_increment)
+    )
 
 
 @pytest.mark.parametrize(
@@ -303,6 +306,8 @@ def scan_layout(
         pytest.param(scan_layout(count=1, increment=0.01), "min_readings", id="one-reading"),
         pytest.param(scan_layout(count=49, increment=0.1), "min_readings", id="49-readings"),
         pytest.param(scan_layout(count=300, increment=0.01), "min_field_of_view", id="narrow"),
+        # Readings spread over a second: longer than the scan timeout (two 0.2 s periods).
+        pytest.param(scan_layout(time_increment=1 / 719), "scan_timeout_s", id="slow-turn"),
     ],
 )
 def test_a_scan_that_no_planar_lidar_sends_is_malformed(

@@ -21,6 +21,7 @@ from qnav.controller.policy import PolicyRuntime
 from qnav.lab.oracle import lookahead_model
 from qnav.sim.config import WorldConfig, scenario
 from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent
+from qnav.sim.geometry import cast_lidar
 from qnav.sim.world import WorldState, observe, reset, step
 from qnav.simcar.car import scan_message
 from qnav.tracking import world_lookahead
@@ -214,3 +215,95 @@ def test_tracking_starts_again_when_the_scans_break_off(gap: str) -> None:
     tracks = controller.lookahead.tracker.tracks()
     assert len(tracks.xy_m) >= _seen(state).sum()
     np.testing.assert_array_equal(tracks.velocity_mps, 0.0)  # every track seen once
+
+
+def _rotating_scan(world: WorldConfig, state: WorldState, pose_at, first_s: float, turn_s: float):  # type: ignore[no-untyped-def]
+    """The scan a lidar whose turn takes `turn_s` takes from `first_s` on: beam i from the car's
+    pose at its own time (`pose_at(t)`), the obstacles where they are then (`state` at time 0)."""
+    assert world.lidar is not None
+    beams = world.lidar.num_beams
+    times_s = first_s + turn_s / beams * np.arange(beams)
+    poses = np.array([pose_at(t) for t in times_s])
+    places = np.array(
+        [
+            move_obstacles(
+                state.obstacle_xy,
+                state.obstacle_velocity,
+                world.obstacles.radius_m,
+                world.arena.size_m,
+                t,
+            )[0][0]
+            for t in times_s
+        ]
+    )
+    every = cast_lidar(poses, world.lidar, world.arena, places, world.obstacles.radius_m)
+    return every[np.arange(beams), np.arange(beams)], places[-1]
+
+
+@pytest.mark.parametrize("time_increment", ["sent", "zero"])
+def test_a_rotating_lidars_scan_is_placed_beam_by_beam_from_where_the_turning_car_was(
+    time_increment: str,
+) -> None:
+    """A 10 Hz lidar on a car turning at 1 rad/s and driving at 0.5 m/s: its scan's first and
+    last beams leave 0.1 rad and 5 cm of the car's motion apart. Placed beam by beam (LaserScan's
+    time_increment), every obstacle is tracked where it is and as it moves, and nothing else;
+    placed from one pose (time_increment 0, as before), walls become obstacles and the real ones
+    are misplaced."""
+    world = scenario("obstacles-inertia")
+    assert world.lidar is not None
+    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
+    controller = Controller(
+        PolicyRuntime(OBSTACLES_POLICY),
+        lookahead=settings,
+        tracker=TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
+    )
+    state = reset(world, np.array([EvalSettings().seed]), np.array([4]))
+    start = np.array([5.0, 5.0, 0.3])
+
+    def pose_at(time_s: float) -> NDArray[np.float64]:
+        return start + time_s * np.array([0.5 * np.cos(0.3), 0.5 * np.sin(0.3), 1.0])
+
+    turn_s, period, beams = 0.1, 0.2, world.lidar.num_beams
+    for k in range(1, 7):
+        now = k * period  # the scan ends now; its first beam left turn_s ago
+        scan, places = _rotating_scan(world, state, pose_at, now - turn_s, turn_s)
+        x, y, yaw = pose_at(now)
+        controller.receive(
+            Input.POSE, wire.encode_pose_msg(wire.Pose2D(now, "map", x, y, yaw)), now
+        )
+        increment_s = turn_s / beams if time_increment == "sent" else 0.0
+        message = wire.Scan(
+            now - turn_s,
+            "laser",
+            0.0,
+            2 * np.pi / beams,
+            0.0,
+            world.lidar.max_range_m,
+            scan.astype(np.float32),
+            increment_s,
+        )
+        controller.receive(Input.SCAN, wire.encode_scan_msg(message), now)
+    assert sum(controller.counters.malformed.values()) == 0
+    assert controller.lookahead is not None
+    tracks = controller.lookahead.tracker.tracks()
+    moved = state._replace(
+        obstacle_xy=places[None],
+        pose=pose_at(now)[None],
+    )
+    seen = _seen(moved)
+    assert seen.sum() >= 2
+    gaps = np.linalg.norm(tracks.xy_m[:, None] - places[seen][None], axis=2)
+    if time_increment == "zero":
+        assert len(tracks.xy_m) > seen.sum() or gaps.min(axis=0).max() > 0.02
+        return
+    assert len(tracks.xy_m) == seen.sum()  # no wall taken for an obstacle
+    np.testing.assert_allclose(gaps.min(axis=0), 0.0, atol=0.005)
+    _, velocity = move_obstacles(
+        state.obstacle_xy,
+        state.obstacle_velocity,
+        world.obstacles.radius_m,
+        world.arena.size_m,
+        now,
+    )
+    nearest = gaps.argmin(axis=0)
+    np.testing.assert_allclose(tracks.velocity_mps[nearest], velocity[0][seen], atol=0.02)

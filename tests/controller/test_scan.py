@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -218,3 +219,24 @@ def test_resampling_gives_the_values_of_the_masked_reference_for_any_readings(
                 assert got.ranges_m.dtype == np.float32
                 np.testing.assert_array_equal(got.ranges_m, beams)
                 assert got.invalid_fraction == invalid_fraction
+
+
+def test_each_beam_of_a_rotating_scan_carries_the_time_of_its_first_reading() -> None:
+    """LaserScan's time_increment times the readings; a beam's delay after the stamp is its
+    first overlapping reading's (the seam's beam overlaps the last reading and the first, a turn
+    apart: the first)."""
+    rules = ScanRules(num_beams=POLICY_BEAMS)
+    dt = 0.1 / 720
+    own = make_scan(POLICY_BEAMS, 0.0, np.full(POLICY_BEAMS, 3.0))
+    timed = replace(own, time_increment_s=dt)
+    delays = resample_scan(timed, rules).delays_s
+    assert delays is not None
+    np.testing.assert_allclose(delays, dt * np.arange(POLICY_BEAMS))
+    coarse = make_scan(360, 0.0, np.full(360, 3.0))  # each reading covers 1 degree, two beams
+    timed = replace(coarse, time_increment_s=dt)
+    delays = resample_scan(timed, rules).delays_s
+    assert delays is not None
+    expected = dt * (np.arange(POLICY_BEAMS) // 2)  # beam 2i: reading i; beam 2i+1: i and i+1
+    expected[-1] = 0.0  # the seam's beam: readings 359 and 0
+    np.testing.assert_allclose(delays, expected)
+    assert resample_scan(coarse, rules).delays_s is None  # no time_increment: all at the stamp

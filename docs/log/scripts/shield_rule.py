@@ -20,7 +20,12 @@ the episode, its tracker taking the scans there while the obstacles move (the co
 tracking at rest, 2026-12-06: the obstacles' earlier places are their motion run backwards);
 a "still:" prefix forecasts every track standing where it was last seen (velocity zero, the
 tracker itself untouched): what a perceiver without memory of earlier frames could give the
-forecast.
+forecast; a "smearS:" prefix gives the tracker the scans of a rotating lidar whose turn takes S
+seconds and ends at the decision (beam 0 first, in 40 slices of beams, each cast from the car's
+pose and the obstacles' places at its time; the car's pose at the decision, as motion capture
+gives it, is what the tracker pairs the scan with; the DQN keeps the instantaneous scan); with
+an "ego:" prefix beside it only the car moves during the turn (the obstacles stand where they are
+at the decision), with "obs:" only the obstacles.
 (The log's figures for headings of a track seen once, "f8" / "s1.5", came from a
 package change tried and reverted.)
 """
@@ -40,6 +45,7 @@ from qnav.contracts.motion import Outcome, move_obstacles
 from qnav.controller.lookahead import LookaheadSettings, risks_of
 from qnav.controller.perception import TrackerSettings
 from qnav.lab.oracle import collision_shares
+from qnav.sim.geometry import cast_lidar
 from qnav.sim.evaluate import EvalResult, EvalSettings, episode_outcomes
 from qnav.sim.world import observe, take_rows
 from qnav.tracking import LookaheadAgent, noisy
@@ -63,6 +69,10 @@ class RuledShield(LookaheadAgent):
     first_known = False
     rest_periods = 0
     still = False
+    smear_s = 0.0
+    smear_parts = ("ego", "obs")
+    deskew = False
+    previous_pose = None
     state = None
     counting = np.zeros(0, dtype=bool)
 
@@ -71,13 +81,21 @@ class RuledShield(LookaheadAgent):
 
     def act(self, observation):  # type: ignore[no-untyped-def]
         chosen = self.inner.act(observation)
-        scans = noisy(observation.scan_m, self.range_noise_m, self._noise)
+        scan_m = self.smeared(observation) if self.smear_s else observation.scan_m
+        scans = noisy(scan_m, self.range_noise_m, self._noise)
         times_s = self.steps * self.world.control_period_s
         if self.rest_periods:
             for row in np.flatnonzero(self.steps == 0):
                 self.stand(row)
         for row, car in enumerate(self.cars):
-            car.observe(float(times_s[row]), observation.pose[row], float(times_s[row]), scans[row])
+            now_s = float(times_s[row])
+            if self.deskew:  # the scan's first beam left smear_s before the decision
+                delays_s = self.smear_s / scans.shape[1] * np.arange(scans.shape[1])
+                car.observe(
+                    now_s, observation.pose[row], now_s - self.smear_s, scans[row], delays_s
+                )
+            else:
+                car.observe(now_s, observation.pose[row], now_s, scans[row])
         if self.first_known:  # the first decision's tracks get the true velocities
             for row in np.flatnonzero(self.steps == 0):
                 for track in self.cars[row].tracker._tracks:
@@ -101,6 +119,34 @@ class RuledShield(LookaheadAgent):
         self.decisions += action.size
         self.steps += 1
         return action
+
+    def smeared(self, observation):  # type: ignore[no-untyped-def]
+        """The scans a rotating lidar would give, its turn of `smear_s` ending now."""
+        world, state, slices = self.world, self.state, 40
+        now = state.pose
+        previous = now if self.previous_pose is None else self.previous_pose
+        previous = np.where((self.steps == 0)[:, None], now, previous)
+        turned = np.angle(np.exp(1j * (now[:, 2] - previous[:, 2])))
+        scans = np.empty_like(observation.scan_m)
+        beams = world.lidar.num_beams
+        for k in range(slices):
+            back_s = self.smear_s * (1 - (k + 0.5) / slices)
+            share = back_s / world.control_period_s * ("ego" in self.smear_parts)
+            pose = now.copy()
+            pose[:, :2] -= share * (now[:, :2] - previous[:, :2])
+            pose[:, 2] -= share * turned
+            xy, _ = move_obstacles(
+                state.obstacle_xy,
+                -state.obstacle_velocity,
+                world.obstacles.radius_m,
+                world.arena.size_m,
+                back_s * ("obs" in self.smear_parts),
+            )
+            part = slice(k * beams // slices, (k + 1) * beams // slices)
+            cast = cast_lidar(pose, world.lidar, world.arena, xy, world.obstacles.radius_m)
+            scans[:, part] = cast[:, part]
+        self.previous_pose = now.copy()
+        return scans
 
     def stand(self, row):  # type: ignore[no-untyped-def]
         """`rest_periods` scans from the start pose before the episode, the obstacles where they
@@ -152,12 +198,18 @@ def main() -> None:
         agent.rest_periods = next((int(p[4:]) for p in prefixes if p.startswith("rest")), 0)
         agent.truth = "truth" in prefixes
         agent.still = "still" in prefixes
+        agent.deskew = "deskew" in prefixes
+        agent.smear_parts = tuple(p for p in ("ego", "obs") if p in prefixes) or ("ego", "obs")
+        agent.smear_s = next((float(p[5:]) for p in prefixes if p.startswith("smear")), 0.0)
         agent.rule = rule
         label = ":".join(
             [
                 f"h{horizon_s:g}",
                 *sorted(
-                    p for p in prefixes if p in ("v0", "truth", "still") or p.startswith("rest")
+                    p
+                    for p in prefixes
+                    if p in ("v0", "truth", "still", "ego", "obs", "deskew")
+                    or p.startswith(("rest", "smear"))
                 ),
                 rule,
             ]
