@@ -4,7 +4,8 @@ The paper's network is asked to find moving obstacles in raw ranges; measured, i
 (docs/learner.md, "Why: perception and the doom function's appetite for data"). Indoors the car
 knows its pose (motion capture) and the room's walls, which makes the job classical and cheap:
 
-1. every return becomes a point in the room's frame (`scan_points`);
+1. every return becomes a point in the room's frame (`scan_points`), placed from the car's pose
+   when it was taken (`beam_poses`: a rotating lidar's beams leave over its turn);
 2. returns on a known wall are the wall (`off_the_walls`); the rest is grouped into runs of
    neighbouring beams (`clusters`);
 3. each cluster is the near side of a cylinder of known radius, whose centre a least-squares
