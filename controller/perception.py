@@ -141,15 +141,26 @@ cylinder, whose near side spans at most two radii (the rest allows for range noi
 obstacles side by side, merged in the scan."""
 
 
+CLUTTER_ARC = 8.0
+"""A run wider than this many obstacle radii (four obstacles side by side) is not a few merged
+obstacles but something long the room's walls do not explain (furniture, a wall placed from the
+wrong pose): it is cut into pieces one obstacle wide, in one pass, where searching for the best
+cuts would cost time quadratic in its length (up to 0.2 s a scan, docs/controller.md)."""
+
+
 def split_wide(
     run: NDArray[np.int64], points: F64, sensor_xy: F64, radius_m: float
 ) -> list[NDArray[np.int64]]:
     """`run` (beam indices, in scan order) as the runs of single obstacles: one too wide to be
     one is cut where the circle fits of the two sides leave the least residual, and each side
-    again if need be."""
+    again if need be; one wider than `CLUTTER_ARC` radii is cut into pieces one obstacle wide
+    (`one_wide_pieces`)."""
     ends = points[run[-1]] - points[run[0]]
-    if len(run) < 6 or float(np.hypot(*ends)) <= WIDEST_ARC * radius_m:
+    width_m = float(np.hypot(*ends))
+    if len(run) < 6 or width_m <= WIDEST_ARC * radius_m:
         return [run]
+    if width_m > CLUTTER_ARC * radius_m:
+        return one_wide_pieces(run, points, 2 * radius_m)
     best, cut = np.inf, 0
     for k in range(3, len(run) - 2):
         residual = sum(
@@ -161,6 +172,18 @@ def split_wide(
         *split_wide(run[:cut], points, sensor_xy, radius_m),
         *split_wide(run[cut:], points, sensor_xy, radius_m),
     ]
+
+
+def one_wide_pieces(run: NDArray[np.int64], points: F64, width_m: float) -> list[NDArray[np.int64]]:
+    """`run` cut into consecutive pieces whose points lie within `width_m` of the piece's first."""
+    pieces, start = [], 0
+    first = points[run[0]]
+    for k in range(1, len(run)):
+        if float(np.hypot(*(points[run[k]] - first))) > width_m:
+            pieces.append(run[start:k])
+            start, first = k, points[run[k]]
+    pieces.append(run[start:])
+    return pieces
 
 
 def _fit_residual(points: F64, sensor_xy: F64, radius_m: float) -> float:

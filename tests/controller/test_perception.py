@@ -17,6 +17,7 @@ from qnav.controller.perception import (
     fit_circle,
     fit_velocity,
     off_the_walls,
+    one_wide_pieces,
     scan_points,
 )
 
@@ -112,6 +113,34 @@ def test_two_cylinders_side_by_side_are_two_detections_not_one() -> None:
     assert len(found) == 2
     for centre in (left, right):
         assert np.min(np.linalg.norm(found - centre, axis=1)) < 1e-3
+
+
+def test_a_long_unknown_object_becomes_a_chain_of_obstacle_wide_pieces() -> None:
+    # A 3 m cabinet face 3 m ahead, which the room's walls do not explain: cut in one pass into
+    # pieces one obstacle (0.4 m) wide, each a detection within a radius behind the face, so the
+    # forecast keeps the car off all of it (the best-cut search would be quadratic in its
+    # length: up to 0.2 s a scan, docs/controller.md).
+    pose = np.array([5.0, 2.0, math.pi / 2])
+    ranges = _scan_of(None, pose).astype(np.float64)
+    angle = pose[2] + BEAMS
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = 3.0 / np.sin(angle)  # the face y = 5 m, from x = 3.5 to 6.5 m
+    x = pose[0] + along * np.cos(angle)
+    face = (along > 0) & (np.abs(x - 5.0) <= 1.5)
+    ranges[face] = np.minimum(ranges[face], along[face])
+    tracker = ObstacleTracker(TrackerSettings(), box_walls(10.0), BEAMS)
+    found = tracker.detect(ranges.astype(np.float32), pose)
+    assert 7 <= len(found) <= 9  # 3 m in pieces of at most 0.4 m
+    assert np.all((found[:, 1] >= 5.0) & (found[:, 1] <= 5.2 + 1e-6))
+    assert found[:, 0].min() < 3.5 + 0.4 and found[:, 0].max() > 6.5 - 0.4  # end to end
+
+
+def test_obstacle_wide_pieces_are_consecutive_and_each_within_the_width() -> None:
+    points = np.stack([np.linspace(0.0, 3.0, 61), np.zeros(61)], axis=1)  # 5 cm apart
+    run = np.arange(100, 161)
+    pieces = one_wide_pieces(run, np.concatenate([np.zeros((100, 2)), points]), 0.42)
+    np.testing.assert_array_equal(np.concatenate(pieces), run)
+    assert [len(piece) for piece in pieces] == [9] * 6 + [7]  # 0.42 m holds 9 points 5 cm apart
 
 
 def test_a_lost_track_coasts_then_goes() -> None:
