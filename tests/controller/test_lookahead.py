@@ -217,7 +217,13 @@ def test_tracking_starts_again_when_the_scans_break_off(gap: str) -> None:
     np.testing.assert_array_equal(tracks.velocity_mps, 0.0)  # every track seen once
 
 
-def _rotating_scan(world: WorldConfig, state: WorldState, pose_at, first_s: float, turn_s: float):  # type: ignore[no-untyped-def]
+def _rotating_scan(
+    world: WorldConfig,
+    state: WorldState,
+    pose_at: Callable[[float], NDArray[np.float64]],
+    first_s: float,
+    turn_s: float,
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
     """The scan a lidar whose turn takes `turn_s` takes from `first_s` on: beam i from the car's
     pose at its own time (`pose_at(t)`), the obstacles where they are then (`state` at time 0)."""
     assert world.lidar is not None
@@ -237,7 +243,7 @@ def _rotating_scan(world: WorldConfig, state: WorldState, pose_at, first_s: floa
         ]
     )
     every = cast_lidar(poses, world.lidar, world.arena, places, world.obstacles.radius_m)
-    return every[np.arange(beams), np.arange(beams)], places[-1]
+    return np.asarray(every[np.arange(beams), np.arange(beams)]), places[-1]
 
 
 @pytest.mark.parametrize("time_increment", ["sent", "zero"])
@@ -286,11 +292,7 @@ def test_a_rotating_lidars_scan_is_placed_beam_by_beam_from_where_the_turning_ca
     assert sum(controller.counters.malformed.values()) == 0
     assert controller.lookahead is not None
     tracks = controller.lookahead.tracker.tracks()
-    moved = state._replace(
-        obstacle_xy=places[None],
-        pose=pose_at(now)[None],
-    )
-    seen = _seen(moved)
+    seen = _seen(state._replace(obstacle_xy=places[None], pose=pose_at(now)[None]))
     assert seen.sum() >= 2
     gaps = np.linalg.norm(tracks.xy_m[:, None] - places[seen][None], axis=2)
     if time_increment == "zero":

@@ -11,7 +11,8 @@ poses known, as on the car: motion capture), the five aligned scans are channels
 velocity, in the robot's frame, of the obstacle its return falls on. Labels are free from the
 simulator. A one-frame network cannot do better than the mean velocity, which is the baseline.
 
-Usage: learned_motion.py SCENARIO TRAIN_WINDOWS EPOCHS OUT.pt   (fit and judge; saves the network)
+Usage: learned_motion.py SCENARIO TRAIN_WINDOWS EPOCHS OUT.pt [LEARNING_RATE]
+(fits and judges after every pass, saving the network; the learning rate defaults to 1e-3)
 """
 
 from __future__ import annotations
