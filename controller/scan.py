@@ -125,16 +125,29 @@ def resample_scan(scan: Scan, rules: ScanRules) -> Resampled:
     beams[np.isnan(beams)] = rules.uncovered_range_m  # no valid reading overlaps the beam
     delays_s = None
     if scan.time_increment_s > 0.0:
-        delays_s = scan.time_increment_s * first_readings(index, len(scan.ranges_m))
+        first = first_readings(
+            len(scan.ranges_m),
+            scan.angle_min_rad,
+            scan.angle_increment_rad,
+            rules.num_beams,
+            rules.mount_yaw_rad,
+        )
+        delays_s = scan.time_increment_s * first
     return Resampled(beams.astype(np.float32), invalid_fraction, delays_s)
 
 
-def first_readings(index: NDArray[np.intp], count: int) -> NDArray[np.float64]:
-    """(num_beams,) the index of the first reading overlapping each beam (`beam_index`'s table
-    over `count` readings; 0 for a beam none overlaps). The first, not the mean: a beam at the
-    scan's seam overlaps its last reading and its first, a whole turn apart."""
+@lru_cache(maxsize=16)
+def first_readings(
+    count: int, angle_min_rad: float, increment_rad: float, num_beams: int, mount_yaw_rad: float
+) -> NDArray[np.float64]:
+    """(num_beams,) the index of the first reading overlapping each beam (`beam_index`'s table;
+    0 for a beam none overlaps), cached per layout as that table is. The first, not the mean: a
+    beam at the scan's seam overlaps its last reading and its first, a whole turn apart."""
+    index = beam_index(count, angle_min_rad, increment_rad, num_beams, mount_yaw_rad)
     first = np.where(index < count, index, count).min(axis=1)
-    return np.where(first < count, first, 0).astype(np.float64)
+    result = np.where(first < count, first, 0).astype(np.float64)
+    result.setflags(write=False)
+    return result
 
 
 @lru_cache(maxsize=16)

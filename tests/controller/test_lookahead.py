@@ -141,17 +141,21 @@ def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes
     assert overruled > 0, "the look ahead overruled nothing: these episodes test no shield"
 
 
-def _at_rest(world_name: str, seconds: float) -> tuple[Controller, WorldState, float]:
-    """A shielding controller fed `seconds` of scans and poses, no target, while the car stands
-    and the obstacles move; the world as it is at the end, and the time."""
-    world = scenario(world_name)
-    assert world.lidar is not None
+def _shielding_controller(world: WorldConfig) -> Controller:
+    """A controller running the obstacles policy with the shield, for `world`'s room."""
     settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
-    controller = Controller(
+    return Controller(
         PolicyRuntime(OBSTACLES_POLICY),
         lookahead=settings,
         tracker=TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
     )
+
+
+def _at_rest(world_name: str, seconds: float) -> tuple[Controller, WorldState, float]:
+    """A shielding controller fed `seconds` of scans and poses, no target, while the car stands
+    and the obstacles move; the world as it is at the end, and the time."""
+    world = scenario(world_name)
+    controller = _shielding_controller(world)
     state = reset(world, np.array([EvalSettings().seed]), np.array([4]))
     period, now = world.control_period_s, 0.0
     for k in range(round(seconds / period)):
@@ -257,12 +261,7 @@ def test_a_rotating_lidars_scan_is_placed_beam_by_beam_from_where_the_turning_ca
     are misplaced."""
     world = scenario("obstacles-inertia")
     assert world.lidar is not None
-    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
-    controller = Controller(
-        PolicyRuntime(OBSTACLES_POLICY),
-        lookahead=settings,
-        tracker=TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
-    )
+    controller = _shielding_controller(world)
     state = reset(world, np.array([EvalSettings().seed]), np.array([4]))
     start = np.array([5.0, 5.0, 0.3])
 
