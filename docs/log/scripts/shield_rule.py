@@ -25,7 +25,13 @@ seconds and ends at the decision (beam 0 first, in 40 slices of beams, each cast
 pose and the obstacles' places at its time; the car's pose at the decision, as motion capture
 gives it, is what the tracker pairs the scan with; the DQN keeps the instantaneous scan); with
 an "ego:" prefix beside it only the car moves during the turn (the obstacles stand where they are
-at the decision), with "obs:" only the obstacles.
+at the decision), with "obs:" only the obstacles; a "learned@NETWORK:" prefix forecasts every
+track with the velocity a learned motion perceiver (learned_motion_grid.py's saved NETWORK) reads
+from the last five (noisy) scans, the mean over the beams that fall on the track (within
+radius + 0.15 m of its centre; zero where none do), the tracker's own velocities untouched and
+unused: the learned memory in the tracker's place (2026-12-06, session 23); a "vnoiseS:" prefix
+adds Gaussian noise of S m/s to each component of each track's velocity at each decision (the
+tracker's own velocities untouched): how exact a perceiver of the motion has to be.
 (The log's figures for headings of a track seen once, "f8" / "s1.5", came from a
 package change tried and reverted.)
 """
@@ -45,8 +51,8 @@ from qnav.contracts.motion import Outcome, move_obstacles
 from qnav.controller.lookahead import LookaheadSettings, risks_of
 from qnav.controller.perception import TrackerSettings
 from qnav.lab.oracle import collision_shares
-from qnav.sim.geometry import cast_lidar
 from qnav.sim.evaluate import EvalResult, EvalSettings, episode_outcomes
+from qnav.sim.geometry import cast_lidar
 from qnav.sim.world import observe, take_rows
 from qnav.tracking import LookaheadAgent, noisy
 from qnav.training.agent import policy_agent
@@ -72,6 +78,9 @@ class RuledShield(LookaheadAgent):
     smear_s = 0.0
     smear_parts = ("ego", "obs")
     deskew = False
+    learned = None
+    velocity_noise_mps = 0.0
+    window = None
     previous_pose = None
     state = None
     counting = np.zeros(0, dtype=bool)
@@ -105,10 +114,16 @@ class RuledShield(LookaheadAgent):
             counted = np.flatnonzero(self.counting)
             shares = np.zeros((len(chosen), 3))
             shares[counted] = collision_shares(self.world, take_rows(self.state, counted))
-        elif self.still:  # one frame's perception: positions, no velocities
+        elif self.still or self.learned is not None or self.velocity_noise_mps:
             kept = [(t, t.velocity) for car in self.cars for t in car.tracker._tracks]
-            for track, _ in kept:
-                track.velocity = np.zeros(2)
+            learned = self.read_motion(scans, observation.pose)
+            for row, car in enumerate(self.cars):
+                for track in car.tracker._tracks:
+                    if self.velocity_noise_mps:
+                        error = self._noise.normal(0.0, self.velocity_noise_mps, 2)
+                        track.velocity = track.velocity + error
+                    else:  # positions; no or learned velocities
+                        track.velocity = learned(row, track.centres[-1])
             shares = risks_of(self.cars, list(observation.target_xy))
             for track, velocity in kept:
                 track.velocity = velocity
@@ -119,6 +134,46 @@ class RuledShield(LookaheadAgent):
         self.decisions += action.size
         self.steps += 1
         return action
+
+    def read_motion(self, scans, poses):  # type: ignore[no-untyped-def]
+        """A function (row, centre) -> the velocity the learned perceiver gives an obstacle
+        there (zero without a perceiver: `still`)."""
+        if self.learned is None:
+            return lambda row, centre: np.zeros(2)
+        from learned_motion import reproject
+        from learned_motion_grid import per_beam
+
+        if self.window is None:
+            self.window = (np.repeat(scans[:, None], 5, 1), np.repeat(poses[:, None], 5, 1))
+        past_scans, past_poses = self.window
+        past_scans = np.concatenate([past_scans[:, 1:], scans[:, None]], axis=1)
+        past_poses = np.concatenate([past_poses[:, 1:], poses[:, None]], axis=1)
+        fresh = self.steps == 0
+        past_scans[fresh] = scans[fresh, None]
+        past_poses[fresh] = poses[fresh, None]
+        self.window = (past_scans, past_poses)
+        angles = self.world.lidar.beam_angles_rad()
+        aligned = reproject(past_scans, past_poses, angles)
+        with torch.no_grad():
+            robot = per_beam(self.learned, torch.from_numpy(aligned)).numpy().astype(np.float64)
+        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+        vx = c * robot[..., 0] - s * robot[..., 1]
+        vy = s * robot[..., 0] + c * robot[..., 1]
+        heading = poses[:, 2:3] + angles[None]
+        seen = np.isfinite(scans) & (scans < 10.0)
+        r = np.where(seen, scans, 0.0)
+        hits = np.stack(
+            [poses[:, 0:1] + r * np.cos(heading), poses[:, 1:2] + r * np.sin(heading)], axis=-1
+        )
+        reach_m = self.world.obstacles.radius_m + 0.15
+
+        def velocity(row, centre):  # type: ignore[no-untyped-def]
+            on = seen[row] & (np.linalg.norm(hits[row] - centre, axis=1) < reach_m)
+            if not on.any():
+                return np.zeros(2)
+            return np.array([vx[row][on].mean(), vy[row][on].mean()])
+
+        return velocity
 
     def smeared(self, observation):  # type: ignore[no-untyped-def]
         """The scans a rotating lidar would give, its turn of `smear_s` ending now."""
@@ -198,6 +253,16 @@ def main() -> None:
         agent.rest_periods = next((int(p[4:]) for p in prefixes if p.startswith("rest")), 0)
         agent.truth = "truth" in prefixes
         agent.still = "still" in prefixes
+        noise = next((p[6:] for p in prefixes if p.startswith("vnoise")), "0")
+        agent.velocity_noise_mps = float(noise)
+        learned = next((p[8:] for p in prefixes if p.startswith("learned@")), None)
+        if learned is not None:
+            from learned_motion_grid import GridMotionNetwork
+
+            saved = torch.load(learned)
+            agent.learned = GridMotionNetwork(frames=saved["frames"], subcell=saved["subcell"])
+            agent.learned.load_state_dict(saved["state"])
+            agent.learned.eval()
         agent.deskew = "deskew" in prefixes
         agent.smear_parts = tuple(p for p in ("ego", "obs") if p in prefixes) or ("ego", "obs")
         agent.smear_s = next((float(p[5:]) for p in prefixes if p.startswith("smear")), 0.0)
@@ -209,7 +274,7 @@ def main() -> None:
                     p
                     for p in prefixes
                     if p in ("v0", "truth", "still", "ego", "obs", "deskew")
-                    or p.startswith(("rest", "smear"))
+                    or p.startswith(("rest", "smear", "learned", "vnoise"))
                 ),
                 rule,
             ]
