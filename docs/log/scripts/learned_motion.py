@@ -76,10 +76,11 @@ def beam_labels(
     return index, robot.astype(np.float32)
 
 
-def collect(world: WorldConfig, count: int, seed: int):  # type: ignore[no-untyped-def]
+def collect(world: WorldConfig, count: int, seed: int, with_turns: bool = False):  # type: ignore[no-untyped-def]
     """`count` windows with some obstacle return within 5 m: inputs (count, K, B) float16,
     per-beam targets (count, B, 2) float16 and mask (count, B) bool, plus per-window obstacle
-    index per beam for per-obstacle judging."""
+    index per beam for per-obstacle judging; `with_turns`: also (count, M) whether each
+    obstacle's velocity changed within the window (a bounce)."""
     worlds = 200
     batched = BatchedWorld(world, worlds, seed=seed)
     observation = observe(world, batched.state)
@@ -87,8 +88,9 @@ def collect(world: WorldConfig, count: int, seed: int):  # type: ignore[no-untyp
     angles = world.lidar.beam_angles_rad()
     scans = np.repeat(observation.scan_m[:, None], WINDOW, axis=1)
     poses = np.repeat(observation.pose[:, None], WINDOW, axis=1)
+    velocities = np.repeat(batched.state.obstacle_velocity[:, None], WINDOW, axis=1)
     age = np.zeros(worlds, dtype=np.int64)
-    inputs, targets, index_kept = [], [], []
+    inputs, targets, index_kept, turns = [], [], [], []
     found = 0
     while found < count:
         full = age >= WINDOW - 1
@@ -104,22 +106,28 @@ def collect(world: WorldConfig, count: int, seed: int):  # type: ignore[no-untyp
             v = np.take_along_axis(robot_v[keep], np.maximum(rows, 0)[..., None], axis=1)
             targets.append(np.where(rows[..., None] >= 0, v, 0).astype(np.float16))
             index_kept.append(np.where(near[keep], rows, -1).astype(np.int8))
+            change = np.abs(velocities[keep] - velocities[keep][:, -1:]).max(axis=(1, 3))
+            turns.append(change > 1e-9)
             found += keep.size
         result = batched.step(driver(observation.target_features()))
         observation = result.observation
         done = result.transition.terminated | result.transition.truncated
         scans = np.concatenate([scans[:, 1:], observation.scan_m[:, None]], axis=1)
         poses = np.concatenate([poses[:, 1:], observation.pose[:, None]], axis=1)
+        now_v = batched.state.obstacle_velocity[:, None]
+        velocities = np.concatenate([velocities[:, 1:], now_v], axis=1)
         age += 1
         for row in np.flatnonzero(done):  # a fresh episode: its window starts again
             scans[row] = observation.scan_m[row]
             poses[row] = observation.pose[row]
+            velocities[row] = now_v[row]
             age[row] = 0
-    return (
+    kept = (
         np.concatenate(inputs)[:count],
         np.concatenate(targets)[:count],
         np.concatenate(index_kept)[:count],
     )
+    return (*kept, np.concatenate(turns)[:count]) if with_turns else kept
 
 
 class MotionNetwork(torch.nn.Module):
@@ -169,9 +177,8 @@ def main() -> None:
     hx, hy, hidx = collect(world, 2000, seed=1005)
     print(f"collected {len(x)} + {len(hx)} windows in {time.time() - started:.0f} s", flush=True)
     blind = per_obstacle_error(np.zeros_like(hy, dtype=np.float32), hy.astype(np.float32), hidx)
-    print(
-        f"one frame (zero velocity): median {np.median(blind):.3f} p90 {np.quantile(blind, 0.9):.3f}"
-    )
+    median, p90 = np.median(blind), np.quantile(blind, 0.9)
+    print(f"one frame (zero velocity): median {median:.3f} p90 {p90:.3f}")
     torch.manual_seed(0)
     network = MotionNetwork()
     optimizer = torch.optim.Adam(

@@ -9,16 +9,19 @@ small 2-d convolution learns once. Same windows, same labels, same judge (per ob
 over its beams of the velocity the network gives the cell each beam's newest return falls in).
 
 Usage: learned_motion_grid.py SCENARIO TRAIN_WINDOWS EPOCHS OUT.pt [--lr L] [--frames K]
-[--subcell] [--decay]
+[--subcell] [--decay] [--fine]
 (--frames: the newest scans the network reads, 5 by default; 1 is its one-frame twin;
 --subcell: each cell also carries where in it its returns fall; --decay: the learning rate falls
-to zero over the passes, cosine)
+to zero over the passes, cosine; --fine: velocities on 0.2 m cells instead of 0.4 m)
+   or: learned_motion_grid.py --anatomy SCENARIO OUT.pt
+(a saved network's held-out errors by range and by beams, and its speeds against the true)
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 
 import numpy as np
@@ -63,15 +66,24 @@ def grids(index: torch.Tensor, inside: torch.Tensor, offset: torch.Tensor | None
 
 
 class GridMotionNetwork(torch.nn.Module):
-    """Five occupancy grids (0.1 m) -> a velocity field (forward, left; m/s) on 0.4 m cells."""
+    """Five occupancy grids (0.1 m) -> a velocity field (forward, left; m/s) on 0.4 m cells
+    (0.2 m with `fine_output`)."""
 
-    def __init__(self, frames: int = WINDOW, subcell: bool = False, width: int = 32) -> None:
+    def __init__(
+        self,
+        frames: int = WINDOW,
+        subcell: bool = False,
+        fine_output: bool = False,
+        width: int = 32,
+    ) -> None:
         super().__init__()
         self.stem = torch.nn.Conv2d(
             frames * (3 if subcell else 1), width // 2, 5, stride=2, padding=2
         )  # 0.2 m
         self.fine = torch.nn.Conv2d(width // 2, width // 2, 3, padding=1)
-        self.down = torch.nn.Conv2d(width // 2, width, 3, stride=2, padding=1)  # 0.4 m
+        # 0.4 m cells, or 0.2 m with fine_output
+        self.down = torch.nn.Conv2d(width // 2, width, 3, stride=1 if fine_output else 2, padding=1)
+        self.shrink = 2 if fine_output else 4
         self.blocks = torch.nn.ModuleList(
             torch.nn.Conv2d(width, width, 3, padding=d, dilation=d) for d in (1, 2, 4, 1)
         )
@@ -85,21 +97,67 @@ class GridMotionNetwork(torch.nn.Module):
         x = torch.relu(self.down(x))
         for block in self.blocks:
             x = x + torch.relu(block(x))
-        return self.head(x)  # (N, 2, SIDE / 4, SIDE / 4)
+        return self.head(x)  # (N, 2, SIDE / shrink, SIDE / shrink)
 
 
 def per_beam(network: GridMotionNetwork, aligned_m: torch.Tensor) -> torch.Tensor:
     """(N, K, B) aligned ranges -> (N, B, 2): the velocity at each newest return's cell."""
     index, inside, offset = cells(aligned_m[:, -network.frames :])
-    field = network(grids(index, inside, offset if network.subcell else None))  # (N, 2, S/4, S/4)
+    field = network(grids(index, inside, offset if network.subcell else None))
     newest = index[:, -1]
-    coarse = (newest // SIDE // 4) * (SIDE // 4) + (newest % SIDE) // 4
-    flat = field.flatten(2)  # (N, 2, S/4 * S/4)
+    shrink = network.shrink
+    coarse = (newest // SIDE // shrink) * (SIDE // shrink) + (newest % SIDE) // shrink
+    flat = field.flatten(2)  # (N, 2, cells)
     return torch.gather(flat, 2, coarse[:, None].expand(-1, 2, -1)).transpose(1, 2)
+
+
+def load(path: str) -> GridMotionNetwork:
+    """A network saved by `main`."""
+    saved = torch.load(path)
+    network = GridMotionNetwork(
+        frames=saved["frames"], subcell=saved["subcell"], fine_output=saved.get("fine", False)
+    )
+    network.load_state_dict(saved["state"])
+    return network.eval()
+
+
+def anatomy(name: str, path: str) -> None:
+    """Where a saved network's errors are, on the held-out windows."""
+    network = load(path)
+    hx, hy, hidx, turned = collect(scenario(name), 2000, seed=1005, with_turns=True)
+    with torch.no_grad():
+        chunks = [
+            per_beam(network, torch.from_numpy(hx[s : s + 256]).float())
+            for s in range(0, len(hx), 256)
+        ]
+    held = torch.cat(chunks).numpy()
+    rows = []
+    for w in range(len(hidx)):
+        for m in np.unique(hidx[w][hidx[w] >= 0]):
+            beams = hidx[w] == m
+            predicted, true = held[w][beams].mean(0), hy[w][beams][0].astype(np.float64)
+            error = np.linalg.norm(predicted - true)
+            ratio = np.linalg.norm(predicted) / max(np.linalg.norm(true), 1e-6)
+            rows.append((error, ratio, np.median(hx[w, -1][beams]), beams.sum(), turned[w, m]))
+    error, ratio, range_m, beams, bounced = np.array(rows).T
+    print(f"{len(rows)} obstacles: median {np.median(error):.3f} p90 {np.quantile(error, 0.9):.3f}")
+    print(f"predicted speed / true speed, median {np.median(ratio):.3f}")
+    for low, high in ((0, 1.5), (1.5, 3), (3, 5)):
+        k = (range_m >= low) & (range_m < high)
+        print(f"{low}-{high} m: {k.sum()} obstacles, median {np.median(error[k]):.3f}")
+    for part, k in (("bounced within the window", bounced > 0), ("straight", bounced == 0)):
+        median, p90 = np.median(error[k]), np.quantile(error[k], 0.9)
+        print(f"{part}: {k.sum()} obstacles, median {median:.3f} p90 {p90:.3f}")
+    for low, high in ((0, 10), (10, 30), (30, 721)):
+        k = (beams >= low) & (beams < high)
+        print(f"{low}-{high - 1} beams: {k.sum()} obstacles, median {np.median(error[k]):.3f}")
 
 
 def main() -> None:
     torch.set_num_threads(2)
+    if sys.argv[1] == "--anatomy":
+        anatomy(sys.argv[2], sys.argv[3])
+        return
     parser = argparse.ArgumentParser()
     parser.add_argument("scenario")
     parser.add_argument("windows", type=int)
@@ -109,6 +167,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=WINDOW)
     parser.add_argument("--subcell", action="store_true")
     parser.add_argument("--decay", action="store_true")
+    parser.add_argument("--fine", action="store_true")
     args = parser.parse_args()
     count, epochs = args.windows, args.epochs
     world = scenario(args.scenario)
@@ -120,7 +179,7 @@ def main() -> None:
     median, p90 = np.median(blind), np.quantile(blind, 0.9)
     print(f"one frame (zero velocity): median {median:.3f} p90 {p90:.3f}")
     torch.manual_seed(0)
-    network = GridMotionNetwork(frames=args.frames, subcell=args.subcell)
+    network = GridMotionNetwork(frames=args.frames, subcell=args.subcell, fine_output=args.fine)
     optimizer = torch.optim.Adam(network.parameters(), lr=args.lr)
     total_steps = epochs * math.ceil(count / 64)
     schedule = torch.optim.lr_scheduler.LambdaLR(
@@ -166,7 +225,12 @@ def main() -> None:
             f"({time.time() - started:.0f} s)",
             flush=True,
         )
-        saved = {"frames": args.frames, "subcell": args.subcell, "state": network.state_dict()}
+        saved = {
+            "frames": args.frames,
+            "subcell": args.subcell,
+            "fine": args.fine,
+            "state": network.state_dict(),
+        }
         torch.save(saved, args.out)
 
 

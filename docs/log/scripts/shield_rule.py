@@ -257,12 +257,9 @@ def main() -> None:
         agent.velocity_noise_mps = float(noise)
         learned = next((p[8:] for p in prefixes if p.startswith("learned@")), None)
         if learned is not None:
-            from learned_motion_grid import GridMotionNetwork
+            from learned_motion_grid import load
 
-            saved = torch.load(learned)
-            agent.learned = GridMotionNetwork(frames=saved["frames"], subcell=saved["subcell"])
-            agent.learned.load_state_dict(saved["state"])
-            agent.learned.eval()
+            agent.learned = load(learned)
         agent.deskew = "deskew" in prefixes
         agent.smear_parts = tuple(p for p in ("ego", "obs") if p in prefixes) or ("ego", "obs")
         agent.smear_s = next((float(p[5:]) for p in prefixes if p.startswith("smear")), 0.0)
