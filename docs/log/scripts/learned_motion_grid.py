@@ -14,7 +14,8 @@ Usage: learned_motion_grid.py SCENARIO TRAIN_WINDOWS EPOCHS OUT.pt [--lr L] [--f
 --subcell: each cell also carries where in it its returns fall; --decay: the learning rate falls
 to zero over the passes, cosine; --fine: velocities on 0.2 m cells instead of 0.4 m)
    or: learned_motion_grid.py --anatomy SCENARIO OUT.pt
-(a saved network's held-out errors by range and by beams, and its speeds against the true)
+(a saved network's held-out errors by range, by beams and by bounces, its speeds against
+the true, and its time per window on one thread)
 """
 
 from __future__ import annotations
@@ -151,6 +152,19 @@ def anatomy(name: str, path: str) -> None:
     for low, high in ((0, 10), (10, 30), (30, 721)):
         k = (beams >= low) & (beams < high)
         print(f"{low}-{high - 1} beams: {k.sum()} obstacles, median {np.median(error[k]):.3f}")
+    torch.set_num_threads(1)
+    one = torch.from_numpy(hx[:1]).float()
+    times_ms = []
+    with torch.no_grad():
+        for _ in range(60):
+            started = time.perf_counter()
+            per_beam(network, one)
+            times_ms.append(1000 * (time.perf_counter() - started))
+    weights = sum(p.numel() for p in network.parameters())
+    print(
+        f"one window, one thread: median {np.median(times_ms[10:]):.1f} ms, "
+        f"p99 {np.quantile(times_ms[10:], 0.99):.1f} ms; {weights} weights"
+    )
 
 
 def main() -> None:
