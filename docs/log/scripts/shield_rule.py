@@ -31,7 +31,9 @@ from the last five (noisy) scans, the mean over the beams that fall on the track
 radius + 0.15 m of its centre; zero where none do), the tracker's own velocities untouched and
 unused: the learned memory in the tracker's place (2026-12-06, session 23); a "vnoiseS:" prefix
 adds Gaussian noise of S m/s to each component of each track's velocity at each decision (the
-tracker's own velocities untouched): how exact a perceiver of the motion has to be.
+tracker's own velocities untouched): how exact a perceiver of the motion has to be; a
+"vbiasS:" prefix adds such noise drawn once per track and kept (an error that persists, as a
+network's may).
 (The log's figures for headings of a track seen once, "f8" / "s1.5", came from a
 package change tried and reverted.)
 """
@@ -80,6 +82,7 @@ class RuledShield(LookaheadAgent):
     deskew = False
     learned = None
     velocity_noise_mps = 0.0
+    persistent_noise = False
     window = None
     previous_pose = None
     state = None
@@ -121,6 +124,10 @@ class RuledShield(LookaheadAgent):
                 for track in car.tracker._tracks:
                     if self.velocity_noise_mps:
                         error = self._noise.normal(0.0, self.velocity_noise_mps, 2)
+                        if self.persistent_noise:  # the track's first draw, kept on it
+                            if not hasattr(track, "gauge_error"):
+                                track.gauge_error = error
+                            error = track.gauge_error
                         track.velocity = track.velocity + error
                     else:  # positions; no or learned velocities
                         track.velocity = learned(row, track.centres[-1])
@@ -253,8 +260,9 @@ def main() -> None:
         agent.rest_periods = next((int(p[4:]) for p in prefixes if p.startswith("rest")), 0)
         agent.truth = "truth" in prefixes
         agent.still = "still" in prefixes
-        noise = next((p[6:] for p in prefixes if p.startswith("vnoise")), "0")
+        noise = next((p[6:] for p in prefixes if p.startswith(("vnoise", "vbias"))), "0")
         agent.velocity_noise_mps = float(noise)
+        agent.persistent_noise = any(p.startswith("vbias") for p in prefixes)
         learned = next((p[8:] for p in prefixes if p.startswith("learned@")), None)
         if learned is not None:
             from learned_motion_grid import load
@@ -271,7 +279,7 @@ def main() -> None:
                     p
                     for p in prefixes
                     if p in ("v0", "truth", "still", "ego", "obs", "deskew")
-                    or p.startswith(("rest", "smear", "learned", "vnoise"))
+                    or p.startswith(("rest", "smear", "learned", "vnoise", "vbias"))
                 ),
                 rule,
             ]
