@@ -168,17 +168,25 @@ def per_obstacle_error(predicted: NDArray, targets: NDArray, index: NDArray) -> 
     return np.array(errors)
 
 
+def training_and_held_out(world: WorldConfig, count: int):  # type: ignore[no-untyped-def]
+    """`count` training windows and 2,000 held-out ones (other layouts), each as `collect`
+    gives them, printing how long they took and the one-frame baseline's error."""
+    started = time.time()
+    train = collect(world, count, seed=5)
+    hx, hy, hidx = collect(world, 2000, seed=1005)
+    print(f"collected {count} + {len(hx)} windows in {time.time() - started:.0f} s", flush=True)
+    blind = per_obstacle_error(np.zeros_like(hy, dtype=np.float32), hy.astype(np.float32), hidx)
+    median, p90 = np.median(blind), np.quantile(blind, 0.9)
+    print(f"one frame (zero velocity): median {median:.3f} p90 {p90:.3f}")
+    return train, (hx, hy, hidx)
+
+
 def main() -> None:
     torch.set_num_threads(2)
     name, count, epochs, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
     world = scenario(name)
     started = time.time()
-    x, y, idx = collect(world, count, seed=5)
-    hx, hy, hidx = collect(world, 2000, seed=1005)
-    print(f"collected {len(x)} + {len(hx)} windows in {time.time() - started:.0f} s", flush=True)
-    blind = per_obstacle_error(np.zeros_like(hy, dtype=np.float32), hy.astype(np.float32), hidx)
-    median, p90 = np.median(blind), np.quantile(blind, 0.9)
-    print(f"one frame (zero velocity): median {median:.3f} p90 {p90:.3f}")
+    (x, y, idx), (hx, hy, hidx) = training_and_held_out(world, count)
     torch.manual_seed(0)
     network = MotionNetwork()
     optimizer = torch.optim.Adam(

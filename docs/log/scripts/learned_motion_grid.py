@@ -27,7 +27,13 @@ import time
 
 import numpy as np
 import torch
-from learned_motion import CLIP_M, WINDOW, collect, per_obstacle_error
+from learned_motion import (
+    CLIP_M,
+    WINDOW,
+    collect,
+    per_obstacle_error,
+    training_and_held_out,
+)
 
 from qnav.sim.config import scenario
 
@@ -186,12 +192,7 @@ def main() -> None:
     count, epochs = args.windows, args.epochs
     world = scenario(args.scenario)
     started = time.time()
-    x, y, idx = collect(world, count, seed=5)
-    hx, hy, hidx = collect(world, 2000, seed=1005)
-    print(f"collected {len(x)} + {len(hx)} windows in {time.time() - started:.0f} s", flush=True)
-    blind = per_obstacle_error(np.zeros_like(hy, dtype=np.float32), hy.astype(np.float32), hidx)
-    median, p90 = np.median(blind), np.quantile(blind, 0.9)
-    print(f"one frame (zero velocity): median {median:.3f} p90 {p90:.3f}")
+    (x, y, idx), (hx, hy, hidx) = training_and_held_out(world, count)
     torch.manual_seed(0)
     network = GridMotionNetwork(frames=args.frames, subcell=args.subcell, fine_output=args.fine)
     optimizer = torch.optim.Adam(network.parameters(), lr=args.lr)
