@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -168,6 +169,26 @@ def per_obstacle_error(predicted: NDArray, targets: NDArray, index: NDArray) -> 
     return np.array(errors)
 
 
+def predictions(predict: Callable[[torch.Tensor], torch.Tensor], windows: NDArray) -> NDArray:
+    """(N, B, 2) `predict`'s velocities for (N, K, B) windows, 256 at a time, without gradients."""
+    with torch.no_grad():
+        chunks = [
+            predict(torch.from_numpy(windows[s : s + 256]).float())
+            for s in range(0, len(windows), 256)
+        ]
+    return torch.cat(chunks).numpy()
+
+
+def report(epoch: int, loss: float, error: NDArray, started: float) -> None:
+    """Print a pass's mean training loss and held-out per-obstacle error."""
+    print(
+        f"epoch {epoch}: loss {loss:.4f}, held-out per obstacle "
+        f"median {np.median(error):.3f} p90 {np.quantile(error, 0.9):.3f} m/s "
+        f"({time.time() - started:.0f} s)",
+        flush=True,
+    )
+
+
 def training_and_held_out(world: WorldConfig, count: int):  # type: ignore[no-untyped-def]
     """`count` training windows and 2,000 held-out ones (other layouts), each as `collect`
     gives them, printing how long they took and the one-frame baseline's error."""
@@ -210,17 +231,8 @@ def main() -> None:
             optimizer.step()
             total += loss.item()
         network.eval()
-        with torch.no_grad():
-            held = torch.cat(
-                [network(torch.from_numpy(hx[s : s + 256]).float()) for s in range(0, len(hx), 256)]
-            ).numpy()
-        error = per_obstacle_error(held, hy.astype(np.float32), hidx)
-        print(
-            f"epoch {epoch}: loss {total / math.ceil(len(x) / 64):.4f}, held-out per obstacle "
-            f"median {np.median(error):.3f} p90 {np.quantile(error, 0.9):.3f} m/s "
-            f"({time.time() - started:.0f} s)",
-            flush=True,
-        )
+        error = per_obstacle_error(predictions(network, hx), hy.astype(np.float32), hidx)
+        report(epoch, total / math.ceil(len(x) / 64), error, started)
         torch.save(network.state_dict(), out)
         perm = order.permutation(len(x))
         x, y, idx = x[perm], y[perm], idx[perm]

@@ -32,6 +32,8 @@ from learned_motion import (
     WINDOW,
     collect,
     per_obstacle_error,
+    predictions,
+    report,
     training_and_held_out,
 )
 
@@ -132,12 +134,7 @@ def anatomy(name: str, path: str) -> None:
     """Where a saved network's errors are, on the held-out windows."""
     network = load(path)
     hx, hy, hidx, turned = collect(scenario(name), 2000, seed=1005, with_turns=True)
-    with torch.no_grad():
-        chunks = [
-            per_beam(network, torch.from_numpy(hx[s : s + 256]).float())
-            for s in range(0, len(hx), 256)
-        ]
-    held = torch.cat(chunks).numpy()
+    held = predictions(lambda windows: per_beam(network, windows), hx)
     rows = []
     for w in range(len(hidx)):
         for m in np.unique(hidx[w][hidx[w] >= 0]):
@@ -226,20 +223,8 @@ def main() -> None:
             if epoch == 1 and steps == 20:
                 print(f"20 steps in {time.time() - started:.0f} s", flush=True)
         network.eval()
-        with torch.no_grad():
-            held = torch.cat(
-                [
-                    per_beam(network, torch.from_numpy(hx[s : s + 256]).float())
-                    for s in range(0, len(hx), 256)
-                ]
-            ).numpy()
-        error = per_obstacle_error(held, hy.astype(np.float32), hidx)
-        print(
-            f"epoch {epoch}: loss {total / steps:.4f}, held-out per obstacle "
-            f"median {np.median(error):.3f} p90 {np.quantile(error, 0.9):.3f} m/s "
-            f"({time.time() - started:.0f} s)",
-            flush=True,
-        )
+        held = predictions(lambda windows: per_beam(network, windows), hx)
+        report(epoch, total / steps, per_obstacle_error(held, hy.astype(np.float32), hidx), started)
         saved = {
             "frames": args.frames,
             "subcell": args.subcell,

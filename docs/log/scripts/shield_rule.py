@@ -147,11 +147,14 @@ class RuledShield(LookaheadAgent):
         there (zero without a perceiver: `still`)."""
         if self.learned is None:
             return lambda row, centre: np.zeros(2)
-        from learned_motion import reproject
+        from learned_motion import WINDOW, reproject
         from learned_motion_grid import per_beam
 
         if self.window is None:
-            self.window = (np.repeat(scans[:, None], 5, 1), np.repeat(poses[:, None], 5, 1))
+            self.window = (
+                np.repeat(scans[:, None], WINDOW, 1),
+                np.repeat(poses[:, None], WINDOW, 1),
+            )
         past_scans, past_poses = self.window
         past_scans = np.concatenate([past_scans[:, 1:], scans[:, None]], axis=1)
         past_poses = np.concatenate([past_poses[:, 1:], poses[:, None]], axis=1)
