@@ -163,9 +163,10 @@ def step_increment(
 
 
 def move_obstacles(
-    position: F64, velocity: F64, radius_m: float, size_m: float, period_s: float
+    position: F64, velocity: F64, radius_m: float, size_m: float, period_s: float | F64
 ) -> tuple[F64, F64]:
-    """Straight-line motion, reflecting specularly off the walls (exact for one bounce per axis)."""
+    """Straight-line motion, reflecting specularly off the walls (exact for one bounce per axis);
+    `period_s` may be an array of times that broadcasts against the positions."""
     low, high = radius_m, size_m - radius_m
     moved = position + velocity * period_s
     below, above = moved < low, moved > high

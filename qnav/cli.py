@@ -829,6 +829,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--sitl-binary", type=Path, help="ardurover binary for --vehicle sitl ($ARDUPILOT_SITL)"
     )
     stack.add_argument(
+        "--lidar-turn-s",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="a rotating lidar whose turn takes S seconds (0.1: 10 Hz): each beam cast from where "
+        "the car and the obstacles were at its own time, with LaserScan's time_increment; the "
+        "in-process comparison keeps instantaneous scans, so the gap is what the turn costs "
+        "(lockstep only; default 0: instantaneous scans)",
+    )
+    stack.add_argument(
         "--serve-folder",
         type=Path,
         metavar="DIR",

@@ -248,6 +248,7 @@ def run_stack(
     serve: StackServe | None = None,
     lockstep: bool = True,
     lookahead: LookaheadSettings | None = None,
+    lidar_turn_s: float = 0.0,
 ) -> dict[str, Any]:
     """Run the full stack for `episodes` episodes; returns its outcome fractions and paths.
 
@@ -262,6 +263,9 @@ def run_stack(
     decided on each scan has reached the car (`sim-car --lockstep`); else in real time.
 
     `lookahead` is the controller's look ahead (`controller.lookahead`; None: off).
+
+    With `lidar_turn_s`, the sim-car's lidar rotates: each scan's beams leave over that many
+    seconds while the car and the obstacles move (`sim-car --lidar-turn-s`, lockstep only).
     """
     from tqdm import tqdm
 
@@ -280,6 +284,12 @@ def run_stack(
     lockstep = lockstep and sitl_binary is None  # the firmware keeps its own time
     if lockstep:
         vehicle_args.append("--lockstep")
+    if lidar_turn_s < 0:
+        raise ConfigError(f"--lidar-turn-s {lidar_turn_s:g}: a turn takes 0 s or more")
+    if lidar_turn_s > 0:
+        if not lockstep:
+            raise ConfigError("--lidar-turn-s needs lockstep (not --real-time, not --vehicle sitl)")
+        vehicle_args += ["--lidar-turn-s", str(lidar_turn_s)]
     bridge_values = None
     if sitl_binary is not None:
         from qnav.sitl import SITL_PARAMS, SKID_PARAMS, SitlProcess
@@ -364,6 +374,7 @@ def run_stack(
         "unfinished": outcomes.count("unfinished") / count,
         "vehicle": "sitl" if sitl is not None else "sim",
         "timing": "lockstep" if lockstep else "real time",
+        "lidar_turn_s": lidar_turn_s,
         "outcomes": outcomes,
         "health": episode_health(files.episodes),
         "mean_steps": round(sum(steps) / count, 1),
@@ -428,6 +439,7 @@ def stack_verb(args: argparse.Namespace) -> int:
         serve=serve,
         lockstep=not args.real_time,
         lookahead=lookahead,
+        lidar_turn_s=args.lidar_turn_s,
     )
     result["in_process"] = in_process_outcomes(
         args.policy, result["scenario"], args.episodes, lookahead=lookahead

@@ -106,6 +106,25 @@ def cast_lidar(
     return add_circles_to_scan(ranges, pose, lidar, obstacle_xy, obstacle_radius_m)
 
 
+def cast_rotating_lidar(
+    beam_pose: F64,
+    lidar: LidarSpec,
+    arena: ArenaConfig,
+    beam_obstacle_xy: F64,
+    obstacle_radius_m: float,
+) -> NDArray[np.float32]:
+    """The scan (B,) of a lidar whose beams leave one after another while the car and the
+    obstacles move: beam j cast from the car's pose `beam_pose[j]` (B, 3) among the obstacles'
+    centres `beam_obstacle_xy[j]` (B, M, 2) at its own time.
+
+    Each beam is the beam of a whole scan from its own pose (the diagonal of B scans: about 10 ms
+    for 720 beams), so it is exactly what `cast_lidar` gives a car frozen at that time.
+    """
+    beams = np.arange(lidar.num_beams)
+    every = cast_lidar(beam_pose, lidar, arena, beam_obstacle_xy, obstacle_radius_m)
+    return np.asarray(every[beams, beams])
+
+
 def add_circles_to_scan(
     ranges: NDArray[np.float32],
     pose: F64,

@@ -21,7 +21,7 @@ from qnav.controller.policy import PolicyRuntime
 from qnav.lab.oracle import lookahead_model
 from qnav.sim.config import WorldConfig, scenario
 from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent
-from qnav.sim.geometry import cast_lidar
+from qnav.sim.geometry import cast_rotating_lidar
 from qnav.sim.world import WorldState, observe, reset, step
 from qnav.simcar.car import scan_message
 from qnav.tracking import world_lookahead
@@ -246,8 +246,8 @@ def _rotating_scan(
             for t in times_s
         ]
     )
-    every = cast_lidar(poses, world.lidar, world.arena, places, world.obstacles.radius_m)
-    return np.asarray(every[np.arange(beams), np.arange(beams)]), places[-1]
+    scan = cast_rotating_lidar(poses, world.lidar, world.arena, places, world.obstacles.radius_m)
+    return scan, places[-1]
 
 
 @pytest.mark.parametrize("time_increment", ["sent", "zero"])

@@ -5,7 +5,7 @@ import pytest
 
 from qnav.contracts.observation import LidarSpec
 from qnav.sim.config import WorldConfig, scenario
-from qnav.sim.geometry import cast_lidar, clearance
+from qnav.sim.geometry import cast_lidar, cast_rotating_lidar, clearance
 from qnav.sim.world import reset
 from tests.sim.reference_lidar import reference_scan
 
@@ -25,6 +25,30 @@ def test_lidar_matches_a_ray_by_ray_reference_exactly(name: str) -> None:
         np.testing.assert_array_equal(np.isinf(scans[world]), np.isinf(expected))
         finite = np.isfinite(expected)
         np.testing.assert_allclose(scans[world][finite], expected[finite], atol=1e-4)
+
+
+def test_each_beam_of_a_rotating_lidar_is_that_beam_of_the_scan_from_its_own_pose() -> None:
+    config = scenario("obstacles-inertia")
+    assert config.lidar is not None
+    state = reset(config, np.array([3]), np.array([0]))
+    beams = config.lidar.num_beams
+    # The car turns and drives, the obstacles drift: a different pose and layout for each beam.
+    share = np.linspace(0.0, 1.0, beams)[:, None]
+    poses = state.pose + share * np.array([[0.3, -0.2, 1.5]])
+    obstacles = state.obstacle_xy + share[:, None] * np.array([0.4, 0.1])
+    radius = config.obstacles.radius_m
+    scan = cast_rotating_lidar(poses, config.lidar, config.arena, obstacles, radius)
+    for beam in (0, 100, 359, 719):
+        whole = _scan(config, poses[beam : beam + 1], obstacles[beam : beam + 1])
+        assert scan[beam] == whole[0, beam]
+    still = cast_rotating_lidar(
+        np.repeat(state.pose, beams, axis=0),
+        config.lidar,
+        config.arena,
+        np.repeat(state.obstacle_xy, beams, axis=0),
+        config.obstacles.radius_m,
+    )
+    np.testing.assert_array_equal(still, _scan(config, state.pose, state.obstacle_xy)[0])
 
 
 def test_rays_leave_through_an_opening_and_read_no_return() -> None:

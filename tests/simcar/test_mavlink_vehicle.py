@@ -30,6 +30,7 @@ from qnav.contracts.mavlink import (
 )
 from qnav.contracts.motion import step_velocity_lag
 from qnav.contracts.settings import with_overrides
+from qnav.simcar.car import drive
 from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 IGNORE = 65535
@@ -180,6 +181,34 @@ def test_with_external_physics_the_car_moves_only_by_advance_exactly_as_the_simu
     assert vehicle.pose() == pytest.approx(tuple(expected[0]), abs=1e-12)
     with pytest.raises(RuntimeError, match="external_physics"):
         rig()[0].advance(0.2)
+
+
+def test_the_path_of_a_lockstep_period_passes_its_physics_steps_to_where_advance_took_the_car(
+    rig: Callable[..., Any],
+) -> None:
+    # The sim-car's rotating lidar needs the path within a period (`simcar.car.drive`); the car
+    # must still move exactly as one `advance` moves it.
+    vehicle, station = rig(external_physics=True)
+    station.command(MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    station.wait("HEARTBEAT", _armed)
+    station.override(1700, 1800)  # forward and turning right
+    params = vehicle.settings.dynamics
+    speed, rate = 0.75 * params.max_speed_mps, -0.5 * params.max_turn_rate_radps
+    assert vehicle.wait_for_targets(speed, rate, 0.01, timeout_s=3.0)
+    pose, velocity = np.zeros((1, 3)), np.zeros((1, 2))
+    for _ in range(3):
+        times_s, path = drive(vehicle, 0.2)
+        np.testing.assert_allclose(times_s, [-0.2, -0.15, -0.1, -0.05, 0.0], atol=1e-15)
+        for k, time_s in enumerate(times_s):
+            passed, _ = step_velocity_lag(
+                pose, velocity, np.array([speed]), np.array([rate]), params=params,
+                period_s=0.2 + time_s,
+            )  # fmt: skip
+            np.testing.assert_allclose(path[k], passed[0], atol=1e-12)
+        pose, velocity = step_velocity_lag(
+            pose, velocity, np.array([speed]), np.array([rate]), params=params, period_s=0.2
+        )
+        assert vehicle.pose() == tuple(pose[0]) == tuple(path[-1])  # to the last bit
 
 
 def test_rc_override_does_nothing_while_disarmed(rig: Callable[..., Any]) -> None:
