@@ -128,7 +128,7 @@ def _dodging(out: Path, *lookahead: str) -> dict[str, Any]:
         capture_output=True, text=True, timeout=1440, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
-    stack = json.loads(done.stdout.strip().splitlines()[-1])
+    stack: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
     print(
         f"{' '.join(lookahead)}: stack {stack['success']:.3f}, in process "
         f"{stack['in_process']['success']:.3f}; episode by episode: {stack['agreement']}"
