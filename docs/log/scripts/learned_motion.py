@@ -77,8 +77,14 @@ def beam_labels(
     return index, robot.astype(np.float32)
 
 
-def collect(world: WorldConfig, count: int, seed: int, with_turns: bool = False):  # type: ignore[no-untyped-def]
-    """`count` windows with some obstacle return within 5 m: inputs (count, K, B) float16,
+def aligned(scans: NDArray, poses: NDArray, angles: NDArray) -> NDArray[np.float16]:
+    """A window as the networks here read it: the scans re-projected into the newest frame."""
+    return reproject(scans, poses, angles).astype(np.float16)
+
+
+def collect(world: WorldConfig, count: int, seed: int, with_turns: bool = False, window_of=aligned):  # type: ignore[no-untyped-def]
+    """`count` windows with some obstacle return within 5 m: inputs (count, K, B) float16 (or
+    what `window_of(scans, poses, beam_angles)` makes of them),
     per-beam targets (count, B, 2) float16 and mask (count, B) bool, plus per-window obstacle
     index per beam for per-obstacle judging; `with_turns`: also (count, M) whether each
     obstacle's velocity changed within the window (a bounce)."""
@@ -102,7 +108,7 @@ def collect(world: WorldConfig, count: int, seed: int, with_turns: bool = False)
         near = (index >= 0) & (observation.scan_m < 5.0)
         keep = np.flatnonzero(full & near.any(axis=1))
         if keep.size:
-            inputs.append(reproject(scans[keep], poses[keep], angles).astype(np.float16))
+            inputs.append(window_of(scans[keep], poses[keep], angles))
             rows = index[keep]
             v = np.take_along_axis(robot_v[keep], np.maximum(rows, 0)[..., None], axis=1)
             targets.append(np.where(rows[..., None] >= 0, v, 0).astype(np.float16))
@@ -189,12 +195,12 @@ def report(epoch: int, loss: float, error: NDArray, started: float) -> None:
     )
 
 
-def training_and_held_out(world: WorldConfig, count: int):  # type: ignore[no-untyped-def]
+def training_and_held_out(world: WorldConfig, count: int, window_of=aligned):  # type: ignore[no-untyped-def]
     """`count` training windows and 2,000 held-out ones (other layouts), each as `collect`
     gives them, printing how long they took and the one-frame baseline's error."""
     started = time.time()
-    train = collect(world, count, seed=5)
-    hx, hy, hidx = collect(world, 2000, seed=1005)
+    train = collect(world, count, seed=5, window_of=window_of)
+    hx, hy, hidx = collect(world, 2000, seed=1005, window_of=window_of)
     print(f"collected {count} + {len(hx)} windows in {time.time() - started:.0f} s", flush=True)
     blind = per_obstacle_error(np.zeros_like(hy, dtype=np.float32), hy.astype(np.float32), hidx)
     median, p90 = np.median(blind), np.quantile(blind, 0.9)

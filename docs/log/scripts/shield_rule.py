@@ -149,6 +149,7 @@ class RuledShield(LookaheadAgent):
             return lambda row, centre: np.zeros(2)
         from learned_motion import WINDOW, reproject
         from learned_motion_grid import per_beam
+        from learned_motion_points import PointMotionNetwork, points, raw, track_velocity
 
         if self.window is None:
             self.window = (
@@ -163,12 +164,7 @@ class RuledShield(LookaheadAgent):
         past_poses[fresh] = poses[fresh, None]
         self.window = (past_scans, past_poses)
         angles = self.world.lidar.beam_angles_rad()
-        aligned = reproject(past_scans, past_poses, angles)
-        with torch.no_grad():
-            robot = per_beam(self.learned, torch.from_numpy(aligned)).numpy().astype(np.float64)
         c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-        vx = c * robot[..., 0] - s * robot[..., 1]
-        vy = s * robot[..., 0] + c * robot[..., 1]
         heading = poses[:, 2:3] + angles[None]
         seen = np.isfinite(scans) & (scans < 10.0)
         r = np.where(seen, scans, 0.0)
@@ -176,6 +172,24 @@ class RuledShield(LookaheadAgent):
             [poses[:, 0:1] + r * np.cos(heading), poses[:, 1:2] + r * np.sin(heading)], axis=-1
         )
         reach_m = self.world.obstacles.radius_m + 0.15
+        if isinstance(self.learned, PointMotionNetwork):  # per track, from its returns' points
+            xy, ok = points(raw(past_scans, past_poses, angles), self.world)
+
+            def from_points(row, centre):  # type: ignore[no-untyped-def]
+                on = ok[row, -1] & (np.linalg.norm(hits[row] - centre, axis=1) < reach_m)
+                if not on.any():
+                    return np.zeros(2)
+                forward, left = track_velocity(self.learned, xy, ok, row, np.flatnonzero(on))
+                return np.array(
+                    [c[row, 0] * forward - s[row, 0] * left, s[row, 0] * forward + c[row, 0] * left]
+                )
+
+            return from_points
+        aligned = reproject(past_scans, past_poses, angles)
+        with torch.no_grad():
+            robot = per_beam(self.learned, torch.from_numpy(aligned)).numpy().astype(np.float64)
+        vx = c * robot[..., 0] - s * robot[..., 1]
+        vy = s * robot[..., 0] + c * robot[..., 1]
 
         def velocity(row, centre):  # type: ignore[no-untyped-def]
             on = seen[row] & (np.linalg.norm(hits[row] - centre, axis=1) < reach_m)
@@ -268,9 +282,11 @@ def main() -> None:
         agent.persistent_noise = any(p.startswith("vbias") for p in prefixes)
         learned = next((p[8:] for p in prefixes if p.startswith("learned@")), None)
         if learned is not None:
-            from learned_motion_grid import load
+            import learned_motion_grid
+            import learned_motion_points
 
-            agent.learned = load(learned)
+            grid = "subcell" in torch.load(learned)
+            agent.learned = (learned_motion_grid if grid else learned_motion_points).load(learned)
         agent.deskew = "deskew" in prefixes
         agent.smear_parts = tuple(p for p in ("ego", "obs") if p in prefixes) or ("ego", "obs")
         agent.smear_s = next((float(p[5:]) for p in prefixes if p.startswith("smear")), 0.0)
