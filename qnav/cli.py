@@ -834,9 +834,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar="S",
         help="a rotating lidar whose turn takes S seconds (0.1: 10 Hz): each beam cast from where "
-        "the car and the obstacles were at its own time, with LaserScan's time_increment; the "
-        "in-process comparison keeps instantaneous scans, so the gap is what the turn costs "
-        "(lockstep only; default 0: instantaneous scans)",
+        "the car and the obstacles were at its own time, sent with LaserScan's time_increment, "
+        "and the same lidar in the in-process comparison (the world's lidar_turn_s; lockstep "
+        "only; default 0: instantaneous scans)",
     )
     stack.add_argument(
         "--serve-folder",

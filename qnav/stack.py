@@ -264,8 +264,8 @@ def run_stack(
 
     `lookahead` is the controller's look ahead (`controller.lookahead`; None: off).
 
-    With `lidar_turn_s`, the sim-car's lidar rotates: each scan's beams leave over that many
-    seconds while the car and the obstacles move (`sim-car --lidar-turn-s`, lockstep only).
+    With `lidar_turn_s`, the world's lidar rotates (its `lidar_turn_s`): each scan's beams leave
+    over that many seconds while the car and the obstacles move (lockstep only).
     """
     from tqdm import tqdm
 
@@ -275,7 +275,7 @@ def run_stack(
     from qnav.simcar.car import SimCarSettings
 
     contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
-    world = load_scenario(scenario or contract.scenario)
+    world = replace(load_scenario(scenario or contract.scenario), lidar_turn_s=lidar_turn_s)
     files = StackFiles(out)
     hub = f"tcp/127.0.0.1:{free_port()}"
     mavlink_port = free_port(socket.SOCK_DGRAM)
@@ -284,12 +284,10 @@ def run_stack(
     lockstep = lockstep and sitl_binary is None  # the firmware keeps its own time
     if lockstep:
         vehicle_args.append("--lockstep")
-    if lidar_turn_s < 0:
-        raise ConfigError(f"--lidar-turn-s {lidar_turn_s:g}: a turn takes 0 s or more")
-    if lidar_turn_s > 0:
+    if lidar_turn_s:
         if not lockstep:
             raise ConfigError("--lidar-turn-s needs lockstep (not --real-time, not --vehicle sitl)")
-        vehicle_args += ["--lidar-turn-s", str(lidar_turn_s)]
+        vehicle_args += ["--set", f"lidar_turn_s={lidar_turn_s!r}"]
     bridge_values = None
     if sitl_binary is not None:
         from qnav.sitl import SITL_PARAMS, SKID_PARAMS, SitlProcess
@@ -442,11 +440,19 @@ def stack_verb(args: argparse.Namespace) -> int:
         lidar_turn_s=args.lidar_turn_s,
     )
     result["in_process"] = in_process_outcomes(
-        args.policy, result["scenario"], args.episodes, lookahead=lookahead
+        args.policy,
+        result["scenario"],
+        args.episodes,
+        lookahead=lookahead,
+        lidar_turn_s=args.lidar_turn_s,
     )
     result["gap"] = round(result["success"] - result["in_process"]["success"], 3)
     result["agreement"] = episode_agreement(
-        args.policy, result["scenario"], args.out / "episodes.jsonl", lookahead=lookahead
+        args.policy,
+        result["scenario"],
+        args.out / "episodes.jsonl",
+        lookahead=lookahead,
+        lidar_turn_s=args.lidar_turn_s,
     )
     result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
     if args.json:
@@ -567,13 +573,14 @@ def in_process_outcomes(
     episodes: int,
     *,
     lookahead: LookaheadSettings | None = None,
+    lidar_turn_s: float = 0.0,
 ) -> dict[str, Any]:
     """`qnav eval --lookahead MODE` of the policy file on the stack's episodes (the test
-    protocol's first ones)."""
+    protocol's first ones), with the stack's lidar (`lidar_turn_s`)."""
     from qnav.sim.config import scenario as load_scenario
     from qnav.sim.evaluate import EvalSettings, evaluate
 
-    world = load_scenario(scenario_name)
+    world = replace(load_scenario(scenario_name), lidar_turn_s=lidar_turn_s)
     result = evaluate(
         world,
         file_agent(policy, world, episodes, lookahead=lookahead),
@@ -609,6 +616,7 @@ def episode_agreement(
     episodes_log: Path,
     *,
     lookahead: LookaheadSettings | None = None,
+    lidar_turn_s: float = 0.0,
 ) -> dict[str, int]:
     """Each episode of the sim-car's log run again in process one at a time, the policy on one
     stream as the controller runs it: how many took the same action at every step
@@ -623,7 +631,11 @@ def episode_agreement(
     from qnav.sim.world import observe, reset, step
 
     test = EvalSettings()
-    world = replace(load_scenario(scenario_name), max_episode_steps=test.max_episode_steps)
+    world = replace(
+        load_scenario(scenario_name),
+        max_episode_steps=test.max_episode_steps,
+        lidar_turn_s=lidar_turn_s,
+    )
     names = {Outcome.SUCCESS: "success", Outcome.COLLISION: "collision"}
     agent = file_agent(policy, world, 1, lookahead=lookahead)
     counts = {"episodes": 0, "same_actions": 0, "same_outcome": 0}

@@ -141,8 +141,12 @@ class LookaheadAgent:
         assert observation.scan_m is not None  # the constructor checked the world has a lidar
         scans = noisy(observation.scan_m, self.range_noise_m, self._noise)
         times_s = self.steps * self.world.control_period_s
+        turn_s, delays_s = self.world.lidar_turn_s, None
+        if turn_s:  # a rotating lidar: its scan is stamped at the turn's start, as on the wire
+            delays_s = turn_s / scans.shape[1] * np.arange(scans.shape[1])
         for row, car in enumerate(self.cars):
-            car.observe(float(times_s[row]), observation.pose[row], float(times_s[row]), scans[row])
+            now_s = float(times_s[row])
+            car.observe(now_s, observation.pose[row], now_s - turn_s, scans[row], delays_s)
         targets = list(observation.target_xy)
         if self.settings.mode == "plan":
             action = plans_of(self.cars, targets)

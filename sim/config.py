@@ -172,6 +172,11 @@ class WorldConfig:
     """The room."""
     lidar: LidarSpec | None = field(default_factory=LidarSpec)
     """The planar lidar, or None for the toy car that has only motion-capture poses."""
+    lidar_turn_s: float = 0.0
+    """A rotating lidar's turn in seconds (0.1 for 10 Hz): beam j leaves j / B of it after the
+    turn's start, which ends at the observation, cast from where the car and the obstacles were
+    then (`sim.world.rotating_scans`; each beam a whole scan's cost: evaluation, not training).
+    0: every beam at the observation's instant (the paper's)."""
     robot_radius_m: float = 0.5
     """The paper's l: reach radius for the target and the collision distance (lost in the paper)."""
     control_period_s: float = 0.2
@@ -191,6 +196,16 @@ class WorldConfig:
         check_range(self, "robot_radius_m", self.robot_radius_m, 0.0, 100.0, exclusive_low=True)
         check_range(self, "control_period_s", self.control_period_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10_000_000)
+        check_range(
+            self,
+            "lidar_turn_s",
+            self.lidar_turn_s,
+            0.0,
+            self.control_period_s,
+            why="one scan leaves per control period",
+        )
+        if self.lidar_turn_s and self.lidar is None:
+            raise ConfigError(f"lidar_turn_s is set but {self.name} has no lidar")
         size = self.arena.size_m
         free = size - 2 * self.spawn.wall_margin_m
         check_range(

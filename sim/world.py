@@ -15,11 +15,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.motion import Outcome, move_obstacles, outcome, step_robot
+from qnav.contracts.motion import (
+    IncrementDynamics,
+    Outcome,
+    move_obstacles,
+    outcome,
+    step_robot,
+)
 from qnav.contracts.observation import encode_frame, obstacle_features, target_features
 from qnav.sim import rng
 from qnav.sim.config import WorldConfig
-from qnav.sim.geometry import cast_lidar, clearance
+from qnav.sim.geometry import cast_lidar, cast_rotating_lidar, clearance
 from qnav.sim.task import reward
 
 F64 = NDArray[np.float64]
@@ -175,11 +181,64 @@ def obstacle_speeds(config: WorldConfig, u: F64) -> F64:
     return np.clip(chosen, params.speed_min_mps, params.speed_max_mps)
 
 
-def observe(config: WorldConfig, state: WorldState) -> Observation:
-    """The observation in each world."""
+RobotPath = tuple[F64, F64]
+"""The robot's path over a control period: times (K,) relative to its end, ascending to 0, and
+poses (N, K, 3) then."""
+
+
+def robot_path(config: WorldConfig, state: WorldState, action: NDArray[np.integer]) -> RobotPath:
+    """The path the robots take over the coming control period under `action`: their poses at
+    the dynamics' physics steps (increment dynamics: at the period's start and end, the move
+    read as taken at a steady rate), the last one the pose `step` gives."""
+    period_s, dynamics = config.control_period_s, config.dynamics
+    steps = 1
+    if not isinstance(dynamics, IncrementDynamics):
+        steps = max(1, round(period_s / dynamics.physics_dt_s))
+    poses = [state.pose]
+    for k in range(1, steps + 1):
+        moved, _ = step_robot(state.pose, state.velocity, action, dynamics, period_s * k / steps)
+        poses.append(moved)
+    return period_s * (np.arange(steps + 1) / steps - 1.0), np.stack(poses, axis=1)
+
+
+def rotating_scans(
+    config: WorldConfig, state: WorldState, path: RobotPath | None = None
+) -> NDArray[np.float32]:
+    """(N, B) the scans of a lidar whose turn of `config.lidar_turn_s` ends at `state`: beam j
+    leaves j / B of the turn after its start, from the robot's pose then (interpolated along
+    `path`, the period's; None: the robot stood still) and among the obstacles where they were
+    then (moved back from `state`: their bounces off the walls are reversible)."""
+    lidar, turn_s = config.lidar, config.lidar_turn_s
+    assert lidar is not None
+    before_s: F64 = turn_s - turn_s / lidar.num_beams * np.arange(lidar.num_beams, dtype=float)
+    times_s, poses = path if path is not None else (np.zeros(1), state.pose[:, None])
+    radius = config.obstacles.radius_m
+    scans = []
+    for row in range(state.pose.shape[0]):
+        heading = np.unwrap(poses[row, :, 2])
+        beam_pose = np.stack(
+            [np.interp(-before_s, times_s, track) for track in (*poses[row, :, :2].T, heading)],
+            axis=1,
+        )
+        beam_obstacle_xy, _ = move_obstacles(
+            state.obstacle_xy[row],
+            -state.obstacle_velocity[row],
+            radius,
+            config.arena.size_m,
+            before_s[:, None, None],
+        )
+        scans.append(cast_rotating_lidar(beam_pose, lidar, config.arena, beam_obstacle_xy, radius))
+    return np.stack(scans)
+
+
+def observe(config: WorldConfig, state: WorldState, path: RobotPath | None = None) -> Observation:
+    """The observation in each world (with a rotating lidar, `config.lidar_turn_s`, its scans
+    taken along `path`, the period's: `rotating_scans`)."""
     radius = config.obstacles.radius_m
     scan = None
-    if config.lidar is not None:
+    if config.lidar is not None and config.lidar_turn_s:
+        scan = rotating_scans(config, state, path)
+    elif config.lidar is not None:
         scan = cast_lidar(state.pose, config.lidar, config.arena, state.obstacle_xy, radius)
     gap = clearance(state.pose[:, :2], config.arena, state.obstacle_xy, radius)
     return Observation(
@@ -209,7 +268,8 @@ def step(
         obstacle_velocity=obstacle_velocity,
         steps=state.steps + 1,
     )
-    observation = observe(config, new_state)
+    path = robot_path(config, state, action) if config.lidar_turn_s else None
+    observation = observe(config, new_state, path)
     distance = np.linalg.norm(state.target_xy - pose[:, :2], axis=1)
     result = outcome(distance, observation.clearance_m, config.robot_radius_m)
     terminated = result != Outcome.RUNNING

@@ -56,16 +56,13 @@ from qnav.contracts.settings import check_range
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings
-from qnav.sim.geometry import cast_rotating_lidar
 from qnav.sim.render import EpisodeRecord
 from qnav.sim.task import reward
-from qnav.sim.world import WorldState, observe, reset
+from qnav.sim.world import RobotPath, WorldState, observe, reset
 from qnav.simcar.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
 from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
 log = logging.getLogger("qnav.simcar.car")
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -122,12 +119,6 @@ class SimCarSettings:
     lockstep_timeout_s: float = 2.0
     """In lockstep, the longest wait for a period's command; then the world steps anyway and
     the period counts in `EpisodeLog.late_steps`."""
-    lidar_turn_s: float = 0.0
-    """A rotating lidar's turn, in seconds (0.1 for a 10 Hz lidar): each scan's beams leave one
-    after another over this time, ending as the period ends, each cast from where the car and
-    the obstacles were at its own time, and the scan carries LaserScan's time_increment, as a
-    real driver's does (`rotating_scan`). 0: instantaneous scans, the simulator's. Lockstep
-    only; at most one control period."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes", self.episodes, 1, 10_000_000)
@@ -140,12 +131,6 @@ class SimCarSettings:
         check_range(self, "rest_speed_mps", self.rest_speed_mps, 0, 10, exclusive_low=True)
         check_range(self, "rest_timeout_s", self.rest_timeout_s, 0, 600)
         check_range(self, "lockstep_timeout_s", self.lockstep_timeout_s, 0, 600, exclusive_low=True)
-        check_range(self, "lidar_turn_s", self.lidar_turn_s, 0, 10)
-        if self.lidar_turn_s > 0 and not self.lockstep:
-            raise ConfigError(
-                "lidar_turn_s > 0 needs lockstep = true: the car's path during a turn is known "
-                "only when the sim-car moves it (`MavlinkVehicle.advance`)"
-            )
         if self.lockstep and self.firmware_connection:
             raise ConfigError(
                 "lockstep = true needs the test vehicle: a firmware vehicle (firmware_connection) "
@@ -296,42 +281,11 @@ def scan_message(
     )
 
 
-def rotating_scan(
-    world: WorldConfig, state: WorldState, turn_s: float, path_times_s: F64, path_poses: F64
-) -> NDArray[np.float32]:
-    """The scan (B,) of a lidar whose turn of `turn_s` ends at `state` (one world): beam j leaves
-    j * turn_s / B after the turn's start, from the car's pose then and among the obstacles where
-    they were then.
-
-    The car's pose is interpolated along the path it took: `path_poses` (K, 3) at `path_times_s`
-    (K,), seconds relative to `state`, ascending to 0 (the test vehicle's physics steps; one
-    pose: a car at rest). The obstacles are moved back from `state` (their bounces off the walls
-    are reversible)."""
-    assert world.lidar is not None
-    beams = world.lidar.num_beams
-    before_s: F64 = turn_s - turn_s / beams * np.arange(beams, dtype=np.float64)
-    heading = np.unwrap(path_poses[:, 2])
-    beam_pose = np.stack(
-        [np.interp(-before_s, path_times_s, column) for column in (*path_poses[:, :2].T, heading)],
-        axis=1,
-    )
-    beam_obstacle_xy, _ = move_obstacles(
-        state.obstacle_xy[0],
-        -state.obstacle_velocity[0],
-        world.obstacles.radius_m,
-        world.arena.size_m,
-        before_s[:, None, None],
-    )
-    return cast_rotating_lidar(
-        beam_pose, world.lidar, world.arena, beam_obstacle_xy, world.obstacles.radius_m
-    )
-
-
-def drive(vehicle: MavlinkVehicle, period_s: float) -> tuple[F64, F64]:
-    """Lockstep: move the test vehicle one period (`advance`); returns the path it took, times
-    relative to the period's end (ascending to 0) and poses (K, 3) at its physics steps, for
-    `rotating_scan`. The steps between are the vehicle's own motion model run on a copy of its
-    state, so the car itself moves exactly as without a path (an ulp can decide a near-tie)."""
+def drive(vehicle: MavlinkVehicle, period_s: float) -> RobotPath:
+    """Lockstep: move the test vehicle one period (`advance`); returns the path it took (poses
+    (1, K, 3) at its physics steps), for a rotating lidar (`sim.world.rotating_scans`). The
+    steps between are the vehicle's own motion model run on a copy of its state, so the car
+    itself moves exactly as without a path (an ulp can decide a near-tie)."""
     params = vehicle.settings.dynamics
     steps = max(1, round(period_s / params.physics_dt_s))
     speed_mps, rate_radps = vehicle.targets()
@@ -349,7 +303,7 @@ def drive(vehicle: MavlinkVehicle, period_s: float) -> tuple[F64, F64]:
         path.append(pose[0])
     vehicle.advance(period_s)
     path.append(np.array(vehicle.pose()))
-    return period_s * (np.arange(steps + 1) / steps - 1.0), np.array(path)
+    return period_s * (np.arange(steps + 1) / steps - 1.0), np.array(path)[None]
 
 
 class SimCar:
@@ -358,10 +312,10 @@ class SimCar:
     def __init__(self, world: WorldConfig, settings: SimCarSettings, zenoh: ZenohSettings) -> None:
         self.world = replace(world, max_episode_steps=settings.max_episode_steps)
         self.settings = settings
-        if settings.lidar_turn_s > world.control_period_s:
+        if world.lidar_turn_s and not settings.lockstep:
             raise ConfigError(
-                f"lidar_turn_s = {settings.lidar_turn_s:g} s is longer than {world.name}'s "
-                f"control period ({world.control_period_s:g} s): one scan leaves per period"
+                "the world's lidar_turn_s needs the sim-car in lockstep (lockstep = true): the "
+                "car's path during a turn is known only when the sim-car moves it"
             )
         self.zenoh = zenoh
         self.vehicle: MavlinkVehicle | FirmwareVehicle
@@ -510,7 +464,7 @@ class SimCar:
                 path = drive(self.vehicle, period)
             state = self._advance(state)
             self._record(state, entry)
-            observation = observe(world, state)
+            observation = observe(world, state, path)
             distance = np.linalg.norm(state.target_xy - state.pose[:, :2], axis=1)
             result = int(outcome(distance, observation.clearance_m, world.robot_radius_m)[0])
             entry.steps = int(state.steps[0])
@@ -520,7 +474,7 @@ class SimCar:
             if entry.steps >= world.max_episode_steps:
                 break
             published_s = time.monotonic()
-            stamp = self._publish(state, publish, observation_scan=observation.scan_m, path=path)
+            stamp = self._publish(state, publish, observation_scan=observation.scan_m)
         self._rest(state, publish, stop)
         return None if stop.is_set() else entry
 
@@ -605,12 +559,11 @@ class SimCar:
         target: bool = False,
         with_scan: bool = True,
         observation_scan: NDArray[np.float32] | None = None,
-        path: tuple[F64, F64] | None = None,
     ) -> float:
-        """Publish the pose (and the target) and the scan; returns the scan's stamp: the wall
-        clock, or in lockstep the simulator's clock (`LOCKSTEP_EPISODE_S`), as the pose's, or
-        with a rotating lidar (`lidar_turn_s`) the start of its turn, which ends at the pose's
-        stamp along `path` (`drive`; None: the car stood still)."""
+        """Publish the pose (and the target) and the scan (`observation_scan`, else the world's
+        around the car standing still); returns the scan's stamp: the wall clock, or in lockstep
+        the simulator's clock (`LOCKSTEP_EPISODE_S`), as the pose's, or with a rotating lidar
+        (the world's `lidar_turn_s`) the start of its turn, which ends at the pose's stamp."""
         settings = self.settings
         stamp = time.time()
         if settings.lockstep:
@@ -624,20 +577,15 @@ class SimCar:
         publish[wire.POSE.name].put(
             wire.encode_pose_msg(wire.Pose2D(stamp, settings.map_frame_id, x, y, yaw))
         )
-        turn_s = settings.lidar_turn_s
+        turn_s = self.world.lidar_turn_s
         if self.world.lidar is not None and with_scan:
-            if turn_s > 0:
-                times_s, poses = path if path is not None else (np.zeros(1), state.pose)
-                ranges = rotating_scan(self.world, state, turn_s, times_s, poses)
-            else:
-                scan = observation_scan
-                if scan is None:
-                    scan = observe(self.world, state).scan_m
-                assert scan is not None
-                ranges = scan[0]
+            scan = observation_scan
+            if scan is None:
+                scan = observe(self.world, state).scan_m
+            assert scan is not None
             publish[wire.SCAN.name].put(
                 scan_message(
-                    ranges,
+                    scan[0],
                     stamp - turn_s,
                     settings.lidar_frame_id,
                     self.world.lidar.max_range_m,

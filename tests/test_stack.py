@@ -155,10 +155,11 @@ def test_with_the_look_ahead_the_full_stack_dodges_as_the_shield_does_in_process
 def test_with_a_10_hz_lidar_the_full_stack_dodges_as_the_shield_does_on_instantaneous_scans(
     tmp_path: Path,
 ) -> None:
-    # The sim-car's lidar turns over 0.1 s while the car and the obstacles move, each beam cast
-    # where they were at its own time, and says so in LaserScan's time_increment; the controller
-    # places each beam from the car's pose then (docs/controller.md, "A rotating lidar"). In
-    # process the look ahead gets instantaneous scans: the gap is what the turn costs.
+    # The lidar turns over 0.1 s while the car and the obstacles move, each beam cast where they
+    # were at its own time (the world's lidar_turn_s), and the sim-car says so in LaserScan's
+    # time_increment; the controller places each beam from the car's pose then
+    # (docs/controller.md, "A rotating lidar"), as `qnav eval` does in process with the same
+    # lidar.
     stack = _dodging(tmp_path / "stack", "--lookahead", "shield", "--lidar-turn-s", "0.1")
     assert stack["lidar_turn_s"] == 0.1
 

@@ -186,7 +186,7 @@ def test_with_external_physics_the_car_moves_only_by_advance_exactly_as_the_simu
 def test_the_path_of_a_lockstep_period_passes_its_physics_steps_to_where_advance_took_the_car(
     rig: Callable[..., Any],
 ) -> None:
-    # The sim-car's rotating lidar needs the path within a period (`simcar.car.drive`); the car
+    # A rotating lidar needs the path within a period (`simcar.car.drive`); the car
     # must still move exactly as one `advance` moves it.
     vehicle, station = rig(external_physics=True)
     station.command(MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
@@ -204,11 +204,11 @@ def test_the_path_of_a_lockstep_period_passes_its_physics_steps_to_where_advance
                 pose, velocity, np.array([speed]), np.array([rate]), params=params,
                 period_s=0.2 + time_s,
             )  # fmt: skip
-            np.testing.assert_allclose(path[k], passed[0], atol=1e-12)
+            np.testing.assert_allclose(path[0, k], passed[0], atol=1e-12)
         pose, velocity = step_velocity_lag(
             pose, velocity, np.array([speed]), np.array([rate]), params=params, period_s=0.2
         )
-        assert vehicle.pose() == tuple(pose[0]) == tuple(path[-1])  # to the last bit
+        assert vehicle.pose() == tuple(pose[0]) == tuple(path[0, -1])  # to the last bit
 
 
 def test_rc_override_does_nothing_while_disarmed(rig: Callable[..., Any]) -> None:
