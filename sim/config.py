@@ -304,7 +304,13 @@ def load_world(
     name: str, settings_file: Path | None = None, assignments: list[str] | None = None
 ) -> WorldConfig:
     """A scenario's settings, changed by a TOML file and then by `section.field=value` strings."""
-    config = scenario(name)
+    return changed_world(scenario(name), settings_file, assignments)
+
+
+def changed_world(
+    config: WorldConfig, settings_file: Path | None = None, assignments: list[str] | None = None
+) -> WorldConfig:
+    """A world's settings changed by a TOML file and then by `section.field=value` strings."""
     if settings_file is not None:
         config = with_overrides(config, load_toml(settings_file))
     if assignments:

@@ -11,7 +11,7 @@ from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import IncrementDynamics
 from qnav.contracts.settings import to_markdown
 from qnav.options import config_text, settings_from_args
-from qnav.sim.config import SCENARIOS, WorldConfig, load_world, scenario
+from qnav.sim.config import SCENARIOS, WorldConfig, changed_world, load_world, scenario
 from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
 
@@ -99,7 +99,7 @@ def evaluate(args: argparse.Namespace) -> int:
         world = (
             load_world(args.scenario, args.world_config, args.assignments)
             if args.scenario
-            else run.world
+            else changed_world(run.world, args.world_config, args.assignments)
         )
         agent = policy_agent(
             network,

@@ -60,6 +60,14 @@ def test_a_run_writes_settings_progress_model_and_results(tmp_path: Path) -> Non
     )  # fmt: skip
     assert policy.returncode == 0, policy.stderr
     assert json.loads(policy.stdout)["episodes"] == 3
+    # --set changes the run's own world (it was ignored without --scenario)
+    changed = subprocess.run(
+        [sys.executable, "-m", "qnav", "eval", "--policy", str(run_dir), "--set",
+         "max_episode_steps=7", "--print-config"],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert changed.returncode == 0, changed.stderr
+    assert "max_episode_steps = 7" in changed.stdout
 
 
 def test_an_exported_run_scores_what_its_torch_network_scores(tmp_path: Path) -> None:
