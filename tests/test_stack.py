@@ -152,7 +152,7 @@ def test_with_the_look_ahead_the_full_stack_dodges_as_the_shield_does_in_process
 
 @pytest.mark.stack
 @pytest.mark.timeout(1500)
-def test_with_a_10_hz_lidar_the_full_stack_dodges_as_the_shield_does_on_instantaneous_scans(
+def test_with_a_10_hz_lidar_the_full_stack_dodges_as_the_same_lidar_does_in_process(
     tmp_path: Path,
 ) -> None:
     # The lidar turns over 0.1 s while the car and the obstacles move, each beam cast where they

@@ -15,9 +15,10 @@ five frames' summaries in order to a small head. Same windows, labels and judge 
 (per obstacle, the mean over its returns' velocities; held out on other layouts).
 
 Usage: learned_motion_points.py SCENARIO TRAIN_WINDOWS EPOCHS OUT.pt [--frames 1]
-[--queries Q] [--minutes M]
+[--queries Q] [--minutes M] [--from SAVED.pt] [--lr L] [--decay]
 (Q query returns per training window, 6 by default; --frames 1 is the one-frame twin; the fit
-stops after M minutes of passes, if given)
+stops after M minutes of passes, if given; --from starts from a saved network; --decay lowers
+the learning rate to zero over the EPOCHS passes, cosine)
 """
 
 from __future__ import annotations
@@ -182,6 +183,9 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=WINDOW)
     parser.add_argument("--queries", type=int, default=6)
     parser.add_argument("--minutes", type=float, default=math.inf)
+    parser.add_argument("--from", dest="start", default=None)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--decay", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(2)
     world = scenario(args.scenario)
@@ -204,8 +208,12 @@ def main() -> None:
     del x
     print(f"{len(window)} queries ready ({time.time() - started:.0f} s)", flush=True)
     torch.manual_seed(0)
-    network = PointMotionNetwork(frames=args.frames)
-    optimizer = torch.optim.Adam(network.parameters(), lr=1e-3)
+    network = PointMotionNetwork(frames=args.frames) if args.start is None else load(args.start)
+    optimizer = torch.optim.Adam(network.parameters(), lr=args.lr)
+    steps = args.epochs * math.ceil(len(window) / 256)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda k: 0.5 * (1 + math.cos(math.pi * k / steps)) if args.decay else 1.0
+    )
     fitting = time.time()
     for epoch in range(1, args.epochs + 1):
         network.train()
@@ -215,6 +223,7 @@ def main() -> None:
             optimizer.zero_grad()
             loss.backward()  # type: ignore[no-untyped-call]
             optimizer.step()
+            schedule.step()
             total, batches = total + loss.item(), batches + 1
         network.eval()
         report(epoch, total / batches, held_out_error(network, held, world), started)
