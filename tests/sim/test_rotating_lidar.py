@@ -91,8 +91,12 @@ def test_the_first_scan_of_an_episode_sees_the_obstacles_move_during_the_turn() 
     world = _turning("obstacles-inertia")
     state = reset(world, np.array([EvalSettings().seed]), np.array([4]))
     scan = observe(world, state).scan_m
-    assert scan is not None
-    for beam in range(0, 720, 45):  # the robot stands at its start; beam j left 0.1 (1 - j/B) ago
+    instantaneous = observe(replace(world, lidar_turn_s=0.0), state).scan_m
+    assert scan is not None and instantaneous is not None
+    on_obstacles = np.flatnonzero(scan[0] != instantaneous[0])
+    assert on_obstacles.size >= 20  # the beams that see an obstacle that moved during the turn
+    for beam in [*on_obstacles, *range(0, 720, 45)]:
+        # The robot stands at its start; beam j left 0.1 (1 - j / B) s before the observation.
         expected = _beam(world, state, -TURN_S * (1 - beam / 720), state.pose, beam)
         assert scan[0, beam] == pytest.approx(expected, abs=1e-4), beam
 
