@@ -459,9 +459,12 @@ class SimCar:
             if settings.lockstep and decision is not None:
                 command = wire.Twist2D(decision.linear_mps, decision.angular_radps)
             entry.actions.append(self.action_of(command))
-            path = None
+            path = None  # the car's path within the period: only a rotating lidar needs it
             if settings.lockstep and isinstance(self.vehicle, MavlinkVehicle):
-                path = drive(self.vehicle, period)
+                if world.lidar_turn_s:
+                    path = drive(self.vehicle, period)
+                else:
+                    self.vehicle.advance(period)
             state = self._advance(state)
             self._record(state, entry)
             observation = observe(world, state, path)
@@ -578,6 +581,7 @@ class SimCar:
             wire.encode_pose_msg(wire.Pose2D(stamp, settings.map_frame_id, x, y, yaw))
         )
         turn_s = self.world.lidar_turn_s
+        scan_stamp = stamp - turn_s
         if self.world.lidar is not None and with_scan:
             scan = observation_scan
             if scan is None:
@@ -586,13 +590,13 @@ class SimCar:
             publish[wire.SCAN.name].put(
                 scan_message(
                     scan[0],
-                    stamp - turn_s,
+                    scan_stamp,
                     settings.lidar_frame_id,
                     self.world.lidar.max_range_m,
                     turn_s,
                 )
             )
-        return stamp - turn_s
+        return scan_stamp
 
 
 def note_decision(entry: EpisodeLog, decisions: list[Decision], distance_m: float) -> None:

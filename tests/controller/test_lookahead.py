@@ -232,19 +232,14 @@ def _rotating_scan(
     pose at its own time (`pose_at(t)`), the obstacles where they are then (`state` at time 0)."""
     assert world.lidar is not None
     beams = world.lidar.num_beams
-    times_s = first_s + turn_s / beams * np.arange(beams)
+    times_s: NDArray[np.float64] = first_s + turn_s / beams * np.arange(beams, dtype=np.float64)
     poses = np.array([pose_at(t) for t in times_s])
-    places = np.array(
-        [
-            move_obstacles(
-                state.obstacle_xy,
-                state.obstacle_velocity,
-                world.obstacles.radius_m,
-                world.arena.size_m,
-                t,
-            )[0][0]
-            for t in times_s
-        ]
+    places, _ = move_obstacles(
+        state.obstacle_xy[0],
+        state.obstacle_velocity[0],
+        world.obstacles.radius_m,
+        world.arena.size_m,
+        times_s[:, None, None],
     )
     scan = cast_rotating_lidar(poses, world.lidar, world.arena, places, world.obstacles.radius_m)
     return scan, places[-1]

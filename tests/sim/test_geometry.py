@@ -46,7 +46,7 @@ def test_each_beam_of_a_rotating_lidar_is_that_beam_of_the_scan_from_its_own_pos
         config.lidar,
         config.arena,
         np.repeat(state.obstacle_xy, beams, axis=0),
-        config.obstacles.radius_m,
+        radius,
     )
     np.testing.assert_array_equal(still, _scan(config, state.pose, state.obstacle_xy)[0])
 

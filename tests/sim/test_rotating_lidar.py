@@ -12,12 +12,10 @@ from numpy.typing import NDArray
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import move_obstacles, step_robot
-from qnav.contracts.transport import ZenohSettings
 from qnav.sim.config import WorldConfig, scenario
 from qnav.sim.evaluate import EvalSettings
 from qnav.sim.geometry import cast_lidar
 from qnav.sim.world import WorldState, observe, reset, robot_path, rotating_scans, step
-from qnav.simcar.car import SimCar, SimCarSettings
 
 TURN_S = 0.1
 
@@ -120,5 +118,3 @@ def test_a_turn_must_fit_in_the_control_period_on_a_world_with_a_lidar() -> None
         replace(scenario("obstacles-inertia"), lidar_turn_s=0.3)
     with pytest.raises(ConfigError, match="lidar_turn_s is set but toycar-inertia has no lidar"):
         replace(scenario("toycar-inertia"), lidar_turn_s=TURN_S)
-    with pytest.raises(ConfigError, match=r"lidar_turn_s needs the sim-car in lockstep"):
-        SimCar(_turning("obstacles-inertia"), SimCarSettings(), ZenohSettings())
