@@ -149,7 +149,13 @@ class RuledShield(LookaheadAgent):
             return lambda row, centre: np.zeros(2)
         from learned_motion import WINDOW, reproject
         from learned_motion_grid import per_beam
-        from learned_motion_points import PointMotionNetwork, points, raw, track_velocity
+        from learned_motion_points import (
+            AttentivePointMotionNetwork,
+            PointMotionNetwork,
+            points,
+            raw,
+            track_velocity,
+        )
 
         if self.window is None:
             self.window = (
@@ -172,14 +178,16 @@ class RuledShield(LookaheadAgent):
             [poses[:, 0:1] + r * np.cos(heading), poses[:, 1:2] + r * np.sin(heading)], axis=-1
         )
         reach_m = self.world.obstacles.radius_m + 0.15
-        if isinstance(self.learned, PointMotionNetwork):  # per track, from its returns' points
-            xy, ok = points(raw(past_scans, past_poses, angles), self.world)
+        if isinstance(self.learned, PointMotionNetwork | AttentivePointMotionNetwork):
+            # per track, from its returns' points
+            cloud = points(raw(past_scans, past_poses, angles), self.world)
+            ok = cloud[1]
 
             def from_points(row, centre):  # type: ignore[no-untyped-def]
                 on = ok[row, -1] & (np.linalg.norm(hits[row] - centre, axis=1) < reach_m)
                 if not on.any():
                     return np.zeros(2)
-                forward, left = track_velocity(self.learned, xy, ok, row, np.flatnonzero(on))
+                forward, left = track_velocity(self.learned, cloud, row, np.flatnonzero(on))
                 return np.array(
                     [c[row, 0] * forward - s[row, 0] * left, s[row, 0] * forward + c[row, 0] * left]
                 )
