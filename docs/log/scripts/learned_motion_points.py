@@ -91,6 +91,34 @@ def patches(
     return np.where(real[..., None], chosen, 0.0).astype(np.float32), real, origin
 
 
+def point_network(frames: int, width: int) -> torch.nn.Sequential:
+    """The network both perceivers run on each point: its offset (over RADIUS_M) and its
+    frame's one-hot -> `width` features."""
+    return torch.nn.Sequential(
+        torch.nn.Linear(2 + frames, 64),
+        torch.nn.ReLU(),
+        torch.nn.Linear(64, width),
+        torch.nn.ReLU(),
+        torch.nn.Linear(width, width),
+    )
+
+
+def encode(
+    point: torch.nn.Module, offsets: torch.Tensor, real: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, K, P, 2) offsets, (N, K, P) real -> (N, K, P, W) each point's features and
+    (N, K * 2W) each frame's summary, their maximum and mean over its real points (zero for a
+    frame with none)."""
+    n, k, p, _ = offsets.shape
+    frame = torch.eye(k).view(1, k, 1, k).expand(n, k, p, k)
+    x = point(torch.cat([offsets / RADIUS_M, frame], dim=-1))
+    mask = real[..., None].float()
+    top = torch.where(real[..., None], x, torch.full_like(x, -1e4)).amax(dim=2)
+    top = torch.where(real.any(dim=2, keepdim=True), top, torch.zeros_like(top))
+    mean = (x * mask).sum(dim=2) / mask.sum(dim=2).clamp(min=1)
+    return x, torch.cat([top, mean], dim=-1).reshape(n, -1)
+
+
 class PointMotionNetwork(torch.nn.Module):
     """Per frame, the points around a query (offsets) -> the velocity (forward, left; m/s) of
     the obstacle the query falls on."""
@@ -98,13 +126,7 @@ class PointMotionNetwork(torch.nn.Module):
     def __init__(self, frames: int = WINDOW, width: int = 128) -> None:
         super().__init__()
         self.frames = frames
-        self.point = torch.nn.Sequential(
-            torch.nn.Linear(2 + frames, 64),
-            torch.nn.ReLU(),
-            torch.nn.Linear(64, width),
-            torch.nn.ReLU(),
-            torch.nn.Linear(width, width),
-        )
+        self.point = point_network(frames, width)
         self.head = torch.nn.Sequential(
             torch.nn.Linear(2 * width * frames, 256),
             torch.nn.ReLU(),
@@ -119,14 +141,7 @@ class PointMotionNetwork(torch.nn.Module):
         """(N, K, P, 2) offsets (m), (N, K, P) real -> (N, 2); only the newest `frames` (the
         scans' origins unused)."""
         offsets, real = offsets[:, -self.frames :], real[:, -self.frames :]
-        n, k, p, _ = offsets.shape
-        frame = torch.eye(k).view(1, k, 1, k).expand(n, k, p, k)
-        x = self.point(torch.cat([offsets / RADIUS_M, frame], dim=-1))
-        mask = real[..., None].float()
-        top = torch.where(real[..., None], x, torch.full_like(x, -1e4)).amax(dim=2)
-        top = torch.where(real.any(dim=2, keepdim=True), top, torch.zeros_like(top))
-        mean = (x * mask).sum(dim=2) / mask.sum(dim=2).clamp(min=1)
-        return self.head(torch.cat([top, mean], dim=-1).reshape(n, -1))
+        return self.head(encode(self.point, offsets, real)[1])
 
 
 class AttentivePointMotionNetwork(torch.nn.Module):
@@ -150,13 +165,7 @@ class AttentivePointMotionNetwork(torch.nn.Module):
         self.frames = frames
         self.radius_m = radius_m
         self.circle = circle  # places refined by a fit of the known radius's circle
-        self.point = torch.nn.Sequential(
-            torch.nn.Linear(2 + frames, 64),
-            torch.nn.ReLU(),
-            torch.nn.Linear(64, width),
-            torch.nn.ReLU(),
-            torch.nn.Linear(width, width),
-        )
+        self.point = point_network(frames, width)
         self.context = torch.nn.Sequential(
             torch.nn.Linear(2 * width * frames + 2 * frames, 256),
             torch.nn.ReLU(),
@@ -181,25 +190,18 @@ class AttentivePointMotionNetwork(torch.nn.Module):
         """(N, K, 2) where each frame places the query's obstacle, (N, K) whether it saw it,
         and (N, 128) the window's summary."""
         n, k, p, _ = offsets.shape
-        frame = torch.eye(k).view(1, k, 1, k).expand(n, k, p, k)
-        x = self.point(torch.cat([offsets / RADIUS_M, frame], dim=-1))
-        mask = real[..., None].float()
-        seen = real.any(dim=2)
-        top = torch.where(real[..., None], x, torch.full_like(x, -1e4)).amax(dim=2)
-        top = torch.where(seen[..., None], top, torch.zeros_like(top))
-        mean = (x * mask).sum(dim=2) / mask.sum(dim=2).clamp(min=1)
-        summary = torch.cat([top, mean], dim=-1).reshape(n, -1)
+        x, summary = encode(self.point, offsets, real)
         context = self.context(torch.cat([summary, origin.reshape(n, -1) / RADIUS_M], dim=-1))
         score = self.score(torch.cat([x, context[:, None, None].expand(n, k, p, -1)], dim=-1))
         score = torch.where(real, score[..., 0], torch.full_like(score[..., 0], -1e4))
-        weight = torch.softmax(score, dim=2) * mask[..., 0]
+        weight = torch.softmax(score, dim=2) * real.float()
         centroid = (weight[..., None] * offsets).sum(dim=2)
         away = centroid - origin
         unit = away / away.norm(dim=-1, keepdim=True).clamp(min=1e-6)
         place = centroid + self.push(context)[..., None] * unit
         if self.circle:
             place = self.fit_circle(place, offsets, weight)
-        return place, seen, context
+        return place, real.any(dim=2), context
 
     def fit_circle(
         self, centre: torch.Tensor, offsets: torch.Tensor, weight: torch.Tensor
