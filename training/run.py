@@ -40,7 +40,7 @@ from qnav.training.run_folder import Progress, RunFolder, RunSettings, source_co
 from qnav.training.sampling import sample
 from qnav.training.validation import Gauge, Validation, evaluate_network
 
-REACHED_LEVELS = (0.5, 0.9, 0.99)
+REACHED_LEVELS = (0.5, 0.8, 0.9, 0.99)
 """Validation success levels whose first crossing results.json records."""
 _TRAIN_LAYOUT_SEED = 1_000_003
 

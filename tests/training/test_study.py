@@ -108,6 +108,7 @@ def test_ablation_runs_stay_out_of_the_tables_and_fill_only_the_ablation_rows(
 ) -> None:
     reached = {
         "0.5": {"episodes": 16, "iterations": 90, "wall_s": 60.0},
+        "0.8": None,
         "0.9": {"episodes": 24, "iterations": 150, "wall_s": 90.0},
     }
     for relabel, success in (("paper", 0.5), ("none", 0.25)):
@@ -118,8 +119,8 @@ def test_ablation_runs_stay_out_of_the_tables_and_fill_only_the_ablation_rows(
         )
     text = results_markdown(tmp_path, {})
     assert "| Recurrent | 0 | not run yet |" in text.split("## Table III")[1].split("##")[0]
-    assert "| walls-increment | paper | 1 | 16 | 1.0 | 24 | 1.5 | 0.500 |" in text
-    assert "| walls-increment | none | 1 | 16 | 1.0 | 24 | 1.5 | 0.250 |" in text
+    assert "| walls-increment | paper | 1 | 16 | 1.0 | - | - | 24 | 1.5 | 0.500 |" in text
+    assert "| walls-increment | none | 1 | 16 | 1.0 | - | - | 24 | 1.5 | 0.250 |" in text
     assert "Status: 0 of 40" in text
 
 
