@@ -903,8 +903,9 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
         + ", ".join(f"{n} episodes ({s})" for s, n in ABLATION_EVAL_EVERY_EPISODES.items())
         + ". Figures per run, in seed order; test success is the mean. '-' = never reached "
         "within the run. The obstacles-inertia rows were rerun in the re-pinned world "
-        "(2026-12-04), where the blind go-to-target controller scores 0.671 (`qnav eval "
-        "--scenario obstacles-inertia --agent goto --episodes 1000`).",
+        "(2026-12-04; every ablation run again on 2026-12-06, to time 0.8 too), where the blind "
+        "go-to-target controller scores 0.671 (`qnav eval --scenario obstacles-inertia --agent "
+        "goto --episodes 1000`).",
         "",
         _row(
             "scenario",
