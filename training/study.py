@@ -591,7 +591,7 @@ def _study_runs(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
 
 def _ablation_row(scenario: str, relabel: str, runs: list[dict[str, Any]]) -> str:
     if not runs:
-        return _row(scenario, relabel, 0, "not run yet", *[""] * 7)
+        return _row(scenario, relabel, 0, "not run yet", *[""] * (2 * len(ABLATION_LEVELS) + 1))
     cells = []
     for level in ABLATION_LEVELS:
         reached = [r.get("first_reached", {}).get(level) for r in runs]
