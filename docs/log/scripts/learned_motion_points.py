@@ -333,18 +333,26 @@ def anatomy(name: str, path: str) -> None:
     print(
         f"{len(error)} obstacles: median {np.median(error):.3f} p90 {np.quantile(error, 0.9):.3f}"
     )
+    print_anatomy(error, bounced, range_m, beams)
+
+
+def print_anatomy(
+    error: NDArray, bounced: NDArray, range_m: NDArray, returns: NDArray, digits: int = 3
+) -> None:
+    """Print per-obstacle errors' median and p90 split by bounced or straight, by range and by
+    how many returns the obstacle gives (each argument one entry per obstacle)."""
     parts = [("bounced within the window", bounced), ("straight", ~bounced)]
     parts += [
         (f"{lo}-{hi} m", (range_m >= lo) & (range_m < hi))
         for lo, hi in ((0, 1.5), (1.5, 3), (3, 5))
     ]
     parts += [
-        (f"{lo}-{hi - 1} returns", (beams >= lo) & (beams < hi))
+        (f"{lo}-{hi - 1} returns", (returns >= lo) & (returns < hi))
         for lo, hi in ((0, 10), (10, 30), (30, 721))
     ]
     for part, k in parts:
         median, p90 = np.median(error[k]), np.quantile(error[k], 0.9)
-        print(f"{part}: {k.sum()} obstacles, median {median:.3f} p90 {p90:.3f}")
+        print(f"{part}: {k.sum()} obstacles, median {median:.{digits}f} p90 {p90:.{digits}f}")
 
 
 def main() -> None:

@@ -8,7 +8,8 @@ tracker's velocities, kept per track: session 23); this measures the tracker its
 tracker (the controller's `ObstacleTracker`, the scenario's obstacle radius) takes the window's
 five scans in order; each obstacle (its returns in the newest scan) is paired with the track
 whose centre is nearest their mean, within the radius + 0.3 m; an obstacle with no such track
-counts as unmatched (its error: the true speed, as a forecast without it would err).
+counts as unmatched (its error: the true speed, as a forecast without it would err; the
+share matched is printed first).
 
 Usage: tracker_motion_error.py SCENARIO [RANGE_NOISE_M]
 (RANGE_NOISE_M: Gaussian noise added to every range the tracker reads, as `qnav.tracking.noisy`)
@@ -20,7 +21,7 @@ import sys
 
 import numpy as np
 from learned_motion import collect
-from learned_motion_points import raw
+from learned_motion_points import print_anatomy, raw
 
 from qnav.controller.perception import ObstacleTracker, TrackerSettings, box_walls
 from qnav.sim.config import scenario
@@ -72,19 +73,7 @@ def main() -> None:
         f"{len(error)} obstacles, {matched_a.mean():.3f} matched to a track: median "
         f"{np.median(error):.4f} p90 {np.quantile(error, 0.9):.4f}"
     )
-    parts = [("bounced within the window", bounced_a), ("straight", ~bounced_a)]
-    parts += [
-        (f"{lo}-{hi} m", (range_a >= lo) & (range_a < hi))
-        for lo, hi in ((0, 1.5), (1.5, 3), (3, 5))
-    ]
-    parts += [
-        (f"{lo}-{hi - 1} returns", (returns_a >= lo) & (returns_a < hi))
-        for lo, hi in ((0, 10), (10, 30), (30, 721))
-    ]
-    parts += [("matched", matched_a)]
-    for part, k in parts:
-        median, p90 = np.median(error[k]), np.quantile(error[k], 0.9)
-        print(f"{part}: {k.sum()} obstacles, median {median:.4f} p90 {p90:.4f}")
+    print_anatomy(error, bounced_a, range_a, returns_a, digits=4)
 
 
 if __name__ == "__main__":
