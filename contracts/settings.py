@@ -120,6 +120,9 @@ def _coerce(cls: type, name: str, annotation: Any, value: Any, path: str) -> Any
             return value.lower() in ("true", "1", "yes")
         raise ConfigError(f"{path} must be true or false, got {value!r}")
     if annotation in (int, float, str):
+        if isinstance(value, bool):
+            # bool is an int to Python: TOML's `true` would pass as 1, 1.0 or "True".
+            raise ConfigError(f"{path} must be {annotation.__name__}, got {value!r}")
         try:
             if annotation is int and isinstance(value, float) and not value.is_integer():
                 raise ValueError
