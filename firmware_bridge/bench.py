@@ -192,7 +192,7 @@ def measure(
     (its output mode and failsafe.command_timeout_s as given); with `baseline`, also a bare
     zenoh-to-UDP echo process."""
     if commands < 1 or stops < 1:
-        raise ConfigError("qnav bench bridge needs --commands and --stops of at least 1")
+        raise ConfigError("--commands and --stops must each be at least 1")
     zenoh_port, mavlink_port = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
     settings = BridgeSettings(
         zenoh=ZenohSettings(connect=(f"tcp/127.0.0.1:{zenoh_port}",)),

@@ -62,10 +62,10 @@ class ServeSettings:
 
     def __post_init__(self) -> None:
         if not self.sources:
-            raise ConfigError("qnav serve: name at least one policy file or folder (SOURCE)")
+            raise ConfigError("name at least one policy file or folder (SOURCE)")
         for source in self.sources:
             if not source.exists():
-                raise ConfigError(f"qnav serve: source {str(source)!r} does not exist")
+                raise ConfigError(f"source {str(source)!r} does not exist")
         if not 0.01 <= self.poll_s <= 3600:
             raise ConfigError(f"--poll-s = {self.poll_s} is out of range: allowed [0.01, 3600]")
         if not 0.01 <= self.announce_interval_s <= 3600:
@@ -356,7 +356,7 @@ def keys_verb(args: argparse.Namespace) -> int:
     public_path = folder / delivery.PUBLIC_KEY_FILE
     if (private_path.exists() or public_path.exists()) and not args.force:
         raise ConfigError(
-            f"qnav keys: {private_path} or {public_path} exists; --force replaces them (every car "
+            f"{private_path} or {public_path} exists; --force replaces them (every car "
             "then needs the new public key)"
         )
     folder.mkdir(parents=True, exist_ok=True)

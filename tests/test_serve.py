@@ -154,6 +154,16 @@ def test_qnav_serve_refuses_a_missing_source_or_key_naming_it(tmp_path: Path, ke
     assert "Traceback" not in wrong.stderr + missing.stderr
 
 
+def test_a_refusal_names_its_verb_once(tmp_path: Path, keys: Path) -> None:
+    # "qnav serve: qnav serve: source 'runs' does not exist" (issue 53).
+    missing = _qnav("serve", "nowhere", "--key", str(keys / delivery.PRIVATE_KEY_FILE))
+    assert missing.returncode == 2
+    assert missing.stderr == "qnav serve: source 'nowhere' does not exist\n"
+    again = _qnav("keys", str(keys))
+    assert again.returncode == 2
+    assert again.stderr.startswith("qnav keys: ") and again.stderr.count("qnav keys") == 1
+
+
 def _run_folder(root: Path) -> Path:
     """A training run's folder as keep-best leaves it mid-training: settings and best.pt."""
     import torch
