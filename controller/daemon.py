@@ -366,15 +366,22 @@ def serve(daemon: Daemon) -> None:
         daemon.run()
 
 
-def commented_config() -> str:
-    """Every setting with its meaning, as a TOML file (`config/controller.toml`)."""
+def commented_config(config: DaemonConfig | None = None) -> str:
+    """Every setting with its meaning, as a TOML file: the defaults (`config/controller.toml`),
+    or `config`'s values (what `--print-config` shows after --config, --set and --policy)."""
+    config = DaemonConfig() if config is None else config
+    shown = (
+        "the defaults"
+        if config == DaemonConfig()
+        else "this command's (its --config, --set and --policy)"
+    )
     header = (
         "# Settings of `qnav controller --config FILE` (docs/controller.md).\n"
-        "# Every key is optional except controller.policy; the values shown are the defaults.\n"
+        f"# Every key is optional except controller.policy; the values shown are {shown}.\n"
         "# Written by `qnav controller --print-config`.\n\n"
     )
     lines = []
-    for line in to_toml(DaemonConfig()).splitlines():
+    for line in to_toml(config).splitlines():
         if line.startswith("# "):
             lines += textwrap.wrap(line[2:], 97, initial_indent="# ", subsequent_indent="# ")
         else:

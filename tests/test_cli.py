@@ -219,3 +219,41 @@ def test_help_lists_every_setting_with_its_value_and_documentation(verb: str, ta
     for line in listing.splitlines():
         if " = " in line:
             assert line.split(" = ")[0] + " = " in shown.stdout, line
+
+
+def test_controller_print_config_is_the_settings_it_would_run_with(tmp_path: Path) -> None:
+    # It printed the defaults whatever --config, --set and --policy said (issue 53).
+    import tomllib
+
+    config = tmp_path / "car.toml"
+    config.write_text("[safety]\nscan_timeout_s = 0.7\n")
+    policy = tmp_path / "policy.onnx"
+    printed = run_qnav(
+        "controller", "--config", str(config), "--set", "controller.trigger=\"scan\"",
+        "--policy", str(policy), "--print-config",
+    )  # fmt: skip
+    assert printed.returncode == 0, printed.stderr
+    settings = tomllib.loads(printed.stdout)
+    assert settings["safety"]["scan_timeout_s"] == 0.7
+    assert settings["controller"]["trigger"] == "scan"
+    assert settings["controller"]["policy"] == str(policy)
+    assert "the values shown are the defaults" not in printed.stdout
+    again = tmp_path / "again.toml"
+    again.write_text(printed.stdout)
+    assert run_qnav("controller", "--config", str(again), "--print-config").stdout == printed.stdout
+
+
+@pytest.mark.parametrize(
+    ("verb", "key"),
+    [
+        ("controller", "safety.scan_timout_s"),
+        ("bridge", "failsafe.comand_timeout_s"),
+        ("fake-vehicle", "dynamics.max_sped_mps"),
+    ],
+)
+def test_print_config_refuses_a_mistyped_setting_naming_it(verb: str, key: str) -> None:
+    printed = run_qnav(verb, "--set", f"{key}=1.0", "--print-config")
+    assert printed.returncode == 2, printed.stdout
+    assert printed.stdout == ""
+    assert f"unknown setting {key!r}" in printed.stderr
+    assert "Traceback" not in printed.stderr

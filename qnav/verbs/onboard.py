@@ -23,12 +23,12 @@ def controller(args: argparse.Namespace) -> int:
     from qnav.controller.config import load_config
     from qnav.controller.daemon import build, commented_config, serve
 
-    if args.print_config:
-        sys.stdout.write(commented_config())
-        return 0
     config = load_config(args.config, args.assignments)
     if args.policy is not None:
         config = replace(config, controller=replace(config.controller, policy=str(args.policy)))
+    if args.print_config:
+        sys.stdout.write(commented_config(config))
+        return 0
     logging.basicConfig(
         level=config.controller.log_level.upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
