@@ -60,11 +60,42 @@ EXTENSIONS = (
 """X.509 extensions of every identity's certificate."""
 
 
-def make_certificates(folder: Path, names: tuple[str, ...] = IDENTITIES) -> list[Path]:
-    """Make the CA and the identities' certificates in `folder`; returns the certificates."""
+def files_written(folder: Path, names: tuple[str, ...]) -> list[Path]:
+    """Every file `qnav certs` writes into `folder`, the ones it removes after use included."""
+    per_name = ("-key.pem", ".pem", ".csr", ".ext")
+    return [
+        *(folder / name for name in ("ca-key.pem", "ca.pem", "ca.srl", "zenoh-hub.json5")),
+        *(folder / f"{name}{suffix}" for name in names for suffix in per_name),
+        *(folder / f"zenoh-{name}.json5" for name in names if name != "hub"),
+    ]
+
+
+def prepare_folder(folder: Path, names: tuple[str, ...], force: bool = False) -> None:
+    """Create `folder`, or refuse (ConfigError) when it is a file, cannot be created, or holds
+    files `qnav certs` would write (unless `force`): a CA key overwritten by accident leaves
+    every daemon's certificate unverifiable."""
+    if folder.exists() and not folder.is_dir():
+        raise ConfigError(f"{folder} exists and is not a folder")
+    existing = [path.name for path in files_written(folder, names) if path.exists()]
+    if existing and not force:
+        raise ConfigError(
+            f"{folder} already holds {', '.join(existing)}; --force replaces them (every "
+            "daemon then needs its new certificate)"
+        )
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"cannot create the folder {folder}: {error.strerror}") from None
+
+
+def make_certificates(
+    folder: Path, names: tuple[str, ...] = IDENTITIES, force: bool = False
+) -> list[Path]:
+    """Make the CA and the identities' certificates in `folder` (refused as `prepare_folder`
+    says); returns the certificates."""
     if shutil.which("openssl") is None:
-        raise ConfigError("qnav certs needs the openssl command (apt install openssl)")
-    folder.mkdir(parents=True, exist_ok=True)
+        raise ConfigError("needs the openssl command (apt install openssl)")
+    prepare_folder(folder, names, force)
     for name in names:
         (folder / f"{name}.ext").write_text(EXTENSIONS)
     for step in commands(folder, names):
@@ -102,8 +133,11 @@ def certs_verb(args: argparse.Namespace) -> int:
         for step in commands(args.folder, names):
             print(" ".join(step))
         return 0
-    for path in make_certificates(args.folder, names):
-        print(f"wrote {path}")
-    for path in write_zenoh_configs(args.folder, args.endpoint, names):
+    try:
+        written = make_certificates(args.folder, names, force=args.force)
+        written += write_zenoh_configs(args.folder, args.endpoint, names)
+    except OSError as error:
+        raise ConfigError(f"cannot write into {args.folder}: {error}") from None
+    for path in written:
         print(f"wrote {path}")
     return 0

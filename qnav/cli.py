@@ -690,6 +690,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the hub's TLS endpoint written into the zenoh configs (tls/127.0.0.1:7447)",
     )
     _flag(certs, "--print-commands", "print the openssl commands, run nothing")
+    _flag(certs, "--force", "replace the certificates and keys already in FOLDER")
 
     keys = _verb(
         verbs,
