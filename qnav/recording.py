@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -51,26 +52,81 @@ def record_verb(args: argparse.Namespace) -> int:
     return 0
 
 
+def mcap_problem(path: Path) -> str | None:
+    """Why `path` is not an MCAP file one may recover or play, or None. A recording starts with
+    MCAP's magic bytes; a `.mcap` file shorter than them and holding their beginning (or
+    nothing) is one its recorder was killed while opening."""
+    from qnav.controller.recording import MCAP_MAGIC
+
+    if not path.is_file():
+        return f"{path}: no such file"
+    with path.open("rb") as stream:
+        start = stream.read(len(MCAP_MAGIC))
+    if start == MCAP_MAGIC:
+        return None
+    if path.suffix == ".mcap" and MCAP_MAGIC.startswith(start):
+        return None
+    return f"{path} is not an MCAP file (it does not start with MCAP's magic bytes)"
+
+
+def check_mcap(files: list[Path]) -> None:
+    """ConfigError naming every one of `files` that is not an MCAP file (before any is used)."""
+    problems = [problem for problem in map(mcap_problem, files) if problem is not None]
+    if problems:
+        raise ConfigError("; ".join(problems))
+
+
+ROTATED = re.compile(r"^(?P<stem>.+)-\d{4}\.mcap$")
+"""A file of a rotated recording, as `McapWriter` names them: `recording-0003.mcap`."""
+
+
+def one_recording(files: list[Path]) -> bool:
+    """Whether a folder's `*.mcap` files are one recording (what a rosbag2 metadata.yaml may
+    describe): a single file, or the rotated files of one stem."""
+    if len(files) <= 1:
+        return True
+    stems = {match["stem"] if (match := ROTATED.match(f.name)) else None for f in files}
+    return len(stems) == 1 and None not in stems
+
+
+def _metadata_refusal(folder: Path, given: list[Path]) -> str | None:
+    """Why the folder's metadata.yaml must not be written, or None."""
+    files = sorted(folder.glob("*.mcap"))
+    if not set(given) <= set(files):
+        return "a file given does not end in .mcap"
+    if not one_recording(files):
+        return f"its files are not one recording's ({', '.join(f.name for f in files)})"
+    if any(mcap_problem(f) for f in files):
+        return "it holds a .mcap file that is not MCAP"
+    return None
+
+
 def recover_verb(args: argparse.Namespace) -> int:
     """Rewrite every cut MCAP file of the given folders (or files) as a complete one, and write
-    each folder's rosbag2 metadata.yaml."""
+    each folder's rosbag2 metadata.yaml when its files are one recording. Refuses (touching
+    nothing) if any file is not MCAP."""
     from qnav.controller.recording import is_complete, recover, write_rosbag_metadata
 
-    folders: dict[Path, None] = {}
+    given: dict[Path, list[Path]] = {}
     for path in args.paths:
         files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
-        if not files or not all(f.is_file() for f in files):
+        if not files:
             raise ConfigError(f"{path}: no MCAP file there")
+        check_mcap(files)
         for file in files:
-            if is_complete(file):
-                print(f"{file}: complete")
-            else:
-                kept = recover(file)
-                print(f"{file}: recovered {kept} messages (the cut original is {file}.cut)")
-        for file in files:
-            folders[file.parent] = None
-    for folder in folders:
-        print(f"wrote {write_rosbag_metadata(folder)}")
+            given.setdefault(file.parent, []).append(file)
+    for file in (f for files in given.values() for f in files):
+        if is_complete(file):
+            print(f"{file}: complete")
+        else:
+            kept = recover(file)
+            print(f"{file}: recovered {kept} messages (the cut original is {file}.cut)")
+    for folder, files in given.items():
+        refusal = _metadata_refusal(folder, files)
+        if refusal is None:
+            print(f"wrote {write_rosbag_metadata(folder)}")
+        else:
+            print(f"{folder}: no metadata.yaml written: {refusal}")
     return 0
 
 
@@ -83,6 +139,7 @@ def playback_verb(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"no such recording: {', '.join(missing) or ' '.join(map(str, args.files))}"
         )
+    check_mcap(files)
     messages = list(read_recordings(files))
     if args.into_controller:
         return _into_controller(args, messages, len(files))
