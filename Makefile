@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 .PHONY: install demo test test-slow same-results test-stack test-sitl stack-sitl test-cluster bench-cluster fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 # constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
-$(STAMP): pyproject.toml constraints.txt
+$(STAMP): pyproject.toml constraints.txt sim/_raycast.c
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev]'
 	@touch $(STAMP)

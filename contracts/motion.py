@@ -206,13 +206,19 @@ class Outcome(IntEnum):
     COLLISION = 2
 
 
-def outcome(distance_to_target_m: F64, clearance_m: F64, robot_radius_m: float) -> NDArray[np.int8]:
-    """SUCCESS within l of the target, else COLLISION within l of a surface, else RUNNING.
+def outcome(
+    distance_to_target_m: F64,
+    clearance_m: F64,
+    robot_radius_m: float,
+    reach_m: float | None = None,
+) -> NDArray[np.int8]:
+    """SUCCESS within `reach_m` of the target (default l, the robot's radius, as the paper),
+    else COLLISION within l of a surface, else RUNNING.
 
     Reaching the target is checked first: a robot that touches the target and a wall in the same
     step has reached the target.
     """
-    success = distance_to_target_m < robot_radius_m
+    success = distance_to_target_m < (robot_radius_m if reach_m is None else reach_m)
     collision = ~success & (clearance_m < robot_radius_m)
     return np.where(
         success, Outcome.SUCCESS, np.where(collision, Outcome.COLLISION, Outcome.RUNNING)

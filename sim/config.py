@@ -160,6 +160,39 @@ class RewardConfig:
     """Distance beyond which the target penalty stops growing (paper: c3 = 10)."""
 
 
+LayoutSource = str
+"""Where a world's static layouts come from: "" (none: the paper's square room), "barn" (the
+300 published BARN worlds, committed: `sim.barn.BARN_FILE`), a generated family ("cave",
+"rooms", or both as "cave+rooms": `sim.clutter`), or the path of a folder in BARN's format or of
+a conversion file (.npz, `qnav barn convert`)."""
+
+
+@dataclass(frozen=True)
+class LayoutConfig:
+    """Static layouts (BARN's kind of world): cylinders on the floor, a start and a goal each,
+    in place of the paper's square room (`sim.layouts`)."""
+
+    SECTION = "layout"
+
+    source: LayoutSource = ""
+    """"": the paper's room. "barn": the 300 BARN worlds. "cave", "rooms", "cave+rooms": the
+    generator's families. Else the path of a BARN-format folder or a conversion file."""
+    split: Literal["train", "validation", "test"] = "train"
+    """Which of a generated family's disjoint seed ranges to draw (ignored for files)."""
+    worlds: int = 1000
+    """How many worlds a generated family holds (ignored for files)."""
+    order: Literal["cycle", "random"] = "random"
+    """Which layout an episode gets: "cycle" (episode e of every seed: layout e mod L, the
+    benchmark's order) or "random" (drawn from the episode's seed and index)."""
+
+    def __post_init__(self) -> None:
+        if self.split not in ("train", "validation", "test"):
+            raise ConfigError(f"layout.split = {self.split!r}: choose train, validation or test")
+        if self.order not in ("cycle", "random"):
+            raise ConfigError(f"layout.order = {self.order!r}: choose cycle or random")
+        check_range(self, "worlds", self.worlds, 1, 1_000_000)
+
+
 @dataclass(frozen=True)
 class WorldConfig:
     """One scenario: arena, robot, sensor, dynamics, obstacles, spawning, reward, episode length."""
@@ -179,6 +212,9 @@ class WorldConfig:
     0: every beam at the observation's instant (the paper's)."""
     robot_radius_m: float = 0.5
     """The paper's l: reach radius for the target and the collision distance (lost in the paper)."""
+    reach_radius_m: float = 0.0
+    """The target counts as reached within this distance of the robot's centre (BARN: 1 m);
+    0: `robot_radius_m`, as the paper."""
     control_period_s: float = 0.2
     """Time between consecutive observations and decisions (paper: 0.2 s)."""
     dynamics: Dynamics = field(default_factory=InertiaDynamics)
@@ -191,9 +227,17 @@ class WorldConfig:
     """The reward."""
     max_episode_steps: int = 200
     """Steps before an episode is truncated (paper: 200 in training, 500 in tests)."""
+    layout: LayoutConfig = field(default_factory=LayoutConfig)
+    """Static layouts in place of the room (BARN's kind of world); none in the paper's."""
+
+    @property
+    def reach_m(self) -> float:
+        """The distance within which the target counts as reached."""
+        return self.reach_radius_m or self.robot_radius_m
 
     def __post_init__(self) -> None:
         check_range(self, "robot_radius_m", self.robot_radius_m, 0.0, 100.0, exclusive_low=True)
+        check_range(self, "reach_radius_m", self.reach_radius_m, 0.0, 100.0)
         check_range(self, "control_period_s", self.control_period_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10_000_000)
         check_range(
@@ -206,6 +250,21 @@ class WorldConfig:
         )
         if self.lidar_turn_s and self.lidar is None:
             raise ConfigError(f"lidar_turn_s is set but {self.name} has no lidar")
+        if self.layout.source and self.lidar_turn_s:
+            raise ConfigError(
+                "lidar_turn_s is set with layout.source: a rotating lidar is cast in the "
+                "paper's room only"
+            )
+        if self.layout.source and self.obstacles.count:
+            raise ConfigError(
+                "obstacles.count is set with layout.source: moving obstacles move in the "
+                "paper's room only"
+            )
+        if not self.layout.source:
+            self._check_room()
+
+    def _check_room(self) -> None:
+        """The paper's room must hold the spawn square, the obstacles and the openings."""
         size = self.arena.size_m
         free = size - 2 * self.spawn.wall_margin_m
         check_range(
@@ -287,6 +346,35 @@ SCENARIOS: dict[str, WorldConfig] = {
     ),
 }
 """The paper's four scenarios (Tables I-IV) and the lidar-less variants for the toy car."""
+
+BARN_ROBOT_RADIUS_M = 0.3
+"""The robot's disc in BARN's worlds: between the Jackal's half length (0.254 m) and the
+circle round its 0.508 x 0.430 m footprint (0.333 m). BARN's generator keeps its paths' cells
+0.45 m from every cylinder centre, so a 0.3 m disc passes each published path with 7.5 cm to
+spare on either side (docs/barn.md)."""
+
+LAYOUT_SCENARIOS: dict[str, WorldConfig] = {
+    # BARN's 300 worlds, in order: the benchmark (a test set: never train or tune on it).
+    "barn": WorldConfig(
+        name="barn",
+        robot_radius_m=BARN_ROBOT_RADIUS_M,
+        reach_radius_m=1.0,
+        max_episode_steps=500,
+        layout=LayoutConfig(source="barn", order="cycle"),
+    ),
+    # Worlds of BARN's family from the generator (sim/clutter.py): caves and rooms.
+    "clutter": WorldConfig(
+        name="clutter",
+        robot_radius_m=BARN_ROBOT_RADIUS_M,
+        reach_radius_m=1.0,
+        max_episode_steps=500,
+        layout=LayoutConfig(source="cave+rooms", split="train"),
+    ),
+}
+"""Worlds of static cylinders (BARN's kind): the paper's robot, lidar and actions, a 0.3 m disc,
+BARN's protocol (success within 1 m of the goal, 500 steps of 0.2 s = BARN's 100 s)."""
+
+SCENARIOS.update(LAYOUT_SCENARIOS)
 
 
 def scenario(name: str, **changes: object) -> WorldConfig:

@@ -65,6 +65,17 @@ def clearance(xy: F64, arena: ArenaConfig, obstacle_xy: F64, obstacle_radius_m: 
     return motion.clearance(xy, segments.start, segments.end, obstacle_xy, obstacle_radius_m)
 
 
+def circles_clearance(xy: F64, centre_xy: F64, radius_m: float) -> F64:
+    """(N,) distance from each point (N, 2) to the nearest surface of its circles (N, M, 2);
+    +inf where it has none."""
+    if centre_xy.shape[1] == 0:
+        return np.full(xy.shape[0], np.inf)
+    dx = centre_xy[..., 0] - xy[:, 0, None]
+    dy = centre_xy[..., 1] - xy[:, 1, None]
+    nearest: F64 = np.sqrt((dx * dx + dy * dy).min(axis=1)) - radius_m
+    return nearest
+
+
 def cast_lidar(
     pose: F64,
     lidar: LidarSpec,

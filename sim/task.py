@@ -16,10 +16,15 @@ F64 = NDArray[np.float64]
 
 
 def reward(
-    distance_to_target_m: F64, clearance_m: F64, robot_radius_m: float, params: RewardConfig
+    distance_to_target_m: F64,
+    clearance_m: F64,
+    robot_radius_m: float,
+    params: RewardConfig,
+    reach_m: float | None = None,
 ) -> F64:
-    """+1 at the target, -1 on collision, else c1*min(0, d_l - 2l) - c2*min(d_g, c3)."""
-    result = outcome(distance_to_target_m, clearance_m, robot_radius_m)
+    """+1 at the target (within `reach_m`, default l), -1 on collision, else
+    c1*min(0, d_l - 2l) - c2*min(d_g, c3)."""
+    result = outcome(distance_to_target_m, clearance_m, robot_radius_m, reach_m)
     shaping = params.c1 * np.minimum(
         0.0, clearance_m - 2.0 * robot_radius_m
     ) - params.c2 * np.minimum(distance_to_target_m, params.c3_m)

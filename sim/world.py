@@ -26,6 +26,8 @@ from qnav.contracts.observation import encode_frame, obstacle_features, target_f
 from qnav.sim import rng
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import cast_lidar, cast_rotating_lidar, clearance
+from qnav.sim.layouts import Layouts, layout_indices, layouts_of
+from qnav.sim.raycast import cast_circles
 from qnav.sim.task import reward
 
 F64 = NDArray[np.float64]
@@ -58,6 +60,8 @@ class WorldState(NamedTuple):
     """(N,) each world's seed."""
     episode: NDArray[np.int64]
     """(N,) each world's episode counter, which with the seed fixes the episode's layout."""
+    layout: NDArray[np.int64] | None = None
+    """(N,) each world's static layout (`sim.layouts`; None: the paper's room, no layouts)."""
 
 
 class Observation(NamedTuple):
@@ -75,6 +79,9 @@ class Observation(NamedTuple):
     """(N, M, 2) obstacle centres, as the onboard tracker reports them (here exact)."""
     obstacle_velocity: F64
     """(N, M, 2) obstacle velocities, as the onboard tracker reports them (here exact)."""
+    layout: NDArray[np.int64] | None = None
+    """(N,) the static layout each robot is in, for agents given the map (`sim.mapplan`);
+    None in the paper's room."""
 
     def target_features(self) -> F64:
         """(N, 3) distance to target and sin, cos of its bearing."""
@@ -115,11 +122,17 @@ def reset(
     n = seeds.shape[0]
     keys = rng.episode_keys(seeds, episodes)
     size, margin = config.arena.size_m, config.spawn.wall_margin_m
-    robot = rng.uniform(keys, _ROBOT, (3,))
-    robot_xy = margin + (size - 2 * margin) * robot[:, :2]
-    heading = 2 * math.pi * robot[:, 2] - math.pi
-
-    target_xy = targets_around(config, robot_xy, rng.uniform(keys, _TARGET, (_CANDIDATES, 2)))
+    layouts = layouts_of(config.layout)
+    layout = None
+    if layouts is not None:
+        layout = layout_indices(config.layout, len(layouts), keys, episodes)
+        robot_xy, heading = layouts.start_pose[layout, :2], layouts.start_pose[layout, 2]
+        target_xy = layouts.goal_xy[layout]
+    else:
+        robot = rng.uniform(keys, _ROBOT, (3,))
+        robot_xy = margin + (size - 2 * margin) * robot[:, :2]
+        heading = 2 * math.pi * robot[:, 2] - math.pi
+        target_xy = targets_around(config, robot_xy, rng.uniform(keys, _TARGET, (_CANDIDATES, 2)))
 
     m = config.obstacles.count
     radius = config.obstacles.radius_m
@@ -143,6 +156,7 @@ def reset(
         steps=np.zeros(n, dtype=np.int64),
         seed=seeds,
         episode=episodes,
+        layout=layout,
     )
 
 
@@ -231,10 +245,21 @@ def rotating_scans(
     return np.stack(scans)
 
 
+def static_cylinders(config: WorldConfig, state: WorldState) -> tuple[Layouts, F64] | None:
+    """Each world's layout and its cylinders (N, K, 2); None without layouts."""
+    layouts = layouts_of(config.layout)
+    if layouts is None or state.layout is None:
+        return None
+    return layouts, layouts.cylinders_of(state.layout)
+
+
 def observe(config: WorldConfig, state: WorldState, path: RobotPath | None = None) -> Observation:
     """The observation in each world (with a rotating lidar, `config.lidar_turn_s`, its scans
     taken along `path`, the period's: `rotating_scans`)."""
     radius = config.obstacles.radius_m
+    statics = static_cylinders(config, state)
+    if statics is not None:
+        return _observe_layouts(config, state, *statics)
     scan = None
     if config.lidar is not None and config.lidar_turn_s:
         scan = rotating_scans(config, state, path)
@@ -243,6 +268,31 @@ def observe(config: WorldConfig, state: WorldState, path: RobotPath | None = Non
     gap = clearance(state.pose[:, :2], config.arena, state.obstacle_xy, radius)
     return Observation(
         state.pose, state.target_xy, scan, gap, state.obstacle_xy, state.obstacle_velocity
+    )
+
+
+def _observe_layouts(
+    config: WorldConfig, state: WorldState, layouts: Layouts, cylinders: F64
+) -> Observation:
+    """`observe` in worlds of static layouts: no room walls, the layout's cylinders and the
+    moving obstacles."""
+    radius = config.obstacles.radius_m
+    pose = state.pose
+    n = pose.shape[0]
+    beams = config.lidar.num_beams if config.lidar is not None else 0
+    scan = np.full((n, beams), np.inf, dtype=np.float32)
+    gap = np.full(n, np.inf)
+    cast_circles(scan, gap, pose, config.lidar, cylinders, radius_m=layouts.cylinder_radius_m)
+    if state.obstacle_xy.shape[1]:
+        cast_circles(scan, gap, pose, config.lidar, state.obstacle_xy, radius_m=radius)
+    return Observation(
+        pose,
+        state.target_xy,
+        scan if config.lidar is not None else None,
+        gap,
+        state.obstacle_xy,
+        state.obstacle_velocity,
+        state.layout,
     )
 
 
@@ -271,11 +321,13 @@ def step(
     path = robot_path(config, state, action) if config.lidar_turn_s else None
     observation = observe(config, new_state, path)
     distance = np.linalg.norm(state.target_xy - pose[:, :2], axis=1)
-    result = outcome(distance, observation.clearance_m, config.robot_radius_m)
+    result = outcome(distance, observation.clearance_m, config.robot_radius_m, config.reach_m)
     terminated = result != Outcome.RUNNING
     truncated = ~terminated & (new_state.steps >= config.max_episode_steps)
     transition = Transition(
-        reward=reward(distance, observation.clearance_m, config.robot_radius_m, config.reward),
+        reward=reward(
+            distance, observation.clearance_m, config.robot_radius_m, config.reward, config.reach_m
+        ),
         outcome=result,
         terminated=terminated,
         truncated=truncated,

@@ -13,7 +13,7 @@ from qnav.lab.oracle import (
 )
 from qnav.sim.config import scenario
 from qnav.sim.evaluate import EvalSettings
-from qnav.sim.world import WorldState, reset
+from qnav.sim.world import reset, take_rows
 
 
 def test_the_oracle_reaches_every_target_in_a_walls_only_world() -> None:
@@ -29,7 +29,7 @@ def test_planning_worlds_together_picks_what_planning_each_alone_picks() -> None
     sequences = held_sequences(10, 32, np.random.default_rng(0))
     together = plan(config, state, sequences)
     alone = [
-        plan(config, WorldState._make(field[i : i + 1] for field in state), sequences)[0]
+        plan(config, take_rows(state, np.array([i])), sequences)[0]
         for i in range(6)
     ]
     np.testing.assert_array_equal(together, alone)
