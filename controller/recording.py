@@ -421,7 +421,7 @@ def play(
 
     Payloads go out byte for byte as recorded. Publishers are declared first and given
     `settle_s` to meet their subscribers, so the first messages are not lost. Returns the
-    number published.
+    number published. `stop` ends it at any time, the wait for zenoh included.
     """
     if speed <= 0:
         raise ConfigError(f"speed = {speed} must be > 0")
@@ -429,7 +429,11 @@ def play(
     if not messages:
         return 0
     published = 0
-    with open_session(settings) as session:
+    try:
+        session = open_session(settings, stop)
+    except StoppedError:
+        return 0  # stopped while waiting for zenoh
+    with session:
         names = dict.fromkeys(m.topic.lstrip("/") for m in messages)
         publishers = {
             name: session.declare_publisher(key(name, settings.namespace)) for name in names

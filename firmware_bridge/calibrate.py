@@ -17,6 +17,7 @@ into the bridge's configuration.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.transport import open_session
+from qnav.contracts.transport import StoppedError, open_session
 from qnav.contracts.wire import (
     COMMAND,
     VEHICLE_STATE,
@@ -35,6 +36,8 @@ from qnav.contracts.wire import (
     key,
 )
 from qnav.firmware_bridge.settings import BridgeSettings
+
+log = logging.getLogger("qnav.firmware_bridge.calibrate")
 
 COMMAND_PERIOD_S = 0.1
 """Commands go out at 10 Hz, as a controller's would."""
@@ -61,7 +64,7 @@ class Pattern:
 
 
 class CalibrationAbortedError(RuntimeError):
-    """The pattern was stopped (too far, no velocity reports, vehicle not armed)."""
+    """The pattern was stopped (too far, no velocity reports, vehicle not armed, a signal)."""
 
 
 def fit_through_origin(fractions: Sequence[float], measured: Sequence[float]) -> float:
@@ -85,11 +88,18 @@ def output_section(speed_mps: float, turn_rate_radps: float) -> str:
 class Calibrator:
     """Commands and state over one zenoh session."""
 
-    def __init__(self, settings: BridgeSettings, pattern: Pattern) -> None:
+    def __init__(
+        self, settings: BridgeSettings, pattern: Pattern, stop: threading.Event | None = None
+    ) -> None:
         self.settings = settings
         self.pattern = pattern
+        self._stop = stop or threading.Event()
+        """Set (a signal): the pattern ends at once, and the bridge's failsafe stops the car."""
         namespace = settings.zenoh.namespace
-        self._session: Any = open_session(settings.zenoh)
+        try:
+            self._session: Any = open_session(settings.zenoh, self._stop)
+        except StoppedError:
+            raise CalibrationAbortedError("stopped before zenoh was joined") from None
         self._publisher = self._session.declare_publisher(key(COMMAND, namespace))
         self._lock = threading.Lock()
         self._states: list[tuple[float, dict[str, Any]]] = []
@@ -119,8 +129,18 @@ class Calibrator:
         with self._lock:
             return [s["velocity"] for t, s in self._states if t >= since_s and s.get("velocity")]
 
+    def _pause(self, seconds: float) -> None:
+        """Sleep, or end the pattern if a stop was asked for meanwhile."""
+        if self._stop.wait(seconds):
+            raise CalibrationAbortedError("stopped (SIGINT or SIGTERM); nothing measured")
+
     def wait_ready(self, timeout_s: float) -> None:
         """Until the bridge reports the link up, the car armed and its velocity."""
+        log.info(
+            "waiting up to %g s for an armed vehicle on %s",
+            timeout_s,
+            key(VEHICLE_STATE, self.settings.zenoh.namespace),
+        )
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             state = self.state()
@@ -128,7 +148,7 @@ class Calibrator:
                 position = state.get("position") or {}
                 self._start = (position.get("x_m", 0.0), position.get("y_m", 0.0))
                 return
-            time.sleep(0.1)
+            self._pause(0.1)
         raise CalibrationAbortedError(
             f"no armed vehicle with velocity reports on {key(VEHICLE_STATE)} within "
             f"{timeout_s:g} s: start `qnav bridge`, arm the car"
@@ -158,7 +178,7 @@ class Calibrator:
         while time.monotonic() < end:
             self._check_bounds()
             self._publisher.put(encode_twist_msg(twist))
-            time.sleep(COMMAND_PERIOD_S)
+            self._pause(COMMAND_PERIOD_S)
         velocities = self._velocities(measure_from)
         if not velocities:
             raise CalibrationAbortedError("no velocity reports while measuring")
@@ -175,7 +195,7 @@ class Calibrator:
             velocity = self.state().get("velocity") or {}
             if velocity.get("speed_mps", math.inf) < rest:
                 return
-            time.sleep(0.1)
+            self._pause(0.1)
         raise CalibrationAbortedError(f"not at rest {self.pattern.rest_timeout_s:g} s after a run")
 
     def calibrate(self) -> dict[str, Any]:
@@ -220,17 +240,21 @@ class Calibrator:
 
 
 def measure_scales(
-    settings: BridgeSettings, *, max_distance_m: float = 15.0, wait_s: float = 60.0
+    settings: BridgeSettings,
+    *,
+    max_distance_m: float = 15.0,
+    wait_s: float = 60.0,
+    stop: threading.Event | None = None,
 ) -> dict[str, Any]:
     """`qnav calibrate-car`: wait up to `wait_s` for an armed car behind the bridge, drive the
     pattern (aborted beyond `max_distance_m`) and fit the two scales; CalibrationAbortedError
-    when the pattern was cut short."""
+    when the pattern was cut short (`stop` set, say by a signal, included)."""
     if settings.output.mode != "manual":
         raise ConfigError(
             "output.mode must be manual (the scales map a Twist to sticks; GUIDED takes m/s and "
             "rad/s as they are)"
         )
-    calibrator = Calibrator(settings, Pattern(max_distance_m=max_distance_m))
+    calibrator = Calibrator(settings, Pattern(max_distance_m=max_distance_m), stop)
     try:
         calibrator.wait_ready(wait_s)
         return calibrator.calibrate()

@@ -958,6 +958,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_controller.add_argument(
         "--seconds", type=float, default=30.0, help="timed seconds per rate (30)"
     )
+    _lookahead_option(bench_controller, "in the daemon, on a drive through the simulated room: ")
     _flag(bench_controller, "--json", "print one JSON object")
     bench_cluster = _verb(
         benches,
@@ -1200,8 +1201,10 @@ def _bench_bridge(benches: argparse._SubParsersAction[_Parser]) -> None:
     _flag(bench, "--json", "print one JSON object")
 
 
-ZENOH_DAEMONS = frozenset({"bridge", "controller", "record", "serve", "sim-car"})
-"""Verbs that run a zenoh session until a signal stops them."""
+ZENOH_DAEMONS = frozenset(
+    {"bridge", "calibrate-car", "controller", "playback", "record", "serve", "sim-car"}
+)
+"""Verbs that run a zenoh session until a signal stops them (or their work is done)."""
 
 
 def verb_of(args: argparse.Namespace) -> str:

@@ -143,6 +143,7 @@ def playback_verb(args: argparse.Namespace) -> int:
     messages = list(read_recordings(files))
     if args.into_controller:
         return _into_controller(args, messages, len(files))
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     settings = with_overrides(ZenohSettings(), _zenoh_overrides(args))
     with stop_on_signals() as stop:
         count = play(messages, settings, speed=args.speed, stop=stop)

@@ -31,7 +31,7 @@ from qnav.contracts import delivery, wire
 from qnav.contracts.daemon import stop_on_signals
 from qnav.contracts.errors import ConfigError, PolicyFileError
 from qnav.contracts.policy_file import PolicyContract
-from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.contracts.transport import StoppedError, ZenohSettings, open_session
 from qnav.controller.onnx_file import parse_onnx
 from qnav.options import config_text, settings_from_args
 
@@ -292,7 +292,11 @@ def run(settings: ServeSettings, stop: threading.Event) -> None:
     import zenoh
 
     server = PolicyServer(settings, delivery.load_private_key(settings.private_key, "--key"))
-    with open_session(settings.zenoh, stop) as session:
+    try:
+        session = open_session(settings.zenoh, stop)
+    except StoppedError:
+        return  # stopped while waiting for zenoh: nothing was served
+    with session:
         queryable = session.declare_queryable(
             wire.key(delivery.POLICY_FILE, server.namespace) + "/**", server.on_query
         )

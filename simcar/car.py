@@ -53,7 +53,7 @@ from qnav.contracts.motion import (
     step_velocity_lag,
 )
 from qnav.contracts.settings import check_range
-from qnav.contracts.transport import ZenohSettings, open_session
+from qnav.contracts.transport import StoppedError, ZenohSettings, open_session
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings
 from qnav.sim.render import EpisodeRecord
@@ -351,49 +351,70 @@ class SimCar:
         return int(np.argmin(gap))
 
     def run(self, stop: threading.Event, progress: Any = None) -> list[EpisodeLog]:
-        """Run the episodes (or until `stop`); returns their logs."""
+        """Run the episodes (or until `stop`, which also ends the waits for the car's link and
+        for zenoh); returns their logs."""
+        try:
+            self._start_vehicle(stop)
+        except StoppedError:
+            return self.episodes
+        try:
+            with open_session(self.zenoh, stop) as session:
+                self._run_episodes(session, stop, progress)
+        except StoppedError:
+            pass  # stopped while waiting for zenoh
+        finally:
+            self.vehicle.close()
+        return self.episodes
+
+    def _start_vehicle(self, stop: threading.Event) -> None:
+        """Start the car's link; an autopilot's port may open late (StoppedError on `stop`)."""
+        if isinstance(self.vehicle, FirmwareVehicle):
+            self.vehicle.start(stop=stop)
+        else:
+            self.vehicle.start()
+
+    def _run_episodes(self, session: Any, stop: threading.Event, progress: Any) -> None:
         settings = self.settings
         namespace = self.zenoh.namespace
-        with self.vehicle, open_session(self.zenoh) as session:
-            publish = {
-                topic.name: session.declare_publisher(wire.key(topic, namespace))
-                for topic in (wire.SCAN, wire.POSE, wire.TARGET_POSE)
-            }
+        publish = {
+            topic.name: session.declare_publisher(wire.key(topic, namespace))
+            for topic in (wire.SCAN, wire.POSE, wire.TARGET_POSE)
+        }
 
-            def on_command(sample: Any) -> None:
-                with contextlib.suppress(wire.WireError):
-                    self._last_command = wire.decode_twist_msg(bytes(sample.payload.to_bytes()))
-                    self._command_arrival_s = time.monotonic()
+        def on_command(sample: Any) -> None:
+            with contextlib.suppress(wire.WireError):
+                self._last_command = wire.decode_twist_msg(bytes(sample.payload.to_bytes()))
+                self._command_arrival_s = time.monotonic()
 
-            def on_status(sample: Any) -> None:
-                with contextlib.suppress(wire.WireError, KeyError, TypeError, ValueError):
-                    report = wire.decode_json_msg(bytes(sample.payload.to_bytes()))
-                    decision = decision_of(report)
-                    with self._decided:
-                        self._controller_heard = True
-                        if decision is not None:
-                            self._decisions.append(decision)
-                        self._decided.notify_all()
+        def on_status(sample: Any) -> None:
+            with contextlib.suppress(wire.WireError, KeyError, TypeError, ValueError):
+                report = wire.decode_json_msg(bytes(sample.payload.to_bytes()))
+                decision = decision_of(report)
+                with self._decided:
+                    self._controller_heard = True
+                    if decision is not None:
+                        self._decisions.append(decision)
+                    self._decided.notify_all()
 
-            commands = session.declare_subscriber(wire.key(wire.COMMAND, namespace), on_command)
-            statuses = session.declare_subscriber(
-                wire.key(wire.CONTROLLER_STATUS, namespace), on_status
-            )
-            self._wait_until_armed(stop)
-            self._wait_for_controller(stop)
-            for index in range(settings.first_episode, settings.first_episode + settings.episodes):
-                if stop.is_set():
-                    break
-                log_entry = self._episode(index, publish, stop)
-                if log_entry is None:  # interrupted: an episode cut short is not an outcome
-                    break
-                self.episodes.append(log_entry)
-                log.info("episode %d: %s after %d steps", index, log_entry.outcome, log_entry.steps)
-                if progress is not None:
-                    progress(log_entry)
-            commands.undeclare()
-            statuses.undeclare()
-        return self.episodes
+        commands = session.declare_subscriber(wire.key(wire.COMMAND, namespace), on_command)
+        statuses = session.declare_subscriber(
+            wire.key(wire.CONTROLLER_STATUS, namespace), on_status
+        )
+        log.info("zenoh joined: waiting for the car to be armed")
+        self._wait_until_armed(stop)
+        self._wait_for_controller(stop)
+        for index in range(settings.first_episode, settings.first_episode + settings.episodes):
+            if stop.is_set():
+                break
+            log_entry = self._episode(index, publish, stop)
+            if log_entry is None:  # interrupted: an episode cut short is not an outcome
+                break
+            self.episodes.append(log_entry)
+            log.info("episode %d: %s after %d steps", index, log_entry.outcome, log_entry.steps)
+            if progress is not None:
+                progress(log_entry)
+        commands.undeclare()
+        statuses.undeclare()
 
     def _wait_until_armed(self, stop: threading.Event) -> None:
         deadline = time.monotonic() + self.settings.start_timeout_s

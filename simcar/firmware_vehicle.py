@@ -32,6 +32,7 @@ from qnav.contracts.mavlink import (
     open_connection,
     wrap_pi,
 )
+from qnav.contracts.transport import StoppedError
 
 log = logging.getLogger("qnav.simcar.firmware_vehicle")
 
@@ -94,9 +95,11 @@ class FirmwareVehicle(Service):
         self._conn: Any = None
         self._thread: threading.Thread | None = None
 
-    def start(self, timeout_s: float = 30.0) -> None:
-        """Connect (retrying while the autopilot's port is not open yet) and start reading."""
+    def start(self, timeout_s: float = 30.0, stop: threading.Event | None = None) -> None:
+        """Connect (retrying while the autopilot's port is not open yet) and start reading;
+        StoppedError once `stop` is set while retrying."""
         deadline = time.monotonic() + timeout_s
+        stop = stop or threading.Event()
         while True:
             try:
                 self._conn = open_connection(
@@ -109,7 +112,8 @@ class FirmwareVehicle(Service):
             except OSError:
                 if time.monotonic() > deadline:
                     raise
-                time.sleep(0.2)
+                if stop.wait(0.2):
+                    raise StoppedError("stopped before the autopilot's port opened") from None
         self._thread = threading.Thread(target=self._loop, name="firmware-vehicle", daemon=True)
         self._thread.start()
 

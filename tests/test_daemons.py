@@ -1,5 +1,6 @@
-"""Every daemon stops within a second of SIGTERM, even before zenoh is reachable, and the bridge
-keeps the car stopped without zenoh (issue 18 part 4). Real processes, real sockets.
+"""Every daemon and long-running verb stops within a second of SIGTERM and SIGINT, even before
+zenoh is reachable, and the bridge keeps the car stopped without zenoh (issue 18 part 4, issue
+53). Real processes, real sockets.
 
 The states: no router reachable (the endpoint is a closed port), connected through a hub, and
 after the hub was killed; SIGTERM and SIGINT. `pytest -s` prints each measured exit time."""
@@ -56,7 +57,10 @@ def vehicle() -> Iterator[MavlinkVehicle]:
 
 def _arguments(daemon: str, endpoint: str, tmp_path: Path, vehicle_port: int) -> list[str]:
     if daemon == "controller":
-        return ["controller", "--policy", str(POLICY), "--set", f'zenoh.connect=["{endpoint}"]']
+        return [
+            "controller", "--policy", str(POLICY), "--set", f'zenoh.connect=["{endpoint}"]',
+            "--set", 'lookahead.mode="off"',
+        ]  # fmt: skip
     if daemon == "record":
         return ["record", "--connect", endpoint, "--out", str(tmp_path / "recordings")]
     return [
@@ -271,3 +275,107 @@ def test_the_bridge_sends_neutral_and_disarms_then_stops_within_a_second_in_ever
     assert len(out) >= 3 and set(out) == {NEUTRAL}, out  # its stops on the way out
     assert disarms and not vehicle.armed
     assert elapsed <= EXIT_LIMIT_S, bridge.output()
+
+
+# -- the other long-running verbs: every state, SIGTERM and SIGINT (issue 53) -----------------
+
+
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+
+
+def _pose_recording(folder: Path, seconds: float = 120.0) -> Path:
+    """A recording of motion-capture poses at 10 Hz, long enough never to end in a test."""
+    from qnav.controller.recording import McapWriter
+
+    with McapWriter(folder) as writer:
+        for index in range(int(seconds * 10)):
+            pose = wire.Pose2D(index * 0.1, "map", 0.0, 0.0, 0.0)
+            writer.write("/pose", POSE_TYPE, wire.encode_pose_msg(pose), index * 100_000_000)
+    return writer.files[0]
+
+
+def _serve_key(folder: Path) -> Path:
+    from qnav.contracts.delivery import generate_key_pair
+
+    path = folder / "private.pem"
+    path.write_bytes(generate_key_pair()[0])
+    return path
+
+
+def _verb(verb: str, endpoint: str, tmp_path: Path) -> tuple[list[str], str | wire.Topic, int]:
+    """The verb's arguments, the sign that it joined zenoh (a line it prints, or a topic it
+    publishes), and its exit status after a signal."""
+    if verb == "serve":
+        (tmp_path / "policies").mkdir()
+        args = ["serve", str(tmp_path / "policies"), "--key", str(_serve_key(tmp_path))]
+        return [*args, "--connect", endpoint], "serving ", 0
+    if verb == "playback":
+        recording = _pose_recording(tmp_path / "recording")
+        return ["playback", str(recording), "--connect", endpoint], wire.POSE, 0
+    if verb == "sim-car":
+        vehicle = f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
+        args = ["sim-car", "--connect", endpoint, "--vehicle-connection", vehicle]
+        return args, "waiting for the car to be armed", 0
+    # calibrate-car: stopped before its fit, it measured nothing: exit 1, as when aborted.
+    args = ["calibrate-car", "--set", f'zenoh.connect=["{endpoint}"]', "--set", "zenoh.listen=[]"]
+    return args, "waiting up to", 1
+
+
+@pytest.mark.parametrize("state", STATES)
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+@pytest.mark.parametrize("verb", ["serve", "playback", "sim-car", "calibrate-car"])
+def test_every_zenoh_verb_stops_within_a_second_of_either_signal_in_every_state(
+    verb: str,
+    state: str,
+    number: signal.Signals,
+    tmp_path: Path,
+    processes: list[subprocess.Popen[Any]],
+) -> None:
+    # Waiting for zenoh, playback and sim-car ignored both signals, calibrate-car SIGINT; serve
+    # printed a StoppedError traceback.
+    endpoint, router = _router(state, processes)
+    args, joined, code = _verb(verb, endpoint, tmp_path)
+    daemon = _Daemon(args)
+    processes.append(daemon.popen)
+    daemon.wait_for_line("waiting until something listens")
+    if isinstance(joined, str):
+        if state != "no-router":
+            daemon.wait_for_line(joined)
+        _bring_to(state, endpoint, router, None)
+    else:
+        _bring_to(state, endpoint, router, joined)
+    elapsed = daemon.stop(number, f"{verb}, {state}")
+    assert daemon.popen.returncode == code, daemon.output()
+    assert "Traceback" not in daemon.output()
+    assert elapsed <= EXIT_LIMIT_S, daemon.output()
+
+
+@pytest.mark.parametrize("state", STATES)
+def test_the_recorder_stops_within_a_second_of_sigint_in_every_state(
+    state: str, tmp_path: Path, processes: list[subprocess.Popen[Any]]
+) -> None:
+    endpoint, router = _router(state, processes)
+    recorder = _Daemon(_arguments("record", endpoint, tmp_path, 0))
+    processes.append(recorder.popen)
+    recorder.wait_for_line("waiting until something listens")
+    if state != "no-router":
+        recorder.wait_for_line("recording ")
+    _bring_to(state, endpoint, router, None)
+    elapsed = recorder.stop(signal.SIGINT, f"recorder, {state}")
+    assert recorder.popen.returncode == 0, recorder.output()
+    assert "Traceback" not in recorder.output()
+    assert elapsed <= EXIT_LIMIT_S, recorder.output()
+
+
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_the_fake_vehicle_stops_within_a_second_of_either_signal(
+    number: signal.Signals, processes: list[subprocess.Popen[Any]]
+) -> None:
+    port = free_port(socket.SOCK_DGRAM)
+    vehicle = _Daemon(["fake-vehicle", "--connection", f"udpout:127.0.0.1:{port}"])
+    processes.append(vehicle.popen)
+    vehicle.wait_for_line("serving")
+    elapsed = vehicle.stop(number, "fake-vehicle")
+    assert vehicle.popen.returncode == 0, vehicle.output()
+    assert "Traceback" not in vehicle.output()
+    assert elapsed <= EXIT_LIMIT_S, vehicle.output()

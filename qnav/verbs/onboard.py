@@ -64,16 +64,20 @@ def bridge(args: argparse.Namespace) -> int:
 
 def calibrate_car(args: argparse.Namespace) -> int:
     """`qnav calibrate-car`: fit the bridge's speed and turn-rate scales on the car."""
+    from qnav.contracts.daemon import stop_on_signals
     from qnav.firmware_bridge.calibrate import (
         CalibrationAbortedError,
         measure_scales,
         output_section,
     )
 
+    settings = _bridge_settings(args)
+    logging.basicConfig(level=logging.INFO, format=LOG_FORMAT)
     try:
-        result = measure_scales(
-            _bridge_settings(args), max_distance_m=args.max_distance_m, wait_s=args.wait_s
-        )
+        with stop_on_signals() as stop:
+            result = measure_scales(
+                settings, max_distance_m=args.max_distance_m, wait_s=args.wait_s, stop=stop
+            )
     except CalibrationAbortedError as error:
         print(f"qnav calibrate-car: aborted: {error}", file=sys.stderr)
         return 1
@@ -120,7 +124,7 @@ def sim_car(args: argparse.Namespace) -> int:
     from qnav.sim.config import load_world
     from qnav.simcar.car import SimCar, SimCarSettings, summary, write_log
 
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     world = load_world(args.scenario, args.world_config, args.assignments)
     settings = settings_from_args(SimCarSettings(), args)
     if settings.firmware_connection and "start_timeout_s" not in given_settings(args):
