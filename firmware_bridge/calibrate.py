@@ -11,21 +11,25 @@ car: a person arms it and watches (supervised).
 
 The fit is a line through the origin per axis (speed = k x throttle fraction, turn rate =
 k x steering fraction): k is the new `output.speed_at_full_throttle_mps` /
-`output.turn_rate_at_full_steering_radps`. It prints them as a TOML `[output]` section to paste
-into the bridge's configuration.
+`output.turn_rate_at_full_steering_radps`. It prints them as a TOML `[output]` section, and with
+`--write` writes them into the bridge's settings file (`with_scales`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
 import threading
 import time
+import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.settings import from_dict
 from qnav.contracts.transport import StoppedError, open_session
 from qnav.contracts.wire import (
     COMMAND,
@@ -35,6 +39,7 @@ from qnav.contracts.wire import (
     encode_twist_msg,
     key,
 )
+from qnav.firmware_bridge import mapping
 from qnav.firmware_bridge.settings import BridgeSettings
 
 log = logging.getLogger("qnav.firmware_bridge.calibrate")
@@ -83,6 +88,60 @@ def output_section(speed_mps: float, turn_rate_radps: float) -> str:
         f"speed_at_full_throttle_mps = {speed_mps:.3f}\n"
         f"turn_rate_at_full_steering_radps = {turn_rate_radps:.3f}\n"
     )
+
+
+SCALE_KEYS = ("speed_at_full_throttle_mps", "turn_rate_at_full_steering_radps")
+"""The two `[output]` settings a calibration measures."""
+_HEADER = re.compile(r"^\s*\[\s*(?P<name>[^]\s]+)\s*\]\s*(#.*)?$")
+
+
+def with_scales(text: str, speed_mps: float, turn_rate_radps: float) -> str:
+    """A bridge settings file's `text` with the two scales set in its `[output]` section
+    (added after its header where missing, the section added where there is none); every
+    other line, comments included, as it was."""
+    values = dict(zip(SCALE_KEYS, (f"{speed_mps:.3f}", f"{turn_rate_radps:.3f}"), strict=True))
+    lines = text.splitlines()
+    section, header_at, written = "", None, set()
+    for index, line in enumerate(lines):
+        header = _HEADER.match(line)
+        if header:
+            section = header["name"]
+            header_at = index if section == "output" else header_at
+            continue
+        name = line.split("=", 1)[0].strip()
+        if section == "output" and "=" in line and name in values:
+            lines[index] = f"{name} = {values[name]}"
+            written.add(name)
+    missing = [f"{name} = {value}" for name, value in values.items() if name not in written]
+    if header_at is None:
+        lines += ["", "[output]", *missing] if lines else ["[output]", *missing]
+    else:
+        lines[header_at + 1 : header_at + 1] = missing
+    return "\n".join(lines) + "\n"
+
+
+def write_scales(path: Path, speed_mps: float, turn_rate_radps: float) -> None:
+    """`qnav calibrate-car --write`: the measured scales into the bridge's settings file, which
+    is checked to read back with them before it replaces the old one (ConfigError if not)."""
+    text = with_scales(load_text(path), speed_mps, turn_rate_radps)
+    try:
+        output = from_dict(BridgeSettings, tomllib.loads(text)).output
+    except (tomllib.TOMLDecodeError, ConfigError) as error:
+        raise ConfigError(f"{path}: the scales could not be written in ({error})") from None
+    expected = (round(speed_mps, 3), round(turn_rate_radps, 3))
+    if (output.speed_at_full_throttle_mps, output.turn_rate_at_full_steering_radps) != expected:
+        raise ConfigError(f"{path}: its [output] section is not one the scales could go into")
+    partial = path.with_name(path.name + ".calibrating")
+    partial.write_text(text)
+    partial.replace(path)
+
+
+def load_text(path: Path) -> str:
+    """A settings file's text, or a ConfigError saying why it cannot be read."""
+    try:
+        return path.read_text()
+    except OSError as error:
+        raise ConfigError(f"settings file {path} cannot be read: {error.strerror}") from None
 
 
 class Calibrator:
@@ -201,7 +260,7 @@ class Calibrator:
     def calibrate(self) -> dict[str, Any]:
         """The whole pattern; the fitted scales and every run's figures."""
         output, pattern = self.settings.output, self.pattern
-        speed_scale = output.speed_at_full_throttle_mps
+        speed_scale = mapping.speed_scale(output)
         turn_scale = output.turn_rate_at_full_steering_radps
         runs: list[dict[str, float]] = []
         for fraction in pattern.throttle_fractions:

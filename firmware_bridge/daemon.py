@@ -49,6 +49,7 @@ from qnav.contracts.wire import (
 )
 from qnav.firmware_bridge.core import Action, BridgeCore, Publish, Reopen, Send
 from qnav.firmware_bridge.link import MavlinkLink, serial0_warning
+from qnav.firmware_bridge.mapping import speed_scale
 from qnav.firmware_bridge.settings import BridgeSettings
 
 log = logging.getLogger("qnav.firmware_bridge")
@@ -137,6 +138,7 @@ class Bridge(Service):
             ", signed" if self.link.signing else "",
             self.settings.failsafe.command_timeout_s,
         )
+        warn_if_uncalibrated(self.settings)
         if zenoh_in_background:
             threading.Thread(target=self._join_zenoh, name="bridge-zenoh", daemon=True).start()
             return
@@ -288,6 +290,21 @@ class Bridge(Service):
             except Exception:
                 log.exception("bridge loop error (continuing)")
             self._heartbeat.beat(link_up=self.core.link_up, armed=self.core.armed)
+
+
+def warn_if_uncalibrated(settings: BridgeSettings) -> None:
+    """Say so when the manual output drives on the assumed speed scale, not the car's."""
+    output = settings.output
+    if output.mode != "manual" or output.speed_at_full_throttle_mps is not None:
+        return
+    scale = speed_scale(output)
+    log.warning(
+        "output.speed_at_full_throttle_mps is not measured: driving as if full throttle were "
+        "%g m/s (0.5 m/s is %.1f %% throttle); measure it with `qnav calibrate-car --config "
+        "FILE --write`",
+        scale,
+        100 * 0.5 / scale,
+    )
 
 
 def serve(settings: BridgeSettings) -> None:

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 from qnav.contracts.mavlink import enu_to_ned
 from qnav.contracts.wire import Pose2D, Twist2D
-from qnav.firmware_bridge.settings import OutputSettings
+from qnav.firmware_bridge.settings import UNCALIBRATED_SPEED_AT_FULL_THROTTLE_MPS, OutputSettings
 
 
 class Sticks(NamedTuple):
@@ -81,11 +81,18 @@ def pose_problem(pose: Pose2D, max_position_m: float) -> str | None:
     return None
 
 
+def speed_scale(output: OutputSettings) -> float:
+    """The speed full throttle stands for: the car's as measured, or while it is not (an
+    uncalibrated car is not a fast car) a fast car's."""
+    measured = output.speed_at_full_throttle_mps
+    return UNCALIBRATED_SPEED_AT_FULL_THROTTLE_MPS if measured is None else measured
+
+
 def full_scale(output: OutputSettings) -> tuple[float, float]:
     """The speed (m/s) and turn rate (rad/s) that the output mode maps to its limits."""
     if output.mode == "guided":
         return output.guided_max_speed_mps, output.guided_max_turn_rate_radps
-    return output.speed_at_full_throttle_mps, output.turn_rate_at_full_steering_radps
+    return speed_scale(output), output.turn_rate_at_full_steering_radps
 
 
 def implausible(twist: Twist2D, output: OutputSettings, factor: float) -> str | None:
@@ -109,7 +116,7 @@ def sticks(twist: Twist2D, output: OutputSettings) -> Sticks:
     if not _finite(twist):
         return Sticks(0.0, 0.0)
     steering = -twist.angular_radps / output.turn_rate_at_full_steering_radps
-    throttle = twist.linear_mps / output.speed_at_full_throttle_mps
+    throttle = twist.linear_mps / speed_scale(output)
     if output.steering_reversed:
         steering = -steering
     if output.throttle_reversed:

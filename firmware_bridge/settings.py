@@ -22,6 +22,10 @@ from qnav.contracts.settings import check_range, from_dict, load_toml
 from qnav.contracts.transport import ZenohSettings
 
 CONNECTION_PREFIXES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcp:", "tcpin:", "/dev/", "COM")
+UNCALIBRATED_SPEED_AT_FULL_THROTTLE_MPS = 20.0
+"""The speed at full throttle the bridge assumes until the car's is measured: a fast hobby car's
+(72 km/h; ArduPilot's SITL rover, SIM_Rover, is as fast), so a car that is not faster drives no
+faster than asked, and a slow car creeps or, inside its RC dead zone, stands still."""
 
 
 @dataclass(frozen=True)
@@ -84,8 +88,10 @@ class OutputSettings:
     motion-capture pose is forwarded as the position estimate)."""
     manual_message: Literal["rc_override", "manual_control"] = "rc_override"
     """manual mode: RC_CHANNELS_OVERRIDE (ch1 steering, ch3 throttle) or MANUAL_CONTROL."""
-    speed_at_full_throttle_mps: float = 1.0
-    """manual mode: the forward speed that maps to full throttle (measure it on the car)."""
+    speed_at_full_throttle_mps: float | None = None
+    """manual mode: the forward speed that maps to full throttle, as measured on the car (`qnav
+    calibrate-car --config FILE --write` writes it); none (not measured): the bridge drives as if
+    it were 20 m/s (UNCALIBRATED_SPEED_AT_FULL_THROTTLE_MPS), so 0.5 m/s is 2.5 % throttle."""
     turn_rate_at_full_steering_radps: float = 1.0
     """manual mode: the turn rate that maps to full steering (measure it on the car)."""
     steering_reversed: bool = False
@@ -123,7 +129,8 @@ class OutputSettings:
                 "rc_override, manual_control"
             )
         for name in ("speed_at_full_throttle_mps", "turn_rate_at_full_steering_radps"):
-            check_range(self, name, getattr(self, name), 0.0, 100.0, exclusive_low=True)
+            if getattr(self, name) is not None:
+                check_range(self, name, getattr(self, name), 0.0, 100.0, exclusive_low=True)
         for name in ("guided_max_speed_mps", "guided_max_turn_rate_radps"):
             check_range(self, name, getattr(self, name), 0.0, 100.0)
         check_range(

@@ -1140,6 +1140,12 @@ def _bridge_verbs(verbs: argparse._SubParsersAction[_Parser]) -> None:
         "--wait-s", type=float, default=60.0, help="wait this long for an armed car (60 s)"
     )
     _flag(calibrate_car, "--json", "print one JSON object")
+    _flag(
+        calibrate_car,
+        "--write",
+        "write the measured scales into the --config file's [output] section (restart the "
+        "bridge to drive with them; until then it assumes a fast car)",
+    )
 
     vehicle = _verb(
         verbs,

@@ -143,6 +143,7 @@ def write_configs(
     `lookahead`: the controller's look ahead, in a room of `room_size_m`)."""
     from qnav.controller.config import DaemonConfig
     from qnav.firmware_bridge.settings import BridgeSettings
+    from qnav.simcar.car import SimCarSettings
 
     zenoh = {"connect": [zenoh_endpoint], "listen": []}
     controller = from_dict(
@@ -170,9 +171,14 @@ def write_configs(
             }
         ),
     )
+    full_travel = SimCarSettings().full_throttle_speed_mps  # the test vehicle's, known exactly
     values = bridge_values or {
         "mavlink": {"connection": f"udpout:127.0.0.1:{mavlink_port}"},
         "vehicle": {"arm_on_connect": True, "set_mode_on_connect": True},
+        "output": {
+            "speed_at_full_throttle_mps": full_travel,
+            "turn_rate_at_full_steering_radps": full_travel,
+        },
     }
     bridge = from_dict(BridgeSettings, {**values, "zenoh": zenoh})
     files.root.mkdir(parents=True, exist_ok=True)

@@ -262,3 +262,17 @@ def test_in_lockstep_the_increment_car_moves_the_simulators_increments() -> None
         )  # fmt: skip
         expected, _ = step_increment(expected, np.zeros((1, 2)), np.array([action]), world.dynamics)
         np.testing.assert_allclose(pose, expected, atol=1e-5)
+
+
+def test_the_stacks_bridge_is_calibrated_to_the_sim_car(tmp_path: Path) -> None:
+    # An uncalibrated bridge assumes a fast car (20 m/s at full throttle, issue 53): on the
+    # sim-car (1 m/s at full throttle) the policy's 1 m/s would be 0.05 m/s.
+    from qnav.firmware_bridge.mapping import full_scale
+    from qnav.firmware_bridge.settings import load_settings
+    from qnav.simcar.car import SimCarSettings
+    from qnav.stack import StackFiles, write_configs
+
+    files = StackFiles(tmp_path / "stack")
+    write_configs(files, POLICY, "tcp/127.0.0.1:7447", 14550, 0.1)
+    full_travel = SimCarSettings().full_throttle_speed_mps
+    assert full_scale(load_settings(files.bridge_toml).output) == (full_travel, full_travel)

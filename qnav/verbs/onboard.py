@@ -10,6 +10,7 @@ import sys
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
+from qnav.contracts.errors import ConfigError
 from qnav.options import config_text
 
 if TYPE_CHECKING:
@@ -63,14 +64,18 @@ def bridge(args: argparse.Namespace) -> int:
 
 
 def calibrate_car(args: argparse.Namespace) -> int:
-    """`qnav calibrate-car`: fit the bridge's speed and turn-rate scales on the car."""
+    """`qnav calibrate-car`: fit the bridge's speed and turn-rate scales on the car (and with
+    --write put them into its settings file)."""
     from qnav.contracts.daemon import stop_on_signals
     from qnav.firmware_bridge.calibrate import (
         CalibrationAbortedError,
         measure_scales,
         output_section,
+        write_scales,
     )
 
+    if args.write and args.config is None:
+        raise ConfigError("--write needs --config FILE: the bridge's settings file it writes to")
     settings = _bridge_settings(args)
     logging.basicConfig(level=logging.INFO, format=LOG_FORMAT)
     try:
@@ -81,6 +86,13 @@ def calibrate_car(args: argparse.Namespace) -> int:
     except CalibrationAbortedError as error:
         print(f"qnav calibrate-car: aborted: {error}", file=sys.stderr)
         return 1
+    speed, turn = result["speed_at_full_throttle_mps"], result["turn_rate_at_full_steering_radps"]
+    if args.write:
+        write_scales(args.config, speed, turn)
+        print(
+            f"wrote the scales into {args.config}; restart the bridge to drive with them",
+            file=sys.stderr,
+        )
     if args.json:
         print(json.dumps(result))
         return 0
@@ -89,12 +101,7 @@ def calibrate_car(args: argparse.Namespace) -> int:
             f"# throttle {r['throttle']:+.2f} steering {r['steering']:+.2f}: "
             f"{r['forward_mps']:+.3f} m/s, {r['turn_rate_radps']:+.3f} rad/s"
         )
-    print(
-        output_section(
-            result["speed_at_full_throttle_mps"], result["turn_rate_at_full_steering_radps"]
-        ),
-        end="",
-    )
+    print(output_section(speed, turn), end="")
     return 0
 
 

@@ -45,6 +45,8 @@ FAST_BRIDGE: dict[str, Any] = {
     },
     "failsafe": {"command_timeout_s": 0.2, "stop_period_s": 0.05},
     "vehicle": {"state_period_s": 0.05, "arm_on_connect": True},
+    # Calibrated as the test vehicle's full travel is read (MavlinkVehicleSettings.dynamics).
+    "output": {"speed_at_full_throttle_mps": 1.0},
 }
 FAST_VEHICLE: dict[str, Any] = {
     "heartbeat_period_s": 0.05,

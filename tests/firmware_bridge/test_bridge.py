@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 import threading
@@ -647,3 +648,19 @@ def test_exit_disarms_only_once_the_vehicle_is_at_rest(make_rig: MakeRig) -> Non
     # slowing down from 0.6 m/s with a 1 s time constant (the old bridge disarmed at once).
     assert abs(rig.vehicle.velocity()[0]) < 0.05
     assert disarm.time_s - closed_s > 1.0, "disarmed before the car could have slowed down"
+
+
+def test_an_uncalibrated_bridge_drives_a_fast_car_no_faster_than_asked(
+    make_rig: MakeRig, caplog: pytest.LogCaptureFixture
+) -> None:
+    # With the shipped settings a 0.5 m/s Twist was half throttle: SITL's rover (20 m/s at full
+    # throttle) reached 6.5 m/s (issue 53). Here a car of 10 m/s at full throttle.
+    caplog.set_level(logging.WARNING, logger="qnav.firmware_bridge")
+    rig = make_rig(
+        bridge={"output": {"speed_at_full_throttle_mps": None}},
+        vehicle={"dynamics": {"max_speed_mps": 10.0}},
+    )
+    rig.ready()
+    rig.drive(0.5, 0.0, 1.5)
+    assert 0.0 < rig.vehicle.velocity()[0] <= 0.5
+    assert "speed_at_full_throttle_mps is not measured" in caplog.text

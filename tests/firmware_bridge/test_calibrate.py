@@ -2,18 +2,26 @@
 
 from __future__ import annotations
 
+import tomllib
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
+from qnav.contracts.settings import from_dict
 from qnav.firmware_bridge.calibrate import (
     CalibrationAbortedError,
     Calibrator,
     Pattern,
     fit_through_origin,
     output_section,
+    with_scales,
 )
+from qnav.firmware_bridge.settings import BridgeSettings
+from tests.command import run_qnav
 from tests.firmware_bridge.rig import Rig, wait_until
+
+ROOT = Path(__file__).resolve().parents[2]
 
 MakeRig = Callable[..., Rig]
 
@@ -63,3 +71,46 @@ def test_calibration_aborts_beyond_its_distance_bound_and_the_bridge_stops_the_c
     travelled = rig.vehicle.pose()[0]
     assert 0.1 < travelled < 0.5
     wait_until(lambda: abs(rig.vehicle.velocity()[0]) < 0.02, what="the failsafe stop")
+
+
+def _settings(text: str) -> BridgeSettings:
+    return from_dict(BridgeSettings, tomllib.loads(text))
+
+
+def test_the_scales_are_written_into_the_bridges_file_and_nothing_else_changes() -> None:
+    shipped = (ROOT / "config" / "bridge.toml").read_text()
+    assert _settings(shipped).output.speed_at_full_throttle_mps is None  # not measured
+    written = with_scales(shipped, 2.4567, 1.25)
+    settings = _settings(written)
+    assert settings.output.speed_at_full_throttle_mps == 2.457
+    assert settings.output.turn_rate_at_full_steering_radps == 1.25
+    # Every other line, comments included, as it was.
+    changed = [
+        (a, b) for a, b in zip(shipped.splitlines(), written.splitlines(), strict=True) if a != b
+    ]
+    assert [b for _, b in changed] == [
+        "speed_at_full_throttle_mps = 2.457",
+        "turn_rate_at_full_steering_radps = 1.250",
+    ]
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        '[zenoh]\nnamespace = "car1"\n',
+        '[output]\nmode = "manual"\n\n[failsafe]\ncommand_timeout_s = 0.4\n',
+        "",
+    ],
+)
+def test_scales_missing_from_the_file_are_added_to_its_output_section(text: str) -> None:
+    settings = _settings(with_scales(text, 3.0, 2.0))
+    assert settings.output.speed_at_full_throttle_mps == 3.0
+    assert settings.output.turn_rate_at_full_steering_radps == 2.0
+    before = _settings(text)
+    assert settings.zenoh == before.zenoh and settings.failsafe == before.failsafe
+
+
+def test_calibrate_car_write_needs_the_file_to_write_into() -> None:
+    refused = run_qnav("calibrate-car", "--write")
+    assert refused.returncode == 2
+    assert "--write" in refused.stderr and "--config" in refused.stderr

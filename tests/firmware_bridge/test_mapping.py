@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -11,7 +12,8 @@ from qnav.contracts.wire import STOP, Pose2D, Twist2D
 from qnav.firmware_bridge import mapping
 from qnav.firmware_bridge.settings import OutputSettings
 
-OUT = OutputSettings()
+OUT = OutputSettings(speed_at_full_throttle_mps=1.0)
+"""A car measured at 1 m/s at full throttle: 0.5 m/s is half throttle."""
 
 
 def test_stop_maps_to_trim_on_both_channels() -> None:
@@ -32,7 +34,7 @@ def test_left_turn_steers_below_trim_and_right_above() -> None:
 
 
 def test_pwm_never_leaves_the_configured_limits() -> None:
-    out = OutputSettings(throttle_pwm_min_us=1500, throttle_pwm_max_us=1650)
+    out = replace(OUT, throttle_pwm_min_us=1500, throttle_pwm_max_us=1650)
     for linear in (-100.0, -1.0, 0.3, 1.0, 100.0):
         for angular in (-100.0, 0.0, 100.0):
             pwm = mapping.rc_override(Twist2D(linear, angular), out)
@@ -41,13 +43,25 @@ def test_pwm_never_leaves_the_configured_limits() -> None:
     assert mapping.rc_override(Twist2D(-1.0, 0.0), out).throttle_pwm_us == 1500  # no reverse
 
 
+def test_an_unmeasured_speed_scale_is_a_fast_cars() -> None:
+    # With the shipped settings 0.5 m/s was half throttle: 6.5 m/s on SITL's rover (issue 53).
+    unmeasured = OutputSettings()
+    assert unmeasured.speed_at_full_throttle_mps is None
+    forward = Twist2D(0.5, 0.0)
+    assert mapping.sticks(forward, unmeasured).throttle == pytest.approx(0.5 / 20.0)
+    assert mapping.rc_override(forward, unmeasured).throttle_pwm_us == 1510
+    assert mapping.manual_control(forward, unmeasured).z == 25
+    assert mapping.full_scale(unmeasured)[0] == 20.0
+    assert mapping.sticks(forward, OUT).throttle == 0.5
+
+
 def test_scales_set_what_full_travel_means() -> None:
     out = OutputSettings(speed_at_full_throttle_mps=0.5, turn_rate_at_full_steering_radps=2.0)
     assert mapping.sticks(Twist2D(0.25, 1.0), out) == (-0.5, 0.5)
 
 
 def test_reversed_channels_flip_their_direction() -> None:
-    out = OutputSettings(steering_reversed=True, throttle_reversed=True)
+    out = replace(OUT, steering_reversed=True, throttle_reversed=True)
     assert mapping.rc_override(Twist2D(0.5, 0.5), out) == (1700, 1300)
 
 
@@ -123,7 +137,7 @@ def test_absurd_poses_are_refused() -> None:
 
 def test_the_throttle_cap_and_no_reverse_hold_in_both_manual_messages() -> None:
     # MANUAL_CONTROL carries no PWM: the PWM limits alone never capped it (issue 20).
-    out = OutputSettings(max_throttle_fraction=0.4, throttle_pwm_min_us=1500)
+    out = replace(OUT, max_throttle_fraction=0.4, throttle_pwm_min_us=1500)
     for linear in (-5.0, -1.0, 0.5, 1.0, 5.0):
         z = mapping.manual_control(Twist2D(linear, 0.0), out).z
         pwm = mapping.rc_override(Twist2D(linear, 0.0), out).throttle_pwm_us
