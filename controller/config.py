@@ -24,6 +24,7 @@ from qnav.contracts.settings import (
 from qnav.contracts.transport import ZenohSettings
 from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.perception import TrackerSettings
+from qnav.controller.proximity import ProximitySettings
 from qnav.controller.scan import BelowRangeMin
 
 Trigger = Literal["period", "scan"]
@@ -216,6 +217,8 @@ class DaemonConfig:
     """Scan resampling."""
     safety: SafetySettings = field(default_factory=SafetySettings)
     """Stop rules."""
+    proximity: ProximitySettings = field(default_factory=ProximitySettings)
+    """The proximity stop: a safety field around the car that overrides every decision."""
     policy: PolicySourceSettings = field(default_factory=PolicySourceSettings)
     """Policies from a server."""
     topics: TopicSettings = field(default_factory=TopicSettings)
@@ -224,7 +227,7 @@ class DaemonConfig:
     """How to join the zenoh network."""
     lookahead: LookaheadSettings = field(default_factory=LookaheadSettings)
     """The look ahead that may overrule the policy where another action is less likely to
-    collide (off by default)."""
+    collide (the shield by default: it needs `lookahead.room_size_m`)."""
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
     """How the look ahead tracks obstacles in the scans."""
 

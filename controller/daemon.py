@@ -104,6 +104,8 @@ class Daemon:
         self._closed = False
         """Set (under the lock) once the shutdown stop is published: nothing follows it."""
         self._last_reason: Reason | None = None
+        self._last_logged: tuple[Reason, bool] | None = None
+        """The reason last logged, and whether the car was stopped."""
         self._late_s = 0.0
         self._command: Any = None
         """The command publisher (while `run` has a session)."""
@@ -320,13 +322,22 @@ class Daemon:
                     )
 
     def _note_reason(self, output: Output) -> None:
-        reason = output.status.reason
-        if reason is not self._last_reason:
+        """Log why the car does what it does whenever that changes (a proximity stop's turn and
+        its stop are two)."""
+        reason, action = output.status.reason, output.status.action
+        logged = (reason, action is None)
+        if logged != self._last_logged:
             if reason is Reason.POLICY:
                 log.info("driving: the policy decides")
+            elif reason is Reason.PROXIMITY:
+                log.warning(
+                    "proximity: the safety field forbids the chosen action; %s",
+                    "stopped" if action is None else f"turning {action.name.lower()} instead",
+                )
             else:
                 log.info("stopped: %s", reason.value)
-            self._last_reason = reason
+            self._last_logged = logged
+        self._last_reason = reason
 
 
 def build(config: DaemonConfig) -> Daemon:
@@ -356,7 +367,10 @@ def build(config: DaemonConfig) -> Daemon:
         policy_version=version,
         lookahead=config.lookahead,
         tracker=config.tracker,
+        proximity=config.proximity,
     )
+    if not controller.uses_scan and config.proximity.enabled:
+        log.info("proximity stop: none (the policy reads no lidar)")
     return Daemon(config, controller, sha, public_key)
 
 

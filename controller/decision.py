@@ -32,14 +32,17 @@ stop):
 7. `policy_input_error`: the policy refused the observation (not expected after the checks
    above, but it never moves the car).
 
-Otherwise the policy decides (`policy`) and the command is its action's velocity from the policy
-file's contract. A malformed payload (not exactly one well-formed message, NaN, wrong frame, a
-pose beyond `safety.max_position_m` or with a non-unit quaternion, a scan that is no plausible
-scan of a planar lidar: range_min/range_max not finite and ordered, fewer than
-`lidar.min_readings` readings, less than `lidar.min_field_of_view_rad`, an absurd
-angle_min or increment, too many invalid readings) is counted and its error returned; it never
-replaces the last good input, so it can only make the car stop (through the timeouts, or the
-emergency stop), never move.
+Otherwise the policy decides (`policy`), the look ahead may overrule it, and the command is the
+action's velocity from the policy file's contract, unless the proximity stop's safety field
+(`controller.proximity`) forbids that action: then the best allowed action, a turn in place, or
+a stop when none is allowed (`proximity`; the policy's window goes on, as it decided).
+
+A malformed payload (not exactly one well-formed message, NaN, wrong frame, a pose beyond
+`safety.max_position_m` or with a non-unit quaternion, a scan that is no plausible scan of a
+planar lidar: range_min/range_max not finite and ordered, fewer than `lidar.min_readings`
+readings, less than `lidar.min_field_of_view_rad`, an absurd angle_min or increment, too many
+invalid readings) is counted and its error returned; it never replaces the last good input, so
+it can only make the car stop (through the timeouts, or the emergency stop), never move.
 """
 
 from __future__ import annotations
@@ -64,6 +67,15 @@ from qnav.controller.config import LidarSettings, SafetySettings
 from qnav.controller.lookahead import Lookahead, LookaheadSettings, beam_angles
 from qnav.controller.perception import TrackerSettings
 from qnav.controller.policy import PolicyRuntime
+from qnav.controller.proximity import (
+    CLEAR,
+    Blocked,
+    ProximitySettings,
+    allowed_actions,
+    blocked_parts,
+    field_ranges,
+    guarded_action,
+)
 from qnav.controller.scan import ScanRules, resample_scan
 
 MAX_SCAN_READINGS = 100_000
@@ -100,6 +112,7 @@ class Reason(StrEnum):
     TARGET_REACHED = "target_reached"
     POLICY_INPUT_ERROR = "policy_input_error"
     SHUTDOWN = "shutdown"
+    PROXIMITY = "proximity"
 
 
 AT_REST = frozenset({Reason.NO_TARGET, Reason.TARGET_REACHED, Reason.ESTOP_LATCHED})
@@ -130,6 +143,8 @@ class Counters:
     """Policies swapped in while running (`Controller.swap_policy`)."""
     overruled: int = 0
     """Policy decisions the look ahead changed (`lookahead.mode` shield, plan or judge)."""
+    proximity: int = 0
+    """Decisions the proximity stop changed (to a safe turn, or a stop)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As plain JSON values."""
@@ -144,6 +159,7 @@ class Counters:
             "releases_refused": self.releases_refused,
             "policy_swaps": self.policy_swaps,
             "overruled": self.overruled,
+            "proximity": self.proximity,
         }
 
 
@@ -241,7 +257,11 @@ class Controller:
         *,
         lookahead: LookaheadSettings | None = None,
         tracker: TrackerSettings | None = None,
+        proximity: ProximitySettings | None = None,
     ) -> None:
+        """`lookahead` and `proximity`: the look ahead and the proximity stop; None leaves
+        each out (the daemon passes its settings, whose defaults run both: the shield and the
+        default safety field)."""
         self.runtime = runtime
         self.policy_version = policy_version or delivery.version_of_file(runtime.path)
         """Reported in every status (by default the file's own: `version_of_file`)."""
@@ -259,6 +279,10 @@ class Controller:
             uncovered_range_m=self.lidar.uncovered_range_m,
         )
         self.commands = tuple(Twist2D(a.linear_mps, a.angular_radps) for a in contract.actions)
+        self.proximity = proximity or ProximitySettings(enabled=False)
+        self._linear_mps = np.array([a.linear_mps for a in contract.actions])
+        self._blocked: Blocked = CLEAR
+        """Which parts of the proximity stop's field the newest scan holds a reading in."""
         self.counters = Counters()
         self._latest = {i: _Latest() for i in Input}
         self._scan: NDArray[np.float32] | None = None
@@ -271,7 +295,7 @@ class Controller:
         self._sequence = 0
         self._window_fresh = True
         self._last_reason: Reason | None = None
-        self.lookahead_settings = lookahead or LookaheadSettings()
+        self.lookahead_settings = lookahead or LookaheadSettings(mode="off")
         self.tracker_settings = tracker or TrackerSettings()
         self.lookahead = self._new_lookahead(runtime, self.tracker_settings)
         """The look ahead that may overrule the policy (None with `lookahead.mode = "off"`)."""
@@ -394,8 +418,29 @@ class Controller:
             )
         self._scan, self._scan_stamp_s = resampled.ranges_m, scan.stamp_s
         self._scan_delays_s = resampled.delays_s
+        self._blocked = self._field(scan)
         self._mark(Input.SCAN, None, now)
         self._track(now)
+
+    def _field(self, scan: Scan) -> Blocked:
+        """Which parts of the proximity stop's field `scan` holds a reading in (CLEAR when the
+        stop is off)."""
+        settings = self.proximity
+        if not settings.enabled:
+            return CLEAR
+        count = len(scan.ranges_m)
+        angles = (
+            self.lidar.mount_yaw_rad
+            + scan.angle_min_rad
+            + scan.angle_increment_rad * np.arange(count, dtype=np.float64)
+        )
+        ranges = field_ranges(
+            scan.ranges_m,
+            scan.range_min_m,
+            scan.range_max_m,
+            below_min_is_no_return=self.lidar.below_range_min == "no_return",
+        )
+        return blocked_parts(angles, ranges, settings.footprint_m, settings.travel_m)
 
     def _track(self, now: float) -> None:
         """Give the look ahead the newest scan and pose, driving or not (a car at rest keeps
@@ -466,7 +511,8 @@ class Controller:
 
     def decide(self, now: float, send: CommandSink | None = None) -> Output:
         """One decision at monotonic time `now`: a stop by the first rule that applies, or the
-        policy's action on the newest inputs (which pushes one frame into its window).
+        policy's action on the newest inputs (which pushes one frame into its window), as the
+        look ahead and the proximity stop leave it.
 
         `send`, when given, gets the command as soon as it is known, before the status is
         written; the status is the same either way.
@@ -486,27 +532,55 @@ class Controller:
         action, risks = decision.action, None
         if self.lookahead is not None:
             self._track(now)  # the newest pose (rules 2-3 held: it and the scan are fresh)
-            target_xy = np.array([target.x_m, target.y_m])
-            if self.lookahead_settings.mode == "plan":
-                action = Action(self.lookahead.plan(target_xy))
-            elif self.lookahead_settings.mode == "judge":
-                assert self.lookahead.judge is not None  # built with mode judge
-                safe = self.lookahead.safety(target_xy)
-                threshold = self.lookahead.judge.contract.threshold
-                preferred = np.array([int(decision.action)])
-                action = Action(int(judged_actions(preferred, safe[None], threshold)[0]))
-                risks = tuple((1.0 - safe).tolist())
-            else:
-                shares = self.lookahead.risks(target_xy)
-                overrule_share = self.lookahead_settings.overrule_share
-                safest = shielded_actions(decision.q_values[None], shares[None], overrule_share)
-                action = Action(int(safest[0]))
-                risks = tuple(shares.tolist())
+            action, risks = self._look_ahead(decision.action, decision.q_values, target)
             self.counters.overruled += int(action != decision.action)
         q_values = tuple(decision.q_values.tolist())
-        return self._output(
-            now, Reason.POLICY, self.commands[action], action, q_values, send=send, risks=risks
+        guarded = self._guard(action, decision.q_values, risks)
+        reason = Reason.POLICY if guarded == action else Reason.PROXIMITY
+        if reason is Reason.PROXIMITY:
+            self.counters.proximity += 1
+            self.counters.stops += int(guarded is None)  # nothing may move (the window goes on)
+        command = STOP if guarded is None else self.commands[guarded]
+        return self._output(now, reason, command, guarded, q_values, send=send, risks=risks)
+
+    def _look_ahead(
+        self, chosen: Action, q_values: NDArray[np.float32], target: Pose2D
+    ) -> tuple[Action, tuple[float, ...] | None]:
+        """The look ahead's action in its mode, and the risks the status reports."""
+        assert self.lookahead is not None
+        target_xy = np.array([target.x_m, target.y_m])
+        mode = self.lookahead_settings.mode
+        if mode == "plan":
+            return Action(self.lookahead.plan(target_xy)), None
+        if mode == "judge":
+            assert self.lookahead.judge is not None  # built with mode judge
+            safe = self.lookahead.safety(target_xy)
+            threshold = self.lookahead.judge.contract.threshold
+            preferred = np.array([int(chosen)])
+            action = Action(int(judged_actions(preferred, safe[None], threshold)[0]))
+            return action, tuple((1.0 - safe).tolist())
+        shares = self.lookahead.risks(target_xy)
+        overrule_share = self.lookahead_settings.overrule_share
+        safest = shielded_actions(q_values[None], shares[None], overrule_share)
+        return Action(int(safest[0])), tuple(shares.tolist())
+
+    def _guard(
+        self, action: Action, q_values: NDArray[np.float32], risks: tuple[float, ...] | None
+    ) -> Action | None:
+        """`action` unless the proximity stop's field forbids it: then the best allowed action
+        (with the shield's risks, the shield's rule among them), or None for a stop."""
+        if not self.uses_scan or self._blocked == CLEAR:
+            return action
+        allowed = allowed_actions(self._linear_mps, self._blocked)
+        shield = self.lookahead_settings.mode == "shield" and risks is not None
+        guarded = guarded_action(
+            int(action),
+            allowed,
+            q_values,
+            np.array(risks) if shield else None,
+            self.lookahead_settings.overrule_share,
         )
+        return None if guarded is None else Action(guarded)
 
     def warm_up(self) -> None:
         """Run the policy once on a neutral observation (first runs are slow) and restart its
@@ -609,7 +683,8 @@ class Controller:
         if not self.uses_scan:
             raise PolicyFileError(
                 f"lookahead.mode = {self.lookahead_settings.mode!r} tracks obstacles in the "
-                f"lidar: {runtime.path} reads no scan"
+                f'lidar: {runtime.path} reads no scan (set lookahead.mode = "off" for a policy '
+                "without a lidar)"
             )
         dynamics, robot_radius_m = contract.motion_model(str(runtime.path))
         lookahead = Lookahead(

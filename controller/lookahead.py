@@ -70,18 +70,20 @@ class LookaheadSettings:
 
     SECTION = "lookahead"
 
-    mode: Literal["off", "shield", "plan", "judge"] = "off"
-    """"off": the policy decides alone. "shield": the policy's best-valued action, unless at
-    least `overrule_share` of the continuations after it collide: then its best-valued among the
-    least likely to collide. "plan": the first action of the best-scoring candidate sequence
-    (reach the target early, collide late or never, else end near the target and clear of
-    surfaces), the policy's values reported but not used. "judge": the policy's action unless
-    `judge_file` judges it doomed, then the action it judges safest (learned, no forecast)."""
+    mode: Literal["off", "shield", "plan", "judge"] = "shield"
+    """"off": the policy decides alone (a lidar-less policy needs it). "shield": the policy's
+    best-valued action, unless at least `overrule_share` of the continuations after it collide:
+    then its best-valued among the least likely to collide. "plan": the first action of the
+    best-scoring candidate sequence (reach the target early, collide late or never, else end
+    near the target and clear of surfaces), the policy's values reported but not used. "judge":
+    the policy's action unless `judge_file` judges it doomed, then the action it judges safest
+    (learned, no forecast)."""
     judge_file: str = ""
     """With mode "judge": the doom judge file (`qnav lab label FOLDER ... --export FILE`)."""
-    room_size_m: float = 10.0
+    room_size_m: float = 0.0
     """Side of the square room [0, size]^2 in the motion-capture frame: its walls are known (a
-    lidar return on them is not an obstacle, and obstacles bounce off them)."""
+    lidar return on them is not an obstacle, and obstacles bounce off them). 0: not set, and a
+    look ahead refuses to start: measure the room (the simulator's is 10 m)."""
     shield_horizon_s: float = 6.0
     """How far ahead the shield forecasts each action's risk (6 s against the gauge's 4 s doom
     horizon, with `overrule_share` 0.3: 0.900 against 0.882 success in obstacles-inertia, 0.885
@@ -109,7 +111,7 @@ class LookaheadSettings:
                 f"lookahead.judge_file = {self.judge_file!r} with lookahead.mode = {self.mode!r}: "
                 "mode judge needs a doom judge file, and only it reads one"
             )
-        check_range(self, "room_size_m", self.room_size_m, 0.0, 1000.0, exclusive_low=True)
+        check_range(self, "room_size_m", self.room_size_m, 0.0, 1000.0)
         check_range(self, "shield_horizon_s", self.shield_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "plan_horizon_s", self.plan_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "random_sequences", self.random_sequences, 0, 100_000)
@@ -156,6 +158,13 @@ class Lookahead:
         """A scan taken longer than this after the last tracked one (or before it) restarts the
         tracking (the controller's scan timeout: the span after which it stops the car)."""
         self.tracker_settings = tracker
+        if settings.room_size_m <= 0:
+            raise ConfigError(
+                f"lookahead.room_size_m is not set: lookahead.mode = {settings.mode!r} needs the "
+                "room's walls (the side of the square room [0, size]^2 in the motion-capture "
+                'frame, e.g. --set lookahead.room_size_m=10); or set lookahead.mode = "off" to '
+                "drive on the policy alone"
+            )
         walls = box_walls(settings.room_size_m)
         self.walls = walls
         self.model = LookaheadModel(

@@ -140,7 +140,8 @@ def write_configs(
     bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
     controller takes policies from a server signed with its private key, `policy` first;
     `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default;
-    `lookahead`: the controller's look ahead, in a room of `room_size_m`)."""
+    `lookahead`: the controller's look ahead, in a room of `room_size_m`, and its proximity stop;
+    None: the policy alone, neither)."""
     from qnav.controller.config import DaemonConfig
     from qnav.firmware_bridge.settings import BridgeSettings
     from qnav.simcar.car import SimCarSettings
@@ -158,7 +159,7 @@ def write_configs(
             ),
             "zenoh": zenoh,
         }
-        | ({} if lookahead is None else {"lookahead": _lookahead_values(lookahead, room_size_m)})
+        | _lookahead_tables(lookahead, room_size_m)
         | (
             {}
             if public_key is None
@@ -564,13 +565,17 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     }
 
 
-def _lookahead_values(lookahead: LookaheadSettings, room_size_m: float) -> dict[str, Any]:
-    """The controller's [lookahead] table: `lookahead` in the stack's room, a judge file by its
-    absolute path (the daemon runs elsewhere)."""
+def _lookahead_tables(lookahead: LookaheadSettings | None, room_size_m: float) -> dict[str, Any]:
+    """The controller's [lookahead] and [proximity] tables: `lookahead` in the stack's room, a
+    judge file by its absolute path (the daemon runs elsewhere), and the default proximity stop,
+    as the in-process agent runs them (`file_agent`); None: the policy alone (the look ahead
+    off, the proximity stop off)."""
+    if lookahead is None:
+        return {"lookahead": {"mode": "off"}, "proximity": {"enabled": False}}
     values: dict[str, Any] = {"mode": lookahead.mode, "room_size_m": room_size_m}
     if lookahead.judge_file:
         values["judge_file"] = str(Path(lookahead.judge_file).resolve())
-    return values
+    return {"lookahead": values}
 
 
 def in_process_outcomes(
@@ -604,16 +609,24 @@ def file_agent(
     policy: Path, world: WorldConfig, worlds: int, *, lookahead: LookaheadSettings | None
 ) -> Agent:
     """The policy file on one stream per world, as the controller runs it, with its look ahead
-    (None: none)."""
+    and its default proximity stop (None: neither)."""
     from qnav.controller.perception import TrackerSettings
     from qnav.controller.policy import PolicyRuntime
+    from qnav.controller.proximity import ProximitySettings
     from qnav.sim.evaluate import StreamPolicyAgent
     from qnav.tracking import LookaheadAgent
 
     agent = StreamPolicyAgent(PolicyRuntime(policy, num_streams=worlds), worlds)
     if lookahead is None:
         return agent
-    return LookaheadAgent(agent, world, worlds, tracker=TrackerSettings(), lookahead=lookahead)
+    return LookaheadAgent(
+        agent,
+        world,
+        worlds,
+        tracker=TrackerSettings(),
+        lookahead=lookahead,
+        proximity=ProximitySettings(),
+    )
 
 
 def episode_agreement(

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.judge_file import judged_actions
 from qnav.contracts.lookahead import shielded_actions
+from qnav.contracts.motion import action_velocities
 from qnav.contracts.observation import LidarSpec
 from qnav.controller.judge import DoomJudge
 from qnav.controller.lookahead import (
@@ -30,6 +31,13 @@ from qnav.controller.lookahead import (
     safeties_of,
 )
 from qnav.controller.perception import TrackerSettings
+from qnav.controller.proximity import (
+    ProximitySettings,
+    allowed_actions,
+    blocked_parts,
+    field_ranges,
+    guarded_action,
+)
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import WanderingGoToTarget
 from qnav.sim.world import BatchedWorld, Observation
@@ -93,6 +101,11 @@ class LookaheadAgent:
     best-valued among the safest; "plan", the planner on that state decides;
     "judge", the doom judge file judges each action from that state and the policy's action is
     kept unless judged doomed (the inner agent then needs no Q values: go-to-target will do).
+    With `proximity`, the controller's proximity stop then forbids motion into its safety field
+    (`controller.proximity`), as the daemon applies it; the simulator has no stop, so where the
+    field forbids every action (something inside the footprint: with the default footprint,
+    the robot's radius, only a collision, which has ended the episode) the action stands and is
+    counted in `proximity_stops`.
     """
 
     def __init__(
@@ -105,6 +118,7 @@ class LookaheadAgent:
         lookahead: LookaheadSettings,
         range_noise_m: float = 0.0,
         seed: int = 0,
+        proximity: ProximitySettings | None = None,
     ) -> None:
         self.inner = inner
         self.world = world
@@ -124,6 +138,13 @@ class LookaheadAgent:
         """Decisions where the look ahead changed the policy's action."""
         self.decisions = 0
         """Decisions taken."""
+        self.proximity = proximity if proximity is not None and proximity.enabled else None
+        linear = [v for v, _ in action_velocities(world.dynamics, world.control_period_s)]
+        self._linear_mps = np.array(linear)
+        self.proximity_changes = 0
+        """Decisions the proximity stop changed to another action."""
+        self.proximity_stops = 0
+        """Decisions where it forbade every action (the daemon would stop; here they stand)."""
 
     @property
     def overruled_share(self) -> float:
@@ -148,6 +169,7 @@ class LookaheadAgent:
             now_s = float(times_s[row])
             car.observe(now_s, observation.pose[row], now_s - turn_s, scans[row], delays_s)
         targets = list(observation.target_xy)
+        shares = None
         if self.settings.mode == "plan":
             action = plans_of(self.cars, targets)
         elif self.settings.mode == "judge":
@@ -160,7 +182,37 @@ class LookaheadAgent:
         self.overruled += int(np.sum(action != chosen))
         self.decisions += action.size
         self.steps += 1
-        return action
+        return action if self.proximity is None else self._guard(action, scans, shares)
+
+    def _guard(
+        self,
+        action: NDArray[np.int64],
+        scans: NDArray[np.float32],
+        shares: NDArray[np.float64] | None,
+    ) -> NDArray[np.int64]:
+        """`action` as the controller's proximity stop leaves it, world by world."""
+        assert self.proximity is not None
+        angles = lidar_of(self.world).beam_angles_rad()
+        guarded = action.copy()
+        for row, scan in enumerate(scans):
+            ranges = field_ranges(scan, 0.0, np.inf, below_min_is_no_return=False)
+            blocked = blocked_parts(
+                angles, ranges, self.proximity.footprint_m, self.proximity.travel_m
+            )
+            allowed = allowed_actions(self._linear_mps, blocked)
+            choice = guarded_action(
+                int(action[row]),
+                allowed,
+                self.inner.last_q[row],
+                None if shares is None else shares[row],
+                self.settings.overrule_share,
+            )
+            if choice is None:
+                self.proximity_stops += 1
+            elif choice != action[row]:
+                self.proximity_changes += 1
+                guarded[row] = choice
+        return guarded
 
 
 def time_lookahead(

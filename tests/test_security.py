@@ -146,7 +146,8 @@ def test_the_controller_daemon_runs_with_its_secure_config(
         heard = Heard(listener)
         daemon = subprocess.Popen(
             [sys.executable, "-m", "qnav", "controller", "--policy", str(policy),
-             "--set", f'zenoh.config_file="{folder / "zenoh-controller.json5"}"'],
+             "--set", f'zenoh.config_file="{folder / "zenoh-controller.json5"}"',
+             "--set", 'lookahead.mode="off"'],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         try:

@@ -14,7 +14,7 @@ from qnav.contracts import wire
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import field_docs, from_dict, load_toml, to_markdown
 from qnav.controller.config import DaemonConfig, load_config
-from qnav.controller.daemon import Daemon, Ratekeeper, commented_config
+from qnav.controller.daemon import Daemon, Ratekeeper, build, commented_config
 from qnav.controller.decision import Controller, Input
 from qnav.controller.policy import PolicyRuntime
 from tests.conftest import PolicyFactory
@@ -26,6 +26,33 @@ def test_the_config_file_in_the_repo_is_what_the_daemon_prints_and_holds_the_def
     text = (ROOT / "config" / "controller.toml").read_text()
     assert text == commented_config()
     assert from_dict(DaemonConfig, load_toml(ROOT / "config" / "controller.toml")) == DaemonConfig()
+
+
+def test_the_shipped_settings_run_the_shield_and_the_proximity_stop(
+    make_policy: PolicyFactory,
+) -> None:
+    shipped = ROOT / "config" / "controller.toml"
+    policy = f'controller.policy="{make_policy("obstacles-inertia")}"'
+    daemon = build(load_config(shipped, [policy, "lookahead.room_size_m=10.0"]))
+    assert daemon.controller.lookahead is not None
+    assert daemon.controller.lookahead_settings.mode == "shield"
+    assert daemon.controller.proximity.enabled
+
+
+@pytest.mark.parametrize(
+    ("scenario", "named"),
+    [
+        ("obstacles-inertia", "lookahead.room_size_m is not set"),  # the room's walls
+        ("toycar-inertia", 'set lookahead.mode = "off"'),  # a policy that reads no lidar
+    ],
+)
+def test_the_shipped_settings_refuse_to_start_naming_what_the_shield_needs(
+    capsys: pytest.CaptureFixture[str], make_policy: PolicyFactory, scenario: str, named: str
+) -> None:
+    shipped = str(ROOT / "config" / "controller.toml")
+    policy = str(make_policy(scenario))
+    assert main(["controller", "--config", shipped, "--policy", policy]) == 2
+    assert named in capsys.readouterr().err
 
 
 def test_every_setting_is_documented() -> None:

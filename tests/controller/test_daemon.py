@@ -24,10 +24,14 @@ from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.controller.config import ControllerSettings, DaemonConfig, SafetySettings
 from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.onnx_file import read_onnx
+from qnav.controller.proximity import ProximitySettings
 from tests.conftest import PolicyFactory
 
 ROOT = Path(__file__).resolve().parents[2]
 QNAV = str(Path(sys.executable).parent / "qnav")
+LOOKAHEAD_OFF = LookaheadSettings(mode="off")
+"""The policy alone, as these tests ran it before the shield became the default."""
+OBSTACLES_POLICY = ROOT / "tests" / "data" / "stack" / "obstacles-inertia.onnx"
 
 
 class Listener:
@@ -182,6 +186,7 @@ def test_the_daemon_drives_stops_on_stale_and_bad_inputs_and_estop_and_stops_the
         controller=ControllerSettings(policy=str(policy)),
         safety=SafetySettings(frame_id="map"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+        lookahead=LOOKAHEAD_OFF,
     )
     daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)
@@ -266,6 +271,7 @@ def test_the_lidarless_daemon_drives_on_pose_and_point_target_and_stops_the_car_
         controller=ControllerSettings(policy=str(policy)),
         safety=SafetySettings(target_kind="point"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=(), namespace="car1"),
+        lookahead=LOOKAHEAD_OFF,
     )
     daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint, namespace="car1")
@@ -294,6 +300,7 @@ def test_the_scan_triggered_daemon_stops_the_car_when_scans_stop_coming(
     config = DaemonConfig(
         controller=ControllerSettings(policy=str(policy), trigger="scan"),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+        lookahead=LOOKAHEAD_OFF,
     )
     daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)
@@ -334,7 +341,9 @@ def test_the_daemon_with_a_doom_judge_reports_each_actions_judged_risk(
             policy=str(make_policy("obstacles-inertia")), trigger="scan", backend="numpy"
         ),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
-        lookahead=LookaheadSettings(mode="judge", judge_file=str(make_judge("obstacles-inertia"))),
+        lookahead=LookaheadSettings(
+            mode="judge", judge_file=str(make_judge("obstacles-inertia")), room_size_m=10.0
+        ),
     )
     daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)
@@ -348,5 +357,43 @@ def test_the_daemon_with_a_doom_judge_reports_each_actions_judged_risk(
             assert len(risks) == 3 and all(0.0 <= risk <= 1.0 for risk in risks), status
         assert "overruled" in later["counters"]
         stop_sends_stop(daemon, signal.SIGTERM, listener)
+    finally:
+        listener.session.close()
+
+
+def test_the_shipped_daemon_stops_at_a_wall_and_on_an_all_neg_inf_scan_and_says_why(
+    tmp_path: Path, endpoint: str, processes: list[subprocess.Popen[str]]
+) -> None:
+    """The shipped settings (the shield, the proximity stop), the room the feeder's car is in:
+    whatever the policy and the shield chose, a wall 0.1 m ahead and a scan of -inf stop the car,
+    and the stop is counted in the status and logged."""
+    config = DaemonConfig(
+        controller=ControllerSettings(policy=str(OBSTACLES_POLICY)),
+        zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+        lookahead=LookaheadSettings(room_size_m=10.0),
+    )
+    assert config.lookahead.mode == "shield" and config.proximity == ProximitySettings()
+    daemon = start_daemon(tmp_path, config, processes)
+    listener = Listener(endpoint)
+    try:
+        listener.wait_for(lambda s: True, timeout=30)
+        feeder = start_feeder(processes, endpoint)
+        assert feeder.stdin is not None
+        driving = listener.wait_for(reason_is("policy"))
+        assert driving["risks"] is not None and driving["counters"]["proximity"] == 0
+        for ranges in ("wall", "neginf"):
+            feeder.stdin.write(f"ranges {ranges}\n")
+            feeder.stdin.flush()
+            stopped = listener.wait_for(reason_is("proximity"))
+            assert stopped["command"] == {"linear_mps": 0.0, "angular_radps": 0.0}
+            assert stopped["action"] is None and stopped["q_values"] is not None
+            counted = stopped["counters"]["proximity"]
+            assert counted >= 1 and stopped["counters"]["stops"] >= counted
+            feeder.stdin.write("ranges random\n")
+            feeder.stdin.flush()
+            again = listener.wait_for(reason_is("policy"))
+            assert again["counters"]["proximity"] >= counted
+        stderr = stop_sends_stop(daemon, signal.SIGTERM, listener)
+        assert stderr.count("proximity: the safety field forbids the chosen action; stopped") == 2
     finally:
         listener.session.close()

@@ -39,7 +39,7 @@ from qnav.controller.recording import RecorderSettings, read_recordings, record
 from qnav.serve import ServeSettings
 from qnav.serve import run as run_server
 from tests.conftest import PolicyFactory
-from tests.controller.test_daemon import Listener
+from tests.controller.test_daemon import LOOKAHEAD_OFF, Listener
 
 FAR = (8.0, 8.0)
 """A target the car drives to (it never gets there: the pose is fixed)."""
@@ -159,6 +159,7 @@ def car_config(
             **settings,
         ),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+        lookahead=LOOKAHEAD_OFF,
     )
 
 
@@ -515,6 +516,7 @@ def test_qnav_controller_takes_the_policy_qnav_serve_announces_with_keys_from_qn
             source="server", public_key="keys/policy-signing.pub", cache_dir="cache"
         ),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
+        lookahead=LOOKAHEAD_OFF,
     )
     daemon = start_daemon(tmp_path, config, processes)
     server = subprocess.Popen(

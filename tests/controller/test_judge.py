@@ -43,13 +43,13 @@ def test_a_judge_of_other_dynamics_than_the_policys_is_refused_naming_both(
     make_judge: Callable[[str], Path],
 ) -> None:
     judge = make_judge("obstacles-increment")
-    settings = LookaheadSettings(mode="judge", judge_file=str(judge))
+    settings = LookaheadSettings(mode="judge", judge_file=str(judge), room_size_m=10.0)
     with pytest.raises(PolicyFileError, match=r"increment dynamics.*drives inertia"):
         Controller(PolicyRuntime(OBSTACLES_POLICY), lookahead=settings)
 
 
 def test_a_policy_file_given_as_the_judge_is_refused_naming_the_fix() -> None:
-    settings = LookaheadSettings(mode="judge", judge_file=str(OBSTACLES_POLICY))
+    settings = LookaheadSettings(mode="judge", judge_file=str(OBSTACLES_POLICY), room_size_m=10.0)
     with pytest.raises(PolicyFileError, match=r"not a qnav doom judge.*--export"):
         Controller(PolicyRuntime(OBSTACLES_POLICY), lookahead=settings)
 
@@ -62,6 +62,6 @@ def test_mode_judge_without_a_file_and_a_file_without_mode_judge_name_the_settin
 
 
 def test_a_missing_judge_file_is_refused_by_name() -> None:
-    settings = LookaheadSettings(mode="judge", judge_file="nowhere/judge.onnx")
+    settings = LookaheadSettings(mode="judge", judge_file="nowhere/judge.onnx", room_size_m=10.0)
     with pytest.raises(PolicyFileError, match=r"doom judge file nowhere/judge\.onnx does not"):
         Controller(PolicyRuntime(OBSTACLES_POLICY), lookahead=settings)

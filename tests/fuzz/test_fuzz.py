@@ -151,7 +151,8 @@ def test_no_malformed_payload_moves_or_releases_the_controller(
     process = subprocess.Popen(
         [sys.executable, "-m", "qnav", "controller", "--policy", str(POLICY),
          "--set", f'zenoh.connect=["{endpoint}"]', "--set", "safety.estop_start_latched=true",
-         "--set", 'policy.source="server"', "--set", f'policy.public_key="{public_key}"'],
+         "--set", 'policy.source="server"', "--set", f'policy.public_key="{public_key}"',
+         "--set", 'lookahead.mode="off"'],
         stdout=log, stderr=log,
     )  # fmt: skip
     try:
