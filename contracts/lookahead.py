@@ -9,19 +9,22 @@ ones held three steps at a time, which each caller draws its own way.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterator
 from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.actions import NUM_ACTIONS, forward_command, turn_command
 from qnav.contracts.motion import (
     Dynamics,
+    InertiaDynamics,
     Outcome,
     distance_to_segments,
     move_obstacles,
-    outcome,
     step_robot,
+    wrap_angle,
 )
 
 F64 = NDArray[np.float64]
@@ -35,6 +38,8 @@ SCORED_CLEARANCE_M = 1.0
 _WALL_MARGIN_M = 1e-6
 """Slack on the walls' lower bound against rounding (`simulate` skips walls farther than the
 clearance that counts by at least this)."""
+_RUNNING, _SUCCESS, _COLLISION = int(Outcome.RUNNING), int(Outcome.SUCCESS), int(Outcome.COLLISION)
+"""The outcomes as plain ints (an enum member's lookup costs more than the arithmetic here)."""
 
 
 class LookaheadModel(NamedTuple):
@@ -128,12 +133,13 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
     """Play every candidate sequence, (S, H) shared by all worlds or (N, S, H) per world, from
     each world of `state`, the obstacles moving straight on and bouncing off the room's walls.
 
-    Two things keep it cheap without changing a bit of the result. The obstacles' motion does
-    not depend on the robot's, so it is computed once per world, not once per candidate. And a
-    wall only matters to a candidate within `SCORED_CLEARANCE_M` of it (nearer, it caps the
-    score's clearance or collides), which a candidate that started `d` from every wall and has
-    driven a path of length `s` cannot be while `d - s` is at least that: the walls are measured
-    only for the candidates that may be (a robot larger than that clearance widens it).
+    A few things keep it cheap without changing a bit of the result. The obstacles' motion does
+    not depend on the robot's, so it is computed once per world, not once per candidate. A wall
+    only matters to a candidate within `SCORED_CLEARANCE_M` of it (nearer, it caps the score's
+    clearance or collides), which a candidate that started `d` from every wall and has driven a
+    path of length `s` cannot be while `d - s` is at least that: the walls are measured only for
+    the candidates that may be (a robot larger than that clearance widens it). And the robots
+    move by `robot_paths`, the motion model's own arithmetic with fewer calls.
     """
     worlds = state.pose.shape[0]
     if sequences.ndim == 2:
@@ -143,9 +149,9 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
     pose = np.repeat(state.pose, candidates, axis=0)
     velocity = np.repeat(state.velocity, candidates, axis=0)
     obstacles, obstacle_velocity = state.obstacle_xy, state.obstacle_velocity
-    target = np.repeat(state.target_xy, candidates, axis=0)
+    target_x, target_y = np.ascontiguousarray(np.repeat(state.target_xy, candidates, axis=0).T)
     count = worlds * candidates
-    result = np.full(count, Outcome.RUNNING, dtype=np.int8)
+    result = np.full(count, _RUNNING, dtype=np.int8)
     end_step = np.full(count, horizon, dtype=np.int64)
     score = np.zeros(count)
     alive = np.ones(count, dtype=bool)
@@ -154,11 +160,12 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
         distance_to_segments(state.pose[:, :2], model.wall_start, model.wall_end), candidates
     )
     driven_m = np.zeros(count)
-    for h in range(horizon):
-        previous_xy = pose[:, :2]
-        pose, velocity = step_robot(
-            pose, velocity, actions[:, h], model.dynamics, model.control_period_s
-        )
+    x, y = pose[:, 0], pose[:, 1]
+    radius = model.robot_radius_m
+    paths = robot_paths(model.dynamics, model.control_period_s, pose, velocity, actions)
+    for h, (next_x, next_y) in enumerate(paths):
+        driven_m = driven_m + np.hypot(next_x - x, next_y - y)
+        x, y = next_x, next_y
         obstacles, obstacle_velocity = move_obstacles(
             obstacles,
             obstacle_velocity,
@@ -166,40 +173,85 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
             model.room_size_m,
             model.control_period_s,
         )
-        driven_m = driven_m + np.hypot(*(pose[:, :2] - previous_xy).T)
-        distance = np.linalg.norm(target - pose[:, :2], axis=1)
-        gap = _clearance(model, pose[:, :2], obstacles, start_wall_m - driven_m)
-        now = outcome(distance, gap, model.robot_radius_m)
-        ended = alive & (now != Outcome.RUNNING)
-        result[ended] = now[ended]
+        dx, dy = target_x - x, target_y - y
+        distance = np.sqrt(dx * dx + dy * dy)  # np.linalg.norm's sum of squares, bit for bit
+        gap = _clearance(model, x, y, obstacles, start_wall_m - driven_m)
+        success = distance < radius  # `motion.outcome`: reaching the target comes first
+        won, lost = alive & success, alive & (gap < radius) & ~success
+        result[won], result[lost] = _SUCCESS, _COLLISION
+        ended = won | lost
         end_step[ended] = h + 1
-        score[ended & (now == Outcome.SUCCESS)] = 1000.0 - h
-        score[ended & (now == Outcome.COLLISION)] = -1000.0 + h
+        score[won], score[lost] = 1000.0 - h, -1000.0 + h
         alive &= ~ended
     score[alive] = -10.0 * distance[alive] + np.minimum(gap[alive], SCORED_CLEARANCE_M)
     shape = (worlds, candidates)
     return Rollouts(result.reshape(shape), end_step.reshape(shape), score.reshape(shape))
 
 
-def _clearance(model: LookaheadModel, xy: F64, obstacles: F64, wall_bound_m: F64) -> F64:
-    """Each candidate's (C = N * S, 2) distance to the nearest surface, its world's obstacles
-    (N, M, 2) and the walls where `wall_bound_m` (C,), a lower bound of its wall distance, does
-    not put them beyond `SCORED_CLEARANCE_M` (there the walls are left out, which changes neither
-    the score nor the outcome: `simulate`)."""
+def robot_paths(
+    dynamics: Dynamics, period_s: float, pose: F64, velocity: F64, actions: NDArray[np.int64]
+) -> Iterator[tuple[F64, F64]]:
+    """The (x, y) of every robot (C,) after each step of its actions (C, H), bit for bit those
+    of `motion.step_robot` step after step. Under inertia the physics substeps of
+    `motion.step_velocity_lag` are written out here with the same operations on the same values,
+    but the commanded velocities of every step are computed once, before the first, and the
+    lags' errors once per substep: a step costs half the calls (the controller's one car pays
+    for calls more than for arithmetic)."""
+    if not isinstance(dynamics, InertiaDynamics):
+        for h in range(actions.shape[1]):
+            pose, velocity = step_robot(pose, velocity, actions[:, h], dynamics, period_s)
+            yield pose[:, 0], pose[:, 1]
+        return
+    substeps = max(1, round(period_s / dynamics.physics_dt_s))
+    dt = period_s / substeps
+    tau_v, tau_w = dynamics.linear_time_constant_s, dynamics.angular_time_constant_s
+    decay_v, decay_w = math.exp(-dt / tau_v), math.exp(-dt / tau_w)
+    gain_v, gain_w = 1.0 - decay_v, 1.0 - decay_w
+    # The commanded speed and turn rate of every step (H, C), and their products with dt.
+    by_step = np.ascontiguousarray(actions.T)  # each step's actions contiguous
+    speed_targets = forward_command(by_step) * dynamics.max_speed_mps
+    rate_targets = turn_command(by_step) * dynamics.max_turn_rate_radps
+    speed_targets_dt, rate_targets_dt = speed_targets * dt, rate_targets * dt
+    x, y, heading = pose[:, 0], pose[:, 1], pose[:, 2]
+    speed, rate = velocity[:, 0], velocity[:, 1]
+    for h in range(actions.shape[1]):
+        speed_target, rate_target = speed_targets[h], rate_targets[h]
+        speed_target_dt, rate_target_dt = speed_targets_dt[h], rate_targets_dt[h]
+        for _ in range(substeps):
+            # step_velocity_lag: the exact integrals over the substep, then the end values.
+            speed_error, rate_error = speed - speed_target, rate - rate_target
+            distance = speed_target_dt + speed_error * tau_v * gain_v
+            turned = rate_target_dt + rate_error * tau_w * gain_w
+            mid_heading = heading + 0.5 * turned
+            x = x + distance * np.cos(mid_heading)
+            y = y + distance * np.sin(mid_heading)
+            heading = heading + turned
+            speed = speed_target + speed_error * decay_v
+            rate = rate_target + rate_error * decay_w
+        heading = wrap_angle(heading)
+        yield x, y
+
+
+def _clearance(model: LookaheadModel, x: F64, y: F64, obstacles: F64, wall_bound_m: F64) -> F64:
+    """Each candidate's (C = N * S) distance from (x, y) to the nearest surface, its world's
+    obstacles (N, M, 2) and the walls where `wall_bound_m` (C,), a lower bound of its wall
+    distance, does not put them beyond `SCORED_CLEARANCE_M` (there the walls are left out, which
+    changes neither the score nor the outcome: `simulate`)."""
     worlds = obstacles.shape[0]
-    gap = np.full(xy.shape[0], np.inf)
+    gap = np.full(x.shape[0], np.inf)
     if obstacles.shape[1]:
         # Obstacles first (M, N, S): the minimum over them runs along whole rows of candidates,
         # where a reduction over a short last axis would loop per candidate.
         centres = obstacles.transpose(1, 0, 2)[:, :, None]
-        ox = centres[..., 0] - xy[:, 0].reshape(worlds, -1)
-        oy = centres[..., 1] - xy[:, 1].reshape(worlds, -1)
+        ox = centres[..., 0] - x.reshape(worlds, -1)
+        oy = centres[..., 1] - y.reshape(worlds, -1)
         nearest = np.sqrt((ox * ox + oy * oy).min(axis=0)) - model.obstacle_radius_m
         gap = nearest.reshape(-1)
     reach_m = max(SCORED_CLEARANCE_M, model.robot_radius_m) + _WALL_MARGIN_M
     near = np.flatnonzero(wall_bound_m < reach_m)
     if near.size:
-        walls = distance_to_segments(xy[near], model.wall_start, model.wall_end)
+        points = np.stack([x[near], y[near]], axis=1)
+        walls = distance_to_segments(points, model.wall_start, model.wall_end)
         gap[near] = np.minimum(walls, gap[near])
     return gap
 
