@@ -159,6 +159,10 @@ class BridgeCore:
         self._exit_phase = "running"
         self._rest_start_s = 0.0
         self._rest_deadline_s = 0.0
+        """When the exit stops waiting for rest: `rest_timeout_s` after the car last slowed."""
+        self._brake_deadline_s = 0.0
+        self._slowest_mps = math.inf
+        """The lowest fresh speed reported since the exit began (braking is progress on it)."""
         self._next_exit_stop_s = 0.0
         self._disarm_tries = 0
         self._disarm_deadline_s = -math.inf
@@ -538,6 +542,8 @@ class BridgeCore:
             self._exit_phase = "rest"
             self._rest_start_s = now_s
             self._rest_deadline_s = now_s + failsafe.rest_timeout_s
+            self._brake_deadline_s = now_s + failsafe.brake_timeout_s
+            self._slowest_mps = math.inf
             self._next_exit_stop_s = now_s + failsafe.stop_period_s
         else:
             self._exit_phase = "done"
@@ -547,9 +553,11 @@ class BridgeCore:
         """The exit sequence at `now_s`; then read the port until `exit_wait_until_s`, handing
         each message to `exit_message`, and step again (the sequence is over when it is None).
 
-        First keep stopping until the vehicle reports rest (or `failsafe.rest_timeout_s`): a car
-        disarmed while moving loses its brakes and coasts (without speed reports there is
-        nothing to wait for). Then disarm, again until acknowledged (three tries); with the
+        First keep stopping until the vehicle reports rest: a car disarmed while moving loses its
+        brakes and coasts. The wait goes on as long as the car keeps slowing down, up to
+        `failsafe.brake_timeout_s`; once its speed has not fallen for `failsafe.rest_timeout_s`
+        the brakes are doing nothing and disarming loses nothing (without speed reports there
+        is nothing to wait for). Then disarm, again until acknowledged (three tries); with the
         link down nobody would answer: one disarm is sent, and the bridge does not wait."""
         self.exit_wait_until_s = None
         if self._exit_phase == "rest":
@@ -587,17 +595,30 @@ class BridgeCore:
         if fresh and self._speed_mps < failsafe.rest_speed_mps:
             log.info("exit: vehicle at rest after %.2f s", now_s - self._rest_start_s)
             return [], None
+        if fresh and self._speed_mps <= self._slowest_mps - failsafe.rest_speed_mps:
+            # Still slowing down: the brakes work, so keep them on (a car disarmed moving coasts).
+            self._slowest_mps = self._speed_mps
+            self._rest_deadline_s = min(now_s + failsafe.rest_timeout_s, self._brake_deadline_s)
         if now_s >= self._rest_deadline_s:
             log.warning(
-                "exit: vehicle not reported at rest within %g s (failsafe.rest_timeout_s)",
-                failsafe.rest_timeout_s,
+                "exit: disarming a car still at %.2f m/s: %s",
+                self._speed_mps,
+                f"not at rest within {failsafe.brake_timeout_s:g} s (failsafe.brake_timeout_s)"
+                if now_s >= self._brake_deadline_s
+                else f"not slowing for {failsafe.rest_timeout_s:g} s (failsafe.rest_timeout_s)",
             )
             return [], None
         actions: list[Action] = []
         if now_s >= self._next_exit_stop_s:
             actions.append(self._stop(now_s))
             self._next_exit_stop_s = now_s + failsafe.stop_period_s
-        return actions, min(self._rest_deadline_s, self._next_exit_stop_s)
+        if now_s >= self._next_heartbeat_s:
+            # Still the ground station while it brakes: silence would trip the autopilot's GCS
+            # failsafe, whose mode (FS_ACTION: Hold coasts, Loiter may drive back to where it
+            # began) would take the car from the brake mode before it is at rest.
+            actions += self._heartbeats()
+            self._next_heartbeat_s = now_s + self.settings.mavlink.heartbeat_period_s
+        return actions, min(self._rest_deadline_s, self._next_exit_stop_s, self._next_heartbeat_s)
 
     def exit_message(self, message: Any, now_s: float, wall_s: float) -> list[Action]:
         """A MAVLink message read during the exit sequence: while waiting for rest it is handled

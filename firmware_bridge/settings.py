@@ -173,7 +173,8 @@ class FailsafeSettings:
     """On SIGINT or SIGTERM, stop is sent this many times (UDP may drop one)."""
     disarm_on_exit: bool = True
     """On SIGINT or SIGTERM, disarm after sending stop, once the vehicle reports it is at rest
-    (`rest_speed_mps`, or `rest_timeout_s` passed): disarming a moving car removes its brakes."""
+    (`rest_speed_mps`; or it stopped slowing down, `rest_timeout_s`; or `brake_timeout_s`
+    passed): disarming a moving car removes its brakes."""
     brake_mode: str = "GUIDED"
     """A Rover mode that brakes, switched to when the bridge stops a moving car (command
     silence, exit) and left for the output's mode on the next fresh command. GUIDED (default)
@@ -184,7 +185,11 @@ class FailsafeSettings:
     rest_speed_mps: float = 0.05
     """The vehicle is at rest when its LOCAL_POSITION_NED speed is below this."""
     rest_timeout_s: float = 5.0
-    """On exit, disarm after this long even if the vehicle never reported rest."""
+    """On exit, disarm the vehicle anyway once its speed reports have not fallen by
+    `rest_speed_mps` for this long: stops and the brake mode are not slowing it (or something
+    else drives it), and disarming then loses nothing."""
+    brake_timeout_s: float = 30.0
+    """On exit, disarm after this long at the most, even if the vehicle is still slowing down."""
     implausible_factor: float = 10.0
     """A command beyond this many times the output's full scale (speed or turn rate) is not
     one anyone meant: it is refused as malformed and the car is stopped; closer overshoot is
@@ -202,6 +207,14 @@ class FailsafeSettings:
                 raise ConfigError(f"failsafe.brake_mode: {error}") from None
         check_range(self, "rest_speed_mps", self.rest_speed_mps, 0.0, 10.0, exclusive_low=True)
         check_range(self, "rest_timeout_s", self.rest_timeout_s, 0.0, 600.0)
+        check_range(
+            self,
+            "brake_timeout_s",
+            self.brake_timeout_s,
+            self.rest_timeout_s,
+            3600.0,
+            why="at least rest_timeout_s",
+        )
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import socket
@@ -664,3 +665,41 @@ def test_an_uncalibrated_bridge_drives_a_fast_car_no_faster_than_asked(
     rig.drive(0.5, 0.0, 1.5)
     assert 0.0 < rig.vehicle.velocity()[0] <= 0.5
     assert "speed_at_full_throttle_mps is not measured" in caplog.text
+
+
+def test_exit_waits_for_a_slowly_braking_car_to_rest_beyond_rest_timeout_s(
+    make_rig: MakeRig,
+) -> None:
+    # Issue 53: the bridge disarmed rest_timeout_s after its stop while the car still rolled. A
+    # 2 m/s car with a 1.5 s time constant takes about 5 s to slow below 0.05 m/s: the bridge
+    # waits while it slows, far beyond rest_timeout_s (1 s here), and disarms it at rest.
+    rig = make_rig(
+        bridge={
+            "failsafe": {"rest_timeout_s": 1.0},
+            "output": {"speed_at_full_throttle_mps": 2.0},
+        },
+        vehicle={"dynamics": {"max_speed_mps": 2.0, "linear_time_constant_s": 1.5}},
+    )
+    rig.ready()
+    rig.drive(2.0, 0.0, 4.0)
+    assert rig.vehicle.velocity()[0] > 1.5
+    assert rig.bridge is not None
+    closed_s = time.monotonic()
+    rig.bridge.close()
+    assert not rig.vehicle.armed
+    disarm = next(
+        r
+        for r in rig.vehicle.received("COMMAND_LONG")
+        if r.fields["command"] == MAV_CMD_COMPONENT_ARM_DISARM and r.fields["param1"] == 0.0
+    )
+    assert abs(rig.vehicle.velocity()[0]) < 0.06
+    assert disarm.time_s - closed_s > 3.0, "disarmed before the car could have slowed down"
+    # Its ground-station heartbeats went on meanwhile (0.1 s apart in the rig): the autopilot's
+    # own GCS failsafe never took the car from the bridge's stop.
+    gcs = [
+        r.time_s
+        for r in rig.vehicle.received("HEARTBEAT")
+        if r.src_system == 255 and closed_s <= r.time_s <= disarm.time_s
+    ]
+    assert gcs and gcs[0] - closed_s < 0.3
+    assert max(b - a for a, b in itertools.pairwise(gcs)) < 0.3

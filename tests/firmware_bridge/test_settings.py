@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 from typing import Any
 
@@ -10,7 +11,8 @@ import pytest
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import from_dict, to_dict, to_markdown
-from qnav.firmware_bridge.settings import BridgeSettings, load_settings
+from qnav.firmware_bridge.core import EXIT_ACK_WAIT_S, EXIT_DISARM_TRIES
+from qnav.firmware_bridge.settings import BridgeSettings, FailsafeSettings, load_settings
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -58,3 +60,16 @@ def test_settings_table_in_the_docs_is_current() -> None:
     assert table in (ROOT / "docs" / "bridge.md").read_text(), (
         "paste `to_markdown(BridgeSettings())` into docs/bridge.md"
     )
+
+
+def test_the_service_managers_let_the_bridge_brake_to_rest_before_they_kill_it() -> None:
+    # On exit the bridge may brake for failsafe.brake_timeout_s before it disarms (issue 53); a
+    # SIGKILL before that leaves the car to the autopilot's own failsafe, armed.
+    longest_s = FailsafeSettings().brake_timeout_s + EXIT_DISARM_TRIES * EXIT_ACK_WAIT_S + 1.0
+    unit = (ROOT / "deploy" / "systemd" / "qnav-bridge.service").read_text()
+    (systemd,) = re.findall(r"^TimeoutStopSec=(\d+)$", unit, re.MULTILINE)
+    compose = (ROOT / "deploy" / "compose.yaml").read_text()
+    bridge = compose[compose.index("  bridge:") :]
+    docker = re.search(r"stop_grace_period: (\d+)s", bridge)
+    assert docker is not None
+    assert int(systemd) >= longest_s and int(docker[1]) >= longest_s
