@@ -601,7 +601,8 @@ class BridgeCore:
             self._rest_deadline_s = min(now_s + failsafe.rest_timeout_s, self._brake_deadline_s)
         if now_s >= self._rest_deadline_s:
             log.warning(
-                "exit: disarming a car still at %.2f m/s: %s",
+                "exit: disarming a car %s at %.2f m/s: %s",
+                "still" if fresh else "last reported",
                 self._speed_mps,
                 f"not at rest within {failsafe.brake_timeout_s:g} s (failsafe.brake_timeout_s)"
                 if now_s >= self._brake_deadline_s

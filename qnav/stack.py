@@ -25,8 +25,11 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
+from types import FrameType
 from typing import IO, TYPE_CHECKING, Any
 
 from qnav.contracts.daemon import free_port
@@ -222,11 +225,14 @@ class Daemons:
     def stop(self, timeout_s: float = 10.0) -> dict[str, int | None]:
         """SIGTERM every daemon still running, then wait (SIGKILL after `timeout_s`).
 
-        The recorder goes last, so the stop commands the others send on exit are recorded.
+        The sim-car goes after the others: its car must still report its speed while the bridge
+        brakes it to rest and disarms it. The recorder goes last, so the stop commands the
+        others send on exit are recorded.
         """
         codes: dict[str, int | None] = {}
-        last = ["recorder"]
-        for group in ([n for n in self.processes if n not in last], last):
+        later = [["sim-car"], ["recorder"]]
+        first = [n for n in self.processes if not any(n in group for group in later)]
+        for group in [first, *later]:
             running = [(n, self.processes[n]) for n in group if n in self.processes]
             for _, process in running:
                 if process.poll() is None:
@@ -407,6 +413,22 @@ def episode_health(episodes_log: Path) -> dict[str, int]:
     return totals
 
 
+@contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """Within the block SIGTERM interrupts as SIGINT does (KeyboardInterrupt), so `run_stack`
+    stops its daemons in order; by default SIGTERM ended the stack at once and left them
+    running. Call from the main thread."""
+
+    def interrupt(number: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def stack_verb(args: argparse.Namespace) -> int:
     """`qnav stack`: the full stack, then the same episodes in process, side by side."""
     from qnav.tracking import lookahead_settings
@@ -433,19 +455,20 @@ def stack_verb(args: argparse.Namespace) -> int:
                 "--vehicle sitl runs only in a network namespace of its own (loopback only): "
                 "`make stack-sitl`, or `unshare --net sh -c 'ip link set lo up && qnav stack ...'`"
             )
-    result = run_stack(
-        args.policy,
-        args.out,
-        scenario=args.scenario,
-        episodes=args.episodes,
-        record=not args.no_record,
-        progress=not args.json,
-        sitl_binary=sitl_binary,
-        serve=serve,
-        lockstep=not args.real_time,
-        lookahead=lookahead,
-        lidar_turn_s=args.lidar_turn_s,
-    )
+    with sigterm_interrupts():
+        result = run_stack(
+            args.policy,
+            args.out,
+            scenario=args.scenario,
+            episodes=args.episodes,
+            record=not args.no_record,
+            progress=not args.json,
+            sitl_binary=sitl_binary,
+            serve=serve,
+            lockstep=not args.real_time,
+            lookahead=lookahead,
+            lidar_turn_s=args.lidar_turn_s,
+        )
     result["in_process"] = in_process_outcomes(
         args.policy,
         result["scenario"],

@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -276,3 +278,44 @@ def test_the_stacks_bridge_is_calibrated_to_the_sim_car(tmp_path: Path) -> None:
     write_configs(files, POLICY, "tcp/127.0.0.1:7447", 14550, 0.1)
     full_travel = SimCarSettings().full_throttle_speed_mps
     assert full_scale(load_settings(files.bridge_toml).output) == (full_travel, full_travel)
+
+
+def _children(pid: int) -> list[int]:
+    """The processes `pid` started, as Linux lists them."""
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(child) for child in path.read_text().split()] if path.exists() else []
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, IndexError):
+        return False
+    return state != "Z"
+
+
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_stops_the_stack_and_every_daemon_it_started(
+    number: signal.Signals, tmp_path: Path, processes: list[subprocess.Popen[Any]]
+) -> None:
+    # SIGTERM ended `qnav stack` at once and left its sim-car, controller, bridge and recorder
+    # running (issue 53).
+    stack = subprocess.Popen(
+        [sys.executable, "-m", "qnav", "stack", "--policy", str(POLICY), "--out",
+         str(tmp_path / "out"), "--episodes", "50", "--json"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    processes.append(stack)
+    deadline = time.monotonic() + 120
+    while len(_children(stack.pid)) < 4 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    daemons = _children(stack.pid)
+    assert len(daemons) >= 4, daemons  # recorder, controller, bridge, sim-car
+    time.sleep(3.0)  # the episodes under way
+    sent = time.monotonic()
+    stack.send_signal(number)
+    stack.wait(timeout=20)
+    elapsed = time.monotonic() - sent
+    print(f"stack: {number.name} -> exit in {elapsed:.3f} s")
+    assert not [pid for pid in daemons if _alive(pid)], "daemons left running"
+    assert elapsed <= 3.0
