@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import re
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -147,8 +148,11 @@ def read_barn_folder(folder: Path) -> Layouts:
     )
 
 
-def convert(folder: Path, out: Path, source: str, commit: str, licence: str) -> Layouts:
-    """Read a BARN-format folder and write its compact conversion with its provenance."""
-    layouts = read_barn_folder(folder)
+def convert(
+    folder: Path, out: Path, *, name: str, source: str, commit: str, licence: str
+) -> Layouts:
+    """Read a BARN-format folder and write its compact conversion, named `name`, with its
+    provenance."""
+    layouts = replace(read_barn_folder(folder), name=name)
     layouts.save(out, {"source": source, "commit": commit, "licence": licence})
     return layouts

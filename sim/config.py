@@ -180,7 +180,8 @@ class LayoutConfig:
     split: Literal["train", "validation", "test"] = "train"
     """Which of a generated family's disjoint seed ranges to draw (ignored for files)."""
     worlds: int = 1000
-    """How many worlds a generated family holds (ignored for files)."""
+    """How many worlds a generated family holds; of a folder or file, how many of its first
+    worlds to use (all where it holds fewer)."""
     order: Literal["cycle", "random"] = "random"
     """Which layout an episode gets: "cycle" (episode e of every seed: layout e mod L, the
     benchmark's order) or "random" (drawn from the episode's seed and index)."""

@@ -107,6 +107,13 @@ class Layouts:
             world_id=self.world_id[index],
         )
 
+    def box(self) -> F64:
+        """(2, 2) the corners (lowest x, y; highest x, y) of the box that holds every layout's
+        cylinders, starts and goals."""
+        used = self.cylinder_xy[self.cylinder_xy[..., 0] < PARKED_M]
+        points = np.vstack([used, self.start_pose[:, :2], self.goal_xy])
+        return np.stack([points.min(axis=0), points.max(axis=0)])
+
     def save(self, path: Path, provenance: dict[str, str]) -> None:
         """Write one compressed file (numpy's npz): the arrays, centres to the millimetre, and
         `provenance` (source, commit, licence) as JSON beside them."""
@@ -190,18 +197,20 @@ def layouts_of(layout: LayoutConfig) -> Layouts | None:
     source = layout.source
     if not source:
         return None
-    if source == "barn":
-        if not barn.BARN_FILE.is_file():
-            raise ConfigError(f"layout.source = 'barn': the conversion {barn.BARN_FILE} is missing")
-        return load_layouts(barn.BARN_FILE)[0]
     families = source.split("+")
     if all(family in clutter.FAMILIES for family in families):
         return clutter.generated_layouts(tuple(families), layout.split, layout.worlds)
-    path = Path(source)
+    path = barn.BARN_FILE if source == "barn" else Path(source)
+    if source == "barn" and not path.is_file():
+        raise ConfigError(f"layout.source = 'barn': the conversion {path} is missing")
     if path.is_dir():
-        return barn.read_barn_folder(path)
-    if path.is_file():
-        return load_layouts(path)[0]
+        read = barn.read_barn_folder(path)
+    elif path.is_file():
+        read = load_layouts(path)[0]
+    else:
+        read = None
+    if read is not None:
+        return read if layout.worlds >= len(read) else read.take(np.arange(layout.worlds))
     raise ConfigError(
         f"layout.source = {source!r}: not 'barn', a family ({', '.join(clutter.FAMILIES)}, "
         "joined by +), a BARN-format folder or a conversion file"

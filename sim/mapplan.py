@@ -12,8 +12,12 @@ still under way, for a robot with inertia) is within `aligned_rad` of it, else a
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -115,27 +119,66 @@ def cost_to_go(
     return CostToGo(origin_xy=low, cost_m=relax(cost, np.where(blocked, np.inf, penalty)))
 
 
+def cache_folder() -> Path:
+    """Where cost-to-go grids are kept between runs: $QNAV_CACHE/mapplan, else
+    ~/.cache/qnav/mapplan (a grid takes a few tenths of a second to compute, and every run of
+    a study plans in the same training worlds)."""
+    root = os.environ.get("QNAV_CACHE") or Path.home() / ".cache" / "qnav"
+    return Path(root) / "mapplan"
+
+
+def cached_cost_to_go(
+    layouts: Layouts, index: int, robot_radius_m: float, reach_m: float, settings: MapPlanSettings
+) -> CostToGo:
+    """`cost_to_go`, kept in `cache_folder()` under a hash of everything it depends on."""
+    count = int(layouts.cylinder_count[index])
+    key = hashlib.sha256()
+    for part in (
+        layouts.cylinder_xy[index, :count],
+        layouts.start_pose[index],
+        layouts.goal_xy[index],
+        np.array([layouts.cylinder_radius_m, robot_radius_m, reach_m, GRID_M, BORDER_M]),
+    ):
+        key.update(np.ascontiguousarray(part, dtype=np.float64).tobytes())
+    key.update(repr(settings).encode())
+    path = cache_folder() / f"{key.hexdigest()[:32]}.npz"
+    try:
+        with np.load(path) as saved:
+            return CostToGo(origin_xy=saved["origin_xy"], cost_m=saved["cost_m"].astype(np.float64))
+    except (OSError, ValueError, KeyError):
+        pass
+    fresh = cost_to_go(layouts, index, robot_radius_m, reach_m, settings)
+    # Kept and used in single precision both ways, so a cached grid plans as a fresh one.
+    grid = CostToGo(fresh.origin_xy, fresh.cost_m.astype(np.float32).astype(np.float64))
+    with contextlib.suppress(OSError):  # a read-only home only costs the time again
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(f".{os.getpid()}.partial.npz")
+        np.savez(partial, origin_xy=grid.origin_xy, cost_m=grid.cost_m.astype(np.float32))
+        partial.replace(path)
+    return grid
+
+
 _WALL = 1.0e6
 """A step into a blocked cell in the line scans (`_line_scan`): far above any real cost."""
 
 
 def relax(cost: F64, penalty: F64) -> F64:
     """The fixpoint of cost[i] = min(cost[i], cost[j] + |i - j| GRID_M penalty[i]) over the 8
-    neighbours j (penalty inf: blocked). Each round scans every line both ways along both axes
-    (exact for straight runs at once, by a running minimum) and then relaxes once towards all
-    8 neighbours (the diagonals); a few rounds reach the fixpoint that single-cell sweeps reach
-    only after one sweep per cell of the longest path."""
+    neighbours j (penalty inf: blocked). Each round scans every line of the grid both ways:
+    rows, columns and both diagonals (a running minimum makes a whole straight run exact at
+    once), so a few rounds reach the fixpoint that single-cell sweeps reach only after one
+    sweep per cell of the longest path."""
     blocked = ~np.isfinite(penalty)
     step = np.where(blocked, _WALL, GRID_M * np.where(blocked, 0.0, penalty))
-    moves = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
+    skews = [_Skew(cost.shape, sign) for sign in (1, -1)]
     while True:
         before = cost
-        for axis in (0, 1):
-            for reverse in (False, True):
+        for reverse in (False, True):
+            for axis in (0, 1):
                 cost = _line_scan(cost, step, axis, reverse)
-        for dx, dy in moves:
-            neighbour = _shifted(cost, dx, dy)
-            cost = np.minimum(cost, neighbour + math.hypot(dx, dy) * step)
+            for skew in skews:  # along the diagonals: their steps are sqrt(2) cells long
+                lines = _line_scan(skew(cost), skew(math.sqrt(2.0) * step, _WALL), 0, reverse)
+                cost = np.minimum(cost, skew.back(lines))
         cost[blocked | (cost >= _WALL / 2)] = np.inf
         # The running sums carry the walls' large steps, so rounding can lower a cost by about
         # 1e-7 m in every scan: stop when no cost falls by more than a micrometre.
@@ -146,26 +189,35 @@ def relax(cost: F64, penalty: F64) -> F64:
             return cost
 
 
+class _Skew:
+    """Shears an (X, Y) grid so that its diagonals (sign 1: i and j rising together; -1: j
+    falling as i rises) become the columns of an (X, X + Y - 1) one, padded outside the grid."""
+
+    def __init__(self, shape: tuple[int, ...], sign: int) -> None:
+        rows, cols = shape
+        i, j = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+        self.rows, self.width = i, (j - sign * i + (rows - 1 if sign > 0 else 0))
+        self.shape = (rows, rows + cols - 1)
+
+    def __call__(self, grid: F64, pad: float = np.inf) -> F64:
+        sheared = np.full(self.shape, pad)
+        sheared[self.rows, self.width] = grid
+        return sheared
+
+    def back(self, sheared: F64) -> F64:
+        grid: F64 = sheared[self.rows, self.width]
+        return grid
+
+
 def _line_scan(cost: F64, step: F64, axis: int, reverse: bool) -> F64:
     """cost[i] = min over j before i on its line of cost[j] + the steps from j to i: with S the
     running sum of the steps, min_j (cost[j] - S[j]) + S[i], a running minimum."""
     if reverse:
-        return _line_scan(np.flip(cost, axis), np.flip(step, axis), axis, False)[
-            (slice(None, None, -1),) if axis == 0 else (slice(None), slice(None, None, -1))
-        ]
+        flipped = _line_scan(np.flip(cost, axis), np.flip(step, axis), axis, False)
+        return np.flip(flipped, axis)
     total = np.cumsum(step, axis=axis)
     scanned: F64 = np.minimum.accumulate(cost - total, axis=axis) + total
     return np.minimum(cost, scanned)
-
-
-def _shifted(values: F64, dx: int, dy: int) -> F64:
-    """values[i + dx, j + dy] at [i, j] (inf beyond the edge)."""
-    out = np.full_like(values, np.inf)
-    nx, ny = values.shape
-    out[max(0, -dx) : nx - max(0, dx), max(0, -dy) : ny - max(0, dy)] = values[
-        max(0, dx) : nx - max(0, -dx), max(0, dy) : ny - max(0, -dy)
-    ]
-    return out
 
 
 class MapPlanner:
@@ -186,9 +238,9 @@ class MapPlanner:
             self._lag_s = config.dynamics.angular_time_constant_s
 
     def grid(self, layout: int) -> CostToGo:
-        """The cost-to-go of a layout, computed at its first use."""
+        """The cost-to-go of a layout: computed at its first use, or read from the cache."""
         if layout not in self._grids:
-            self._grids[layout] = cost_to_go(
+            self._grids[layout] = cached_cost_to_go(
                 self.layouts, layout, self.config.robot_radius_m, self.config.reach_m, self.settings
             )
         return self._grids[layout]
@@ -198,10 +250,13 @@ class MapPlanner:
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
         assert observation.layout is not None, "the map planner needs Observation.layout"
-        pose = observation.pose
+        return self.act_at(observation.pose, observation.layout)
+
+    def act_at(self, pose: F64, layout: NDArray[np.int64]) -> NDArray[np.int64]:
+        """The action in each world from its pose (N, 3) in its layout (N,)."""
         actions = np.empty(pose.shape[0], dtype=np.int64)
         for row in range(pose.shape[0]):
-            grid = self.grid(int(observation.layout[row]))
+            grid = self.grid(int(layout[row]))
             ahead = pose[row, :2] + self.settings.lookahead_m * self._offsets
             costs = grid.at(ahead)
             best = int(np.argmin(costs))

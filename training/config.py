@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from qnav.contracts.errors import ConfigError
@@ -18,6 +18,39 @@ Relabel = Literal["paper", "local", "hindsight", "none"]
 one in the arena (the paper), a fresh one drawn as the simulator spawns targets around the
 robot's pose at that step (local), a position the robot reached later in the same episode
 (hindsight), or the episode's own."""
+
+
+@dataclass(frozen=True)
+class ImitationSettings:
+    """DAgger (Ross et al. 2011) before the episodes of reinforcement learning: the planner given
+    the map (`sim.mapplan`) labels every state the learner visits, and the network learns its
+    choices (cross-entropy on its outputs). Worlds of static layouts only."""
+
+    SECTION = "imitation"
+
+    rounds: int = 0
+    """DAgger rounds (0: none, the paper's learner alone)."""
+    episodes_per_round: int = 64
+    """Episodes collected in each round, in parallel worlds."""
+    expert_share: float = 1.0
+    """Chance that the planner, not the network, takes a step in the first round (DAgger's
+    beta); it falls by `expert_share_decay` each round."""
+    expert_share_decay: float = 0.5
+    """Factor applied to the expert's share after each round."""
+    iterations_per_round: int = 400
+    """Gradient steps (of `train.batch_size` windows, uniformly from every round so far) after
+    each round."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "rounds", self.rounds, 0, 100_000)
+        check_range(self, "episodes_per_round", self.episodes_per_round, 1, 100_000)
+        check_range(self, "expert_share", self.expert_share, 0.0, 1.0)
+        check_range(self, "expert_share_decay", self.expert_share_decay, 0.0, 1.0)
+        check_range(self, "iterations_per_round", self.iterations_per_round, 0, 10**7)
+
+    def share(self, round_index: int) -> float:
+        """The expert's share of the steps in a (0-based) round."""
+        return float(self.expert_share * self.expert_share_decay**round_index)
 
 
 @dataclass(frozen=True)
@@ -107,9 +140,11 @@ class TrainSettings:
     bf16_matmul: bool = False
     """Run the training forward passes under bfloat16 autocast (about 1.7x faster where the CPU
     has AMX or AVX-512 BF16, ignored where it has neither); weights and loss stay float32."""
+    imitation: ImitationSettings = field(default_factory=ImitationSettings)
+    """Imitation of the planner given the map before the episodes (none in the paper)."""
 
     def __post_init__(self) -> None:
-        check_range(self, "episodes", self.episodes, 1, 10_000_000)
+        check_range(self, "episodes", self.episodes, 0, 10_000_000)
         check_range(self, "parallel_worlds", self.parallel_worlds, 1, 4096)
         check_range(self, "warmup_episodes", self.warmup_episodes, 0, self.episodes)
         check_range(self, "iterations_per_episode", self.iterations_per_episode, 0.0, 1e6)
@@ -172,7 +207,18 @@ obstacles)."""
 FAST_EPISODES_WITHOUT_OBSTACLES = 250
 """The fast preset's episodes in walls-only worlds, which it learns within 200."""
 
-PRESETS = {"paper": PAPER, "fast": FAST}
+DAGGER = replace(
+    FAST,
+    episodes=0,
+    warmup_episodes=0,
+    eval_episodes=64,
+    final_eval_episodes=300,
+    imitation=ImitationSettings(rounds=12, episodes_per_round=64, iterations_per_round=400),
+)
+"""Imitation of the planner given the map (DAgger), no reinforcement learning after it: for
+worlds of static layouts (the clutter scenario)."""
+
+PRESETS = {"paper": PAPER, "fast": FAST, "dagger": DAGGER}
 
 
 def preset(name: str, world: WorldConfig) -> TrainSettings:
@@ -183,4 +229,6 @@ def preset(name: str, world: WorldConfig) -> TrainSettings:
         raise ConfigError(f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}") from None
     if name == "fast" and world.obstacles.count == 0:
         settings = replace(settings, episodes=FAST_EPISODES_WITHOUT_OBSTACLES)
+    if world.layout.source:  # BARN's time limit: a cluttered world takes longer to cross
+        settings = replace(settings, max_episode_steps=world.max_episode_steps)
     return settings

@@ -164,6 +164,15 @@ class EpisodeReplay:
         # Frames past the episode's end are never bootstrapped from; repeat its last frame.
         return np.asarray(np.minimum(frame_index, self.last[now][:, None]), dtype=np.int64)
 
+    def windows(self, now: NDArray[np.int64]) -> NDArray[np.float32]:
+        """(N, k, F) the network's input windows ending at frames `now`, for each episode's own
+        target (what the robot saw when it acted there)."""
+        frame_index = self.window_index(now, 0)
+        features = target_features(self.pose[frame_index], self.own_target[now][:, None, :])
+        parts = [self.scan[frame_index]] if self.num_beams else []
+        parts.append(encode_target(features, self.max_range_m))
+        return np.concatenate(parts, axis=-1).astype(np.float32, copy=False)
+
     def transitions_at(
         self,
         now: NDArray[np.int64],
@@ -198,8 +207,9 @@ class EpisodeReplay:
         radius = self.config.robot_radius_m
         ahead = clearances[:, k:]  # frames t+1 .. t+n
         distance = features[:, k:, 0]
-        step_outcome = outcome(distance, ahead, radius)
-        step_reward = reward(distance, ahead, radius, self.config.reward)
+        reach = self.config.reach_m
+        step_outcome = outcome(distance, ahead, radius, reach)
+        step_reward = reward(distance, ahead, radius, self.config.reward, reach)
         # Steps taken: up to n, the first terminal step, or the episode's last frame.
         available = np.minimum(self.last[now] - now, n_step)
         ends = (step_outcome != Outcome.RUNNING) | (np.arange(1, n_step + 1) >= available[:, None])

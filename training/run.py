@@ -34,12 +34,15 @@ from qnav.training.algorithm import DoubleDQN
 from qnav.training.collect import collect_round
 from qnav.training.config import TrainSettings
 from qnav.training.episode_log import Episode
+from qnav.training.imitation import Imitation
 from qnav.training.networks import QNetwork, make_network
 from qnav.training.replay import EpisodeReplay
 from qnav.training.run_folder import Progress, RunFolder, RunSettings, source_commit
 from qnav.training.sampling import sample
-from qnav.training.validation import Gauge, Validation, evaluate_network
+from qnav.training.validation import Gauge, Validation, evaluate_network, layout_tests
 
+BARN_WORLDS = 300
+"""BARN's worlds: a layout run's final test runs the first `final_eval_episodes` of them."""
 REACHED_LEVELS = (0.5, 0.8, 0.9, 0.99)
 """Validation success levels whose first crossing results.json records."""
 _TRAIN_LAYOUT_SEED = 1_000_003
@@ -54,6 +57,11 @@ def train(
 ) -> dict[str, Any]:
     """Run (or resume) training in `run_dir`; returns the final test results. A `gauge` judges
     the network beside each evaluation (progress.csv's decisive_ columns, empty without)."""
+    if world.layout.source == "barn":
+        raise ConfigError(
+            "layout.source = 'barn': BARN's 300 worlds are the test set; train in generated "
+            "worlds (the clutter scenario) and test on BARN with qnav eval --barn"
+        )
     world = replace(world, max_episode_steps=settings.max_episode_steps)
     folder = RunFolder(run_dir)
     folder.start(RunSettings(world, settings))
@@ -63,6 +71,17 @@ def train(
     state, logged, replay = _resume(folder, dqn, world, settings)
     validation = Validation(world, settings, gauge)
     title = f"{world.name}, {settings.model}, seed {settings.seed}"
+    if state.imitation_rounds < settings.imitation.rounds:
+        _imitate(
+            world,
+            settings=settings,
+            dqn=dqn,
+            folder=folder,
+            state=state,
+            validation=validation,
+            title=title,
+            progress=progress,
+        )
     bar = tqdm(total=settings.episodes, initial=state.episodes, unit="ep",
                disable=not progress, desc=f"train {title}")  # fmt: skip
     while state.episodes < settings.episodes:
@@ -100,6 +119,39 @@ def train(
                         val=f"{row.get('eval_success', math.nan):.2f}")  # fmt: skip
     bar.close()
     return folder.results() or _finish(world, settings, dqn, folder, state)
+
+
+def _imitate(
+    world: WorldConfig,
+    *,
+    settings: TrainSettings,
+    dqn: DoubleDQN,
+    folder: RunFolder,
+    state: Progress,
+    validation: Validation,
+    title: str,
+    progress: bool,
+) -> None:
+    """The imitation phase (`training.imitation`), resumed where a kill left it; the target
+    network then starts from what was imitated."""
+    imitation = Imitation(world, settings, dqn.online, dqn.optimizer, folder.path / "imitation")
+    bar = tqdm(total=settings.imitation.rounds, initial=state.imitation_rounds, unit="round",
+               disable=not progress, desc=f"imitate {title}")  # fmt: skip
+    while state.imitation_rounds < settings.imitation.rounds:
+        row = imitation.round(state.imitation_rounds, state)
+        started = time.perf_counter()
+        row |= validation(dqn.online)
+        state.eval_s += time.perf_counter() - started
+        if settings.keep_best and row["eval_success"] >= state.best_success:
+            state.best_success = row["eval_success"]
+            folder.save_best(dqn.online, row["episodes"])
+        state.history.append(row)
+        folder.save_checkpoint(dqn.state_dict(), state)
+        folder.write_progress(state.history, title)
+        bar.update(1)
+        bar.set_postfix(loss=f"{row['loss']:.3f}", val=f"{row['eval_success']:.2f}")
+    bar.close()
+    dqn.target.load_state_dict(dqn.online.state_dict())
 
 
 def _resume(
@@ -206,21 +258,33 @@ def _finish(
         dqn.online.load_state_dict(best)
     folder.save_model(dqn.online.state_dict(), RunSettings(world, settings))
     started = time.perf_counter()
-    test = EvalSettings()
-    final = evaluate_network(
-        world,
-        dqn.online,
-        settings.window,
-        episodes=settings.final_eval_episodes,
-        seed=test.seed,
-        max_steps=test.max_episode_steps,
-    )
+    tests: dict[str, Any] = {}
+    if world.layout.source:
+        tests = layout_tests(world, dqn.online, settings.window, settings.final_eval_episodes)
+        barn = tests["barn"]
+        test = {
+            "success": barn["success"],
+            "collision": barn["collision"],
+            "unfinished": barn["timeout"],
+            "episodes": min(settings.final_eval_episodes, BARN_WORLDS),
+        }
+    else:
+        protocol = EvalSettings()
+        test = evaluate_network(
+            world,
+            dqn.online,
+            settings.window,
+            episodes=settings.final_eval_episodes,
+            seed=protocol.seed,
+            max_steps=protocol.max_episode_steps,
+        ).fractions()
     results = {
         "scenario": world.name,
         "model": settings.model,
         "seed": settings.seed,
         "relabel": settings.relabel,
-        "test": final.fractions(),
+        "test": test,
+        **tests,
         "episodes": state.episodes,
         "iterations": state.iterations,
         "first_reached": {

@@ -79,9 +79,11 @@ PROGRESS_COLUMNS = (
     "eval_unfinished",
     "decisive_safe",
     "decisive_balanced",
+    "phase",
 )
 """progress.csv's columns; a round without an evaluation leaves the eval_ and decisive_ ones
-empty."""
+empty. In the rounds of imitation (phase "imitation"; empty: reinforcement learning), episodes
+and iterations count the imitation's and epsilon is the planner's share of the steps."""
 
 
 @dataclass(frozen=True)
@@ -107,7 +109,9 @@ class Progress:
     train_s: float = 0.0
     eval_s: float = 0.0
     best_success: float = -1.0
-    history: list[dict[str, float]] = field(default_factory=list)
+    imitation_rounds: int = 0
+    imitation_iterations: int = 0
+    history: list[dict[str, Any]] = field(default_factory=list)
 
 
 def read_settings(run_dir: Path) -> RunSettings:

@@ -24,6 +24,7 @@ from qnav.contracts.motion import move_obstacles
 from qnav.contracts.observation import obstacle_features
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import add_circles_to_scan
+from qnav.sim.layouts import layouts_of
 from qnav.sim.world import obstacle_speeds, targets_around
 from qnav.training.config import Relabel
 from qnav.training.replay import Batch, EpisodeReplay, Seen
@@ -98,6 +99,10 @@ def draw_targets(
         # A position reached after this step, in the same episode ("future" strategy).
         later = rng.integers(now + 1, replay.last[now] + 1)
         return replay.pose[later, :2]
+    layouts = layouts_of(replay.config.layout)
+    if layouts is not None:  # fresh targets anywhere in the box that holds the layouts
+        low_xy, high_xy = layouts.box()
+        return rng.uniform(low_xy, high_xy, size=(now.size, 2))
     low = replay.config.spawn.wall_margin_m
     high = replay.config.arena.size_m - low
     if relabel == "local":

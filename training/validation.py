@@ -2,16 +2,48 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol
+from dataclasses import replace
+from typing import Any, NamedTuple, Protocol
 
-from qnav.sim.config import WorldConfig
+from qnav.sim import clutter
+from qnav.sim.benchmark import run_benchmark
+from qnav.sim.config import LayoutConfig, WorldConfig
 from qnav.sim.evaluate import EvalResult, EvalSettings, evaluate
+from qnav.sim.layouts import layouts_of
 from qnav.training.agent import policy_agent
 from qnav.training.config import TrainSettings
 from qnav.training.networks import QNetwork
 
 VALIDATION_SEED = 999
 """Layouts of the evaluations during training (the final test uses EvalSettings' own seed)."""
+
+
+def validation_world(world: WorldConfig, episodes: int) -> WorldConfig:
+    """The world of the evaluations during training: in generated layouts, the first `episodes`
+    of the validation split, in order (never the training worlds, never BARN's); else `world`."""
+    families = world.layout.source.split("+")
+    if not world.layout.source or not all(f in clutter.FAMILIES for f in families):
+        return world
+    layout = replace(world.layout, split="validation", worlds=episodes, order="cycle")
+    return replace(world, layout=layout)
+
+
+def layout_tests(world: WorldConfig, network: QNetwork, window: int, worlds: int) -> dict[str, Any]:
+    """A layout run's final tests under BARN's protocol (`sim.benchmark`): the first `worlds`
+    of BARN's 300, and as many held-out worlds of BARN's own generator (the cave family's test
+    split)."""
+    network.eval()
+    sets = {
+        "barn": LayoutConfig(source="barn", order="cycle", worlds=worlds),
+        "held_out": LayoutConfig(source="cave", split="test", worlds=worlds, order="cycle"),
+    }
+    results = {}
+    for name, layout in sets.items():
+        tested = replace(world, layout=layout)
+        batch = min(64, len(layouts_of(layout) or ()))
+        agent = policy_agent(network, tested, batch, window)
+        results[name] = run_benchmark(tested, agent, "network", num_worlds=batch).summary()
+    return results
 
 
 def evaluate_network(
@@ -55,7 +87,7 @@ class Validation:
     def __init__(
         self, world: WorldConfig, settings: TrainSettings, gauge: Gauge | None = None
     ) -> None:
-        self.world = world
+        self.world = validation_world(world, settings.eval_episodes)
         self.settings = settings
         self.gauge = gauge
 

@@ -75,11 +75,14 @@ def test_a_folder_without_worlds_is_refused(tmp_path: Path) -> None:
 def test_a_conversion_reads_back_to_the_millimetre(tmp_path: Path) -> None:
     write_world(tmp_path, 0, [(-1.0004, 6.0), (-2.0, 7.5)])
     write_world(tmp_path, 1, [(-3.0, 8.0)])
-    layouts = barn.convert(tmp_path, tmp_path / "out.npz", "here", "abc", "MIT")
+    layouts = barn.convert(
+        tmp_path, tmp_path / "out.npz", name="two", source="here", commit="abc", licence="MIT"
+    )
     loaded, provenance = load_layouts(tmp_path / "out.npz")
     assert provenance == {"source": "here", "commit": "abc", "licence": "MIT"}
     np.testing.assert_allclose(loaded.cylinder_xy, layouts.cylinder_xy, atol=5e-4)
     assert loaded.world_id.tolist() == [0, 1]
+    assert loaded.name == "two"
 
 
 def test_a_file_that_is_not_a_conversion_is_refused(tmp_path: Path) -> None:

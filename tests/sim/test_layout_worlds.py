@@ -1,6 +1,5 @@
 """Worlds of static layouts: BARN's start and goal, its reach, collisions with cylinders."""
 
-
 import numpy as np
 
 from qnav.contracts.actions import Action
