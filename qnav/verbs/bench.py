@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from qnav.contracts.errors import ConfigError
-from qnav.sim.config import load_world
+from qnav.sim.config import WorldConfig, load_world
+
+if TYPE_CHECKING:
+    from qnav.controller.bench_e2e import Drive
 
 
 def bench_sim(args: argparse.Namespace) -> int:
@@ -102,15 +107,48 @@ def bench_controller(args: argparse.Namespace) -> int:
     import tempfile
 
     from qnav.controller.bench_e2e import format_report, run
+    from qnav.controller.policy import PolicyRuntime
+    from qnav.sim.config import scenario
+    from qnav.tracking import lookahead_settings
 
     rates = [float(r) for r in args.rates.split(",")]
     with tempfile.TemporaryDirectory() as scratch:
         policy = args.policy or _paper_sized_policy(Path(scratch), args.weights)
-        report = run(policy, rates, args.seconds)
+        lookahead, drive = None, None
+        if args.lookahead != "off":
+            world = scenario(PolicyRuntime(policy, backend="numpy").contract.scenario)
+            settings = lookahead_settings(args.lookahead, args.judge)
+            lookahead = replace(settings, room_size_m=world.arena.size_m)
+            steps = max(round((args.seconds + 2) * rate) for rate in rates)
+            drive = Path(scratch) / "drive.npz"
+            bench_drive(world, steps).save(drive)
+        report = run(policy, rates, args.seconds, lookahead=lookahead, drive=drive)
         if args.policy is None:
             report["policy"] = f"{PAPER_SIZED}, {args.weights} weights"
     print(json.dumps(report) if args.json else format_report(report))
     return 0
+
+
+def bench_drive(world: WorldConfig, steps: int, seed: int = 1005) -> Drive:
+    """`steps` scans of one car in `world`: the perception probe's drive (go-to-target with held
+    random actions, as `qnav bench lookahead` drives), episodes one after another."""
+    import numpy as np
+
+    from qnav.controller.bench_e2e import Drive
+    from qnav.sim.evaluate import WanderingGoToTarget
+    from qnav.sim.world import BatchedWorld
+
+    batched = BatchedWorld(world, 1, seed=seed)
+    observation = batched.reset(seed)
+    driver = WanderingGoToTarget(1, 0.3, seed)
+    poses, targets, scans = [], [], []
+    for _ in range(steps):
+        assert observation.scan_m is not None  # the bench's policy reads a lidar
+        poses.append(observation.pose[0])
+        targets.append(observation.target_xy[0])
+        scans.append(observation.scan_m[0])
+        observation = batched.step(driver(observation.target_features())).observation
+    return Drive(np.array(poses), np.array(targets), np.array(scans, dtype=np.float32))
 
 
 def bench_cluster(args: argparse.Namespace) -> int:

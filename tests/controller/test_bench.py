@@ -45,6 +45,19 @@ def test_bench_controller_times_one_command_per_published_scan_and_prints_json(
         assert all(0 < part < result["p50_ms"] for part in parts), parts
 
 
+def test_bench_controller_with_the_shield_times_its_decisions_on_a_drive_through_the_room() -> None:
+    policy = ROOT / "tests" / "data" / "stack" / "obstacles-inertia.onnx"
+    report = _qnav_json(
+        *("bench", "controller", "--policy", str(policy), "--lookahead", "shield"),
+        *("--rates", "5", "--seconds", "2", "--json"),
+    )
+    assert report["lookahead"] == "shield" and report["daemon_cpu"] in range(report["cpus"])
+    (result,) = report["results"]
+    # Every scan of the drive gets its decision (the car reaches no target within 2 s).
+    assert result["commands"] == result["scans"] == 10
+    assert 0 < result["daemon_p50_ms"] <= result["daemon_p99_ms"] <= result["max_ms"]
+
+
 def test_bench_policy_times_each_backend_after_the_given_gap_and_prints_json(
     make_policy: PolicyFactory,
 ) -> None:
