@@ -23,6 +23,7 @@ from qnav.contracts.health import DEFAULT_MAX_AGE_S
 from qnav.contracts.observation import WINDOW_LENGTH
 from qnav.contracts.policy_file import WEIGHT_TYPES
 from qnav.options import add_print_config
+from qnav.training.config import PRESETS
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -325,8 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--preset",
         default="fast",
-        choices=["fast", "paper"],
-        help="fast: our schedule for 2 CPU cores (default); paper: the paper's exact schedule",
+        choices=list(PRESETS),
+        help="fast: our schedule for 2 CPU cores (default); paper: the paper's exact schedule; "
+        "dagger: imitation of the planner given the map (worlds of layouts: the clutter scenario)",
     )
     train.add_argument(
         "--train-config", type=Path, metavar="FILE", help="TOML file with a [train] table"
@@ -1039,7 +1041,7 @@ def _study_options(
         help="torch threads per training, and CPUs of its Ray task (default: the machine's "
         "cores / --jobs; with --engine ray, 2)",
     )
-    parser.add_argument("--preset", default="fast", choices=["fast", "paper"], help="schedule")
+    parser.add_argument("--preset", default="fast", choices=list(PRESETS), help="schedule")
     parser.add_argument("--scenarios", default=scenarios, help=f"comma-separated ({scenarios})")
     parser.add_argument("--models", default=models, help=f"comma-separated models ({models})")
     parser.add_argument("--seeds", default=seeds, help=f"comma-separated seeds ({seeds})")
