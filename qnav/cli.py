@@ -270,10 +270,20 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--agent",
         default="random",
-        choices=["random", "goto", "oracle"],
+        choices=["random", "goto", "oracle", "dwa", "map"],
         help="without --policy: random (the paper's Random rows), goto (turn to the target "
-        "and drive, blind to obstacles) or oracle (a planner that knows the obstacles' future: "
-        "an upper bound on success; slow)",
+        "and drive, blind to obstacles), oracle (a planner that knows the obstacles' future: "
+        "an upper bound on success; slow); with --barn also dwa (the Dynamic Window Approach "
+        "on the lidar, no map) and map (a planner given the map: an upper bound)",
+    )
+    evaluate.add_argument(
+        "--barn",
+        nargs="?",
+        const="",
+        metavar="DIR",
+        help="BARN's protocol, one run per world, over DIR's world_N.world files (with "
+        "path_files/ beside them, as published), or BARN's 300 worlds (committed) without DIR: "
+        "success, collision, timeout, BARN's metric and loops, overall and by world",
     )
     evaluate.add_argument(
         "--state-error",
@@ -399,6 +409,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     calibrate.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
     _flag(calibrate, "--json", "print one JSON object")
+
+    convert = _verb(
+        verbs,
+        "qnav.verbs.barn:convert",
+        "barn-convert",
+        help="write a folder of BARN-format worlds as one compact file (sim/data/barn.npz)",
+    )
+    convert.add_argument("folder", type=Path, help="folder of world_N.world and path_files/")
+    convert.add_argument("-o", "--out", type=Path, required=True, help="the .npz to write")
+    convert.add_argument("--name", default="", help="the worlds' name in reports (the folder's)")
+    convert.add_argument("--source", required=True, help="where the worlds come from (a URL)")
+    convert.add_argument("--commit", required=True, help="the source's commit")
+    convert.add_argument("--licence", required=True, help="the worlds' licence")
 
     render = _verb(
         verbs, "qnav.verbs.world:render", "render", help="draw an episode to PNG and animated GIF"
@@ -889,6 +912,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--seconds", type=float, default=2.0, help="timed seconds per configuration (2)"
     )
     _flag(bench_sim, "--no-scaling", "skip beam/obstacle scaling")
+    _flag(
+        bench_sim,
+        "--barn",
+        "in BARN's worlds (the barn scenario, each world of the batch in a layout of its own), "
+        "driven by random actions and by the planner given the map",
+    )
     _flag(bench_sim, "--json", "print one JSON object")
     bench_learner = _verb(
         benches,
@@ -979,7 +1008,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 VERB_GROUPS = {
     "simulate, learn, test": (
-        "scenarios", "eval", "train", "export", "render", "figures", "reproduce", "sweep",
+        "scenarios", "eval", "barn-convert", "train", "export", "render", "figures", "reproduce",
+        "sweep",
     ),
     "on the car": (
         "controller", "bridge", "calibrate-car", "fake-vehicle", "sim-car", "stack", "record",

@@ -14,7 +14,7 @@ A folder in BARN's format holds `world_N.world` (Gazebo SDF: static cylinders) a
   the robot has moved 0.1 m.
 
 The committed conversion (`sim/data/barn.npz`, `BARN_FILE`) holds all 300 published worlds; it
-was written by `qnav barn convert FOLDER` from the commit named in its provenance.
+was written by `qnav barn-convert FOLDER` from the commit named in its provenance.
 """
 
 from __future__ import annotations

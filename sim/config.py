@@ -164,7 +164,7 @@ LayoutSource = str
 """Where a world's static layouts come from: "" (none: the paper's square room), "barn" (the
 300 published BARN worlds, committed: `sim.barn.BARN_FILE`), a generated family ("cave",
 "rooms", or both as "cave+rooms": `sim.clutter`), or the path of a folder in BARN's format or of
-a conversion file (.npz, `qnav barn convert`)."""
+a conversion file (.npz, `qnav barn-convert`)."""
 
 
 @dataclass(frozen=True)

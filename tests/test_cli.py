@@ -56,8 +56,11 @@ def test_bench_sim_json_has_the_documented_shape() -> None:
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["scenario"] == "obstacles-inertia"
-    assert [r["batch"] for r in report["results"]] == [1, 4]
-    assert all(r["steps_per_second"] > 0 for r in report["results"])
+    assert [(r["batch"], r["driver"]) for r in report["results"]] == [
+        (1, "random"), (1, "go-to-target"), (4, "random"), (4, "go-to-target")
+    ]  # fmt: skip
+    for row in report["results"]:
+        assert row["steps_per_second"] > 0 and row["episode_steps"] > 0
 
 
 def test_bench_lookahead_json_times_each_part_of_the_decision(make_judge) -> None:  # type: ignore[no-untyped-def]

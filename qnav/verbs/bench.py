@@ -25,8 +25,11 @@ def bench_sim(args: argparse.Namespace) -> int:
         raise ConfigError(f"--batches {args.batches!r} must be comma-separated integers") from None
     if any(b < 1 for b in batches):
         raise ConfigError(f"--batches {args.batches!r}: every batch size must be at least 1")
+    world = load_world("barn" if args.barn else args.scenario, args.world_config, args.assignments)
+    if args.barn:  # every world of the batch in a layout of its own
+        world = replace(world, layout=replace(world.layout, order="random"))
     report = run(
-        load_world(args.scenario, args.world_config, args.assignments),
+        world,
         batches=batches,
         seconds=args.seconds,
         beams=() if args.no_scaling else (90, 180, 360, 720, 1440),

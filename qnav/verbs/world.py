@@ -61,7 +61,12 @@ def settings_reference() -> str:
 
 
 def evaluate(args: argparse.Namespace) -> int:
-    """The paper's test protocol with the random agent or a trained policy."""
+    """The paper's test protocol with the random agent or a trained policy (BARN's with
+    --barn)."""
+    if args.barn is not None:
+        from qnav.verbs.barn import evaluate_barn
+
+        return evaluate_barn(args)
     eval_settings = settings_from_args(EvalSettings(), args)
     seed = eval_settings.seed
     worlds = min(eval_settings.num_worlds, eval_settings.episodes)
