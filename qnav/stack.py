@@ -183,6 +183,9 @@ def write_configs(
             "speed_at_full_throttle_mps": full_travel,
             "turn_rate_at_full_steering_radps": full_travel,
         },
+        # The simulated car ends with the stack (the sim-car stops with the bridge): nothing
+        # reports its rest on the way out, so the bridge disarms at once instead of waiting.
+        "failsafe": {"rest_timeout_s": 0.0},
     }
     bridge = from_dict(BridgeSettings, {**values, "zenoh": zenoh})
     files.root.mkdir(parents=True, exist_ok=True)
@@ -225,14 +228,11 @@ class Daemons:
     def stop(self, timeout_s: float = 10.0) -> dict[str, int | None]:
         """SIGTERM every daemon still running, then wait (SIGKILL after `timeout_s`).
 
-        The sim-car goes after the others: its car must still report its speed while the bridge
-        brakes it to rest and disarms it. The recorder goes last, so the stop commands the
-        others send on exit are recorded.
+        The recorder goes last, so the stop commands the others send on exit are recorded.
         """
         codes: dict[str, int | None] = {}
-        later = [["sim-car"], ["recorder"]]
-        first = [n for n in self.processes if not any(n in group for group in later)]
-        for group in [first, *later]:
+        last = ["recorder"]
+        for group in ([n for n in self.processes if n not in last], last):
             running = [(n, self.processes[n]) for n in group if n in self.processes]
             for _, process in running:
                 if process.poll() is None:
