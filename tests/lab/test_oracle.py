@@ -28,10 +28,7 @@ def test_planning_worlds_together_picks_what_planning_each_alone_picks() -> None
     state = reset(config, np.zeros(6, dtype=np.int64), np.arange(6))
     sequences = held_sequences(10, 32, np.random.default_rng(0))
     together = plan(config, state, sequences)
-    alone = [
-        plan(config, take_rows(state, np.array([i])), sequences)[0]
-        for i in range(6)
-    ]
+    alone = [plan(config, take_rows(state, np.array([i])), sequences)[0] for i in range(6)]
     np.testing.assert_array_equal(together, alone)
 
 
