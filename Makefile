@@ -25,8 +25,9 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# mypy over the package as installed (sim/ as qnav.sim, ...: pyproject's package-dir).
 typecheck: $(STAMP)
-	$(BIN)/mypy qnav tests
+	$(BIN)/python -m tests.typecheck qnav tests
 
 docker-lint: $(STAMP)
 	$(BIN)/hadolint --failure-threshold info Dockerfile

@@ -7,6 +7,7 @@ import ast
 import pkgutil
 import subprocess
 import sys
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,14 +74,7 @@ def _target(name: str) -> str | None:
 
 
 def _folder_files(folder: str) -> list[Path]:
-    """The modules of a folder; for `qnav`, the shell's own (its symlinks are the other rows)."""
-    if folder == "qnav":
-        linked = [path for path in (ROOT / "qnav").iterdir() if path.is_symlink()]
-        return sorted(
-            path
-            for path in (ROOT / "qnav").rglob("*.py")
-            if not any(path.is_relative_to(link) for link in linked)
-        )
+    """The modules of a folder (for `qnav`, the shell's own)."""
     return sorted((ROOT / folder).rglob("*.py"))
 
 
@@ -132,6 +126,17 @@ def test_the_table_covers_every_folder_and_names_only_folders() -> None:
         assert allowed <= {*FOLDERS, "torch"}, sorted(allowed)
     for path in FILE_MAY_ALSO_IMPORT:
         assert (ROOT / path).is_file(), f"{path} is in FILE_MAY_ALSO_IMPORT but does not exist"
+
+
+def test_each_folder_installs_as_its_package_under_qnav_and_no_link_stands_in() -> None:
+    # pyproject's package-dir maps sim/ to qnav.sim and so on: no symlink in the checkout, and
+    # the import scan reads the folders the wheel is built from.
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    expected = {"qnav" if f == "qnav" else f"qnav.{f}": f for f in FOLDERS}
+    assert setuptools["package-dir"] == expected
+    assert set(setuptools["packages"]) == {*expected, "qnav.verbs"}
+    linked = [str(p) for f in FOLDERS for p in [ROOT / f, *(ROOT / f).rglob("*")] if p.is_symlink()]
+    assert not linked
 
 
 def test_every_module_imports_only_what_its_folders_row_allows() -> None:

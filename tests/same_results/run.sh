@@ -2,7 +2,7 @@
 # `make same-results REF=COMMIT`: do the code at COMMIT and the working tree train and evaluate
 # bit for bit alike? Short seeded runs of both presets, a walls and an obstacle world, prioritized
 # replay, n-step and hindsight targets, from each tree's own code (`python -m` puts the working
-# folder first on sys.path, ahead of the editable install), digested without timings
+# folder, the tree's view below, first on sys.path, ahead of the editable install), digested without timings
 # (digest.py) and compared. A refactor must print IDENTICAL; a change of behaviour prints where
 # the digests differ. About 5 minutes on 2 cores.
 set -euo pipefail
@@ -20,11 +20,22 @@ common=(--quiet --train-set train.hidden_size=16 --train-set train.iterations_pe
   --train-set train.max_episode_steps=30 --train-set train.warmup_episodes=2
   --train-set train.threads=1 --train-set train.gauge_episodes=4)
 
+# A tree's own package: its qnav/ with its folders linked in as pyproject's package-dir maps them
+# (in scratch; a tree of before that change links them itself), run from there.
+view() {  # view SOURCE_TREE VIEW_DIR
+  local src=$1 at=$2 part
+  mkdir -p "$at" && cp -RP "$src/qnav" "$at/qnav"
+  for part in contracts controller firmware_bridge lab sim simcar training; do
+    rm -f "$at/qnav/$part" && ln -s "$src/$part" "$at/qnav/$part"
+  done
+}
+
 runs() {  # runs SOURCE_TREE OUT_DIR
   local src=$1 out=$2
   mkdir -p "$out"
+  view "$src" "$out.view"
   (
-    cd "$src"
+    cd "$out.view"
     "$py" -m qnav train --scenario walls-increment --preset paper --seed 3 --episodes 6 \
       --run-dir "$out/walls-paper" "${common[@]}" --train-set train.target_update_period=5 \
       --train-set train.snapshot_every_episodes=3
