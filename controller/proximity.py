@@ -46,9 +46,9 @@ class ProximitySettings:
     enabled: bool = True
     """Forbid motion into anything the lidar sees inside the field, whatever the policy chose."""
     footprint_m: float = 0.5
-    """Radius the car sweeps turning in place (the simulator's robot radius; lidar at centre)."""
-    travel_m: float = 0.35
-    """How far past the footprint a driving action's field reaches (0.5 m/s for 0.2 + 0.5 s)."""
+    """Radius the car sweeps turning in place, from the lidar (the simulator's robot radius)."""
+    travel_m: float = 0.5
+    """How far past the footprint the field of a driving action reaches (one robot radius)."""
 
     def __post_init__(self) -> None:
         check_range(self, "footprint_m", self.footprint_m, 0.0, 10.0)

@@ -34,7 +34,7 @@ def main() -> None:
     args = parser.parse_args()
 
     enabled = {"scan": args.beams > 0, "pose": True}
-    # Nothing nearer than 1 m: clear of the proximity stop's default field (0.85 m ahead).
+    # Nothing nearer than 1 m: clear of the proximity stop's default field (1 m ahead).
     random = np.random.default_rng(0).uniform(1.0, 8.0, args.beams).astype(np.float32)
     bearing = -math.pi + 2 * math.pi / max(args.beams, 1) * np.arange(args.beams)
     ahead = np.abs(bearing) < 1.0  # the lidar's x axis is the car's heading

@@ -58,7 +58,7 @@ class Sensors:
     def __init__(self, endpoint: str, beams: int) -> None:
         self.target = FAR
         self.session = open_session(ZenohSettings(connect=(endpoint,)))
-        # Nothing nearer than 1 m: clear of the proximity stop's default field (0.85 m ahead).
+        # Nothing nearer than 1 m: clear of the proximity stop's default field (1 m ahead).
         ranges = np.random.default_rng(0).uniform(1.0, 8.0, beams).astype(np.float32)
         self.scan = wire.Scan(0.0, "laser", -math.pi, 2 * math.pi / beams, 0.1, 30.0, ranges)
         self.pose = wire.Pose2D(0.0, "map", *HERE, 0.3)
