@@ -68,12 +68,19 @@ def _needs(extras: list[str]) -> str:
     return ", ".join(f"qnav[{extra}]" for extra in extras)
 
 
+def install_hint(extras: list[str]) -> str:
+    """How to add `extras`: pip on the qnav repository, since no package index has qnav;
+    editable where this install runs from the checkout itself (`pip install -e .`)."""
+    editable = (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file()
+    spec = f"'.[{','.join(extras)}]'"
+    return f"pip install {'-e ' if editable else ''}{spec} in the qnav repository"
+
+
 def _left_out(needed: str, extras: list[str]) -> str:
     """The one wording of "this install lacks what that needs, and here is how to get it"."""
-    install = " ".join(f"'qnav[{extra}]'" for extra in extras)
     return (
         f"needs {needed}, which this install leaves out (the base install is the car's): "
-        f"pip install {install}"
+        f"{install_hint(extras)}"
     )
 
 

@@ -4,12 +4,15 @@ import argparse
 import json
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
 
-from qnav.cli import build_parser
+from qnav.cli import build_parser, install_hint
 from tests.command import run_qnav
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _verbs() -> list[str]:
@@ -118,8 +121,6 @@ def _print_config_argv(verb: str, folder: Path) -> list[str]:
     ],
 )
 def test_every_verb_with_settings_prints_them_as_toml(verb: str, tmp_path: Path) -> None:
-    import tomllib
-
     printed = run_qnav(*_print_config_argv(verb, tmp_path))
     assert printed.returncode == 0, printed.stderr
     assert len(tomllib.loads(printed.stdout)) >= 1
@@ -151,9 +152,18 @@ def test_a_verb_whose_extra_is_not_installed_names_the_extra(
     # On the car's install (no extras) `qnav train` used to end in a torch traceback.
     done = _without(blocked, f"from qnav.cli import main; sys.exit(main({argv!r}))", tmp_path)
     assert done.returncode == 2, done.stderr[-2000:]
-    assert f"pip install 'qnav[{extra}]'" in done.stderr
+    assert f"pip install -e '.[{extra}]' in the qnav repository" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_the_install_hint_is_pip_on_this_repository_and_its_extras() -> None:
+    # No package index has qnav: `pip install 'qnav[train]'` failed from a clone.
+    hint = install_hint(["train", "cluster"])
+    assert hint == "pip install -e '.[train,cluster]' in the qnav repository"  # run from a clone
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["name"] == "qnav"
+    assert {"train", "cluster"} <= set(project["optional-dependencies"])
 
 
 def test_help_marks_the_verbs_whose_extra_is_missing(tmp_path: Path) -> None:
@@ -226,8 +236,6 @@ def test_help_lists_every_setting_with_its_value_and_documentation(verb: str, ta
 
 def test_controller_print_config_is_the_settings_it_would_run_with(tmp_path: Path) -> None:
     # It printed the defaults whatever --config, --set and --policy said (issue 53).
-    import tomllib
-
     config = tmp_path / "car.toml"
     config.write_text("[safety]\nscan_timeout_s = 0.7\n")
     policy = tmp_path / "policy.onnx"
