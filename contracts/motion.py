@@ -163,11 +163,18 @@ def step_increment(
 
 
 def move_obstacles(
-    position: F64, velocity: F64, radius_m: float, size_m: float, period_s: float | F64
+    position: F64,
+    velocity: F64,
+    radius_m: float,
+    size_m: float | F64,
+    period_s: float | F64,
+    *,
+    origin_m: float | F64 = 0.0,
 ) -> tuple[F64, F64]:
-    """Straight-line motion, reflecting specularly off the walls (exact for one bounce per axis);
-    `period_s` may be an array of times that broadcasts against the positions."""
-    low, high = radius_m, size_m - radius_m
+    """Straight-line motion, reflecting specularly off the walls of the box from `origin_m` to
+    `origin_m + size_m` (the room: [0, size]^2; exact for one bounce per axis); the box's corners
+    and `period_s` may be arrays that broadcast against the positions."""
+    low, high = origin_m + radius_m, origin_m + size_m - radius_m
     moved = position + velocity * period_s
     below, above = moved < low, moved > high
     moved = np.where(below, 2 * low - moved, np.where(above, 2 * high - moved, moved))

@@ -256,11 +256,6 @@ class WorldConfig:
                 "lidar_turn_s is set with layout.source: a rotating lidar is cast in the "
                 "paper's room only"
             )
-        if self.layout.source and self.obstacles.count:
-            raise ConfigError(
-                "obstacles.count is set with layout.source: moving obstacles move in the "
-                "paper's room only"
-            )
         if not self.layout.source:
             self._check_room()
 

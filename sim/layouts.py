@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +105,18 @@ class Layouts:
             goal_xy=self.goal_xy[index],
             path_length_m=self.path_length_m[index],
             world_id=self.world_id[index],
+        )
+
+    @cached_property
+    def boxes(self) -> F64:
+        """(L, 2, 2) each layout's box (lowest x, y; highest x, y) round its cylinders, start
+        and goal: where its moving obstacles move."""
+        used = self.cylinder_xy[..., 0] < PARKED_M
+        low = np.where(used[..., None], self.cylinder_xy, np.inf).min(axis=1)
+        high = np.where(used[..., None], self.cylinder_xy, -np.inf).max(axis=1)
+        ends = np.stack([self.start_pose[:, :2], self.goal_xy], axis=1)
+        return np.stack(
+            [np.minimum(low, ends.min(axis=1)), np.maximum(high, ends.max(axis=1))], axis=1
         )
 
     def box(self) -> F64:

@@ -136,8 +136,12 @@ def reset(
 
     m = config.obstacles.count
     radius = config.obstacles.radius_m
-    obstacle_candidates = radius + (size - 2 * radius) * rng.uniform(
-        keys, _OBSTACLE_XY, (m, _CANDIDATES, 2)
+    low, high = obstacle_box(config, layout)
+    obstacle_candidates = (
+        low[:, None]
+        + radius
+        + ((high - low)[:, None] - 2 * radius)
+        * rng.uniform(keys, _OBSTACLE_XY, (m, _CANDIDATES, 2))
     )
     gap = np.linalg.norm(obstacle_candidates - robot_xy[:, None, None, :], axis=-1) - radius
     obstacle_xy = _first_valid(
@@ -158,6 +162,16 @@ def reset(
         episode=episodes,
         layout=layout,
     )
+
+
+def obstacle_box(config: WorldConfig, layout: NDArray[np.int64] | None) -> tuple[F64, F64]:
+    """(N or 1, 1, 2) the low and high corners of the box each world's obstacles move in: the
+    room, or the box round each world's layout (`Layouts.boxes`)."""
+    layouts = layouts_of(config.layout)
+    if layouts is None or layout is None:
+        return np.zeros((1, 1, 2)), np.full((1, 1, 2), config.arena.size_m)
+    box = layouts.boxes[layout]
+    return box[:, None, 0, :], box[:, None, 1, :]
 
 
 def targets_around(config: WorldConfig, robot_xy: F64, draw: F64) -> F64:
@@ -304,12 +318,14 @@ def step(
     pose, velocity = step_robot(
         state.pose, state.velocity, action, config.dynamics, config.control_period_s
     )
+    low, high = obstacle_box(config, state.layout)
     obstacle_xy, obstacle_velocity = move_obstacles(
         state.obstacle_xy,
         state.obstacle_velocity,
         config.obstacles.radius_m,
-        config.arena.size_m,
+        high - low,
         config.control_period_s,
+        origin_m=low,
     )
     new_state = state._replace(
         pose=pose,

@@ -58,7 +58,7 @@ from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings
 from qnav.sim.render import EpisodeRecord
 from qnav.sim.task import reward
-from qnav.sim.world import RobotPath, WorldState, observe, reset
+from qnav.sim.world import RobotPath, WorldState, observe, obstacle_box, reset
 from qnav.simcar.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
 from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
@@ -557,12 +557,14 @@ class SimCar:
 
     def _advance(self, state: WorldState) -> WorldState:
         world = self.world
+        low, high = obstacle_box(world, state.layout)
         obstacle_xy, obstacle_velocity = move_obstacles(
             state.obstacle_xy,
             state.obstacle_velocity,
             world.obstacles.radius_m,
-            world.arena.size_m,
+            high - low,
             world.control_period_s,
+            origin_m=low,
         )
         return state._replace(
             pose=np.array([self.vehicle.pose()]),
