@@ -14,7 +14,7 @@
 So one figure covers: encoding the scan, zenoh to the daemon, decoding, resampling, the
 policy's step (onnxruntime, one thread), the look ahead when one is asked for (the tracker's
 update and the forecast), the proximity stop, encoding the Twist, zenoh to the receiver. The
-daemon is pinned to one core (its numpy and onnxruntime run one thread each). With a look
+daemon's numpy and onnxruntime run one thread each; `cpu` pins it to that core. With a look
 ahead the publisher replays a drive through the simulated room (a `Drive`: the poses, targets
 and scans of a car among moving obstacles, written by `qnav bench controller`), so the tracker
 and the forecast work on what they would meet; without, one pose and random ranges. It is
@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 
 from qnav.contracts import wire
 from qnav.contracts.daemon import free_port
+from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import to_toml
 from qnav.contracts.transport import ZenohSettings, open_session
 from qnav.controller.config import ControllerSettings, DaemonConfig, SafetySettings
@@ -221,10 +222,11 @@ def run(
     *,
     lookahead: LookaheadSettings | None = None,
     drive: Path | None = None,
+    cpu: int | None = None,
 ) -> dict[str, Any]:
-    """Start the daemon (with `lookahead`, None: off), time each rate, stop the daemon; the
-    report as a dict. The publisher replays `drive` (a `Drive` file), or without one a standing
-    car's random scans."""
+    """Start the daemon (with `lookahead`, None: off; pinned to core `cpu`, None: not pinned),
+    time each rate, stop the daemon; the report as a dict. The publisher replays `drive` (a
+    `Drive` file), or without one a standing car's random scans."""
     from qnav.controller.policy import PolicyRuntime
 
     beams = PolicyRuntime(policy, backend="numpy").contract.num_beams
@@ -233,7 +235,8 @@ def run(
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     env = os.environ | _ONE_THREAD
     results = []
-    cpu = max(_cpus())
+    if cpu is not None and cpu not in _cpus():
+        raise ConfigError(f"--cpu {cpu}: this process may run on cores {sorted(_cpus())}")
     with tempfile.TemporaryDirectory() as scratch:
         config = Path(scratch) / "controller.toml"
         config.write_text(to_toml(daemon_config(policy.resolve(), endpoint, lookahead)))
@@ -244,7 +247,8 @@ def run(
             [sys.executable, "-m", "qnav", "controller", "--config", str(config)],
             env=env,
         )
-        _pin(daemon.pid, cpu)  # before it starts its threads, which inherit the core
+        if cpu is not None:
+            _pin(daemon.pid, cpu)  # before it starts its threads, which inherit the core
         receiver = Receiver(endpoint)
         try:
             _wait_for_status(receiver, daemon)
@@ -328,8 +332,9 @@ def format_report(report: dict[str, Any]) -> str:
     """A table of the rates' latencies."""
     lines = [
         f"end to end: {report['measured']}",
-        f"policy {report['policy']}, look ahead {report['lookahead']}, daemon on core "
-        f"{report['daemon_cpu']} of {report['cpus']}",
+        f"policy {report['policy']}, look ahead {report['lookahead']}, daemon "
+        + ("not pinned" if report["daemon_cpu"] is None else f"on core {report['daemon_cpu']}")
+        + f" of {report['cpus']}",
         f"{'rate Hz':>8} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'commands':>9}   "
         "p50 / p99 ms of: in (publisher -> daemon), daemon, out (daemon -> receiver)",
     ]

@@ -880,6 +880,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     stack.add_argument(
         "--keys",
+    bench_controller.add_argument(
+        "--cpu", type=int, metavar="N", help="pin the daemon to core N (default: not pinned)"
+    )
         type=Path,
         metavar="DIR",
         help="with --serve-folder: the key pair `qnav keys DIR` made (the server signs with its "

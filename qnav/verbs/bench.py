@@ -125,7 +125,7 @@ def bench_controller(args: argparse.Namespace) -> int:
             steps = max(round((args.seconds + 2) * rate) for rate in rates)
             drive = Path(scratch) / "drive.npz"
             bench_drive(world, steps).save(drive)
-        report = run(policy, rates, args.seconds, lookahead=lookahead, drive=drive)
+        report = run(policy, rates, args.seconds, lookahead=lookahead, drive=drive, cpu=args.cpu)
         if args.policy is None:
             report["policy"] = f"{PAPER_SIZED}, {args.weights} weights"
     print(json.dumps(report) if args.json else format_report(report))
