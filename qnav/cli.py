@@ -880,9 +880,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     stack.add_argument(
         "--keys",
-    bench_controller.add_argument(
-        "--cpu", type=int, metavar="N", help="pin the daemon to core N (default: not pinned)"
-    )
         type=Path,
         metavar="DIR",
         help="with --serve-folder: the key pair `qnav keys DIR` made (the server signs with its "
@@ -1000,6 +997,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--seconds", type=float, default=30.0, help="timed seconds per rate (30)"
     )
     _lookahead_option(bench_controller, "in the daemon, on a drive through the simulated room: ")
+    bench_controller.add_argument(
+        "--cpu", type=int, metavar="N", help="pin the daemon to core N (default: not pinned)"
+    )
     _flag(bench_controller, "--json", "print one JSON object")
     bench_cluster = _verb(
         benches,
