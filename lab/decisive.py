@@ -142,19 +142,24 @@ def save_with_world(path: Path, fields: dict[str, Any]) -> None:
     """Write arrays by name, one of them (`world`) a `WorldState`, to an .npz file atomically: a
     run killed while writing leaves the old file or the new one, never half of one."""
     arrays = {name: value for name, value in fields.items() if name != "world"}
-    arrays.update({f"world_{name}": value for name, value in fields["world"]._asdict().items()})
+    world = fields["world"]._asdict().items()
+    arrays.update({f"world_{name}": value for name, value in world if value is not None})
     partial = path.with_suffix(".partial.npz")
     np.savez_compressed(partial, **arrays)
     partial.replace(path)
 
 
 def load_with_world(path: Path) -> dict[str, Any]:
-    """The arrays `save_with_world` wrote, by name, `world` a `WorldState` again."""
+    """The arrays `save_with_world` wrote, by name, `world` a `WorldState` again (a field it
+    left out, being None, None again)."""
     with np.load(path) as data:
         fields: dict[str, Any] = {
             name: data[name] for name in data.files if not name.startswith("world_")
         }
-        fields["world"] = WorldState(*(data[f"world_{name}"] for name in WorldState._fields))
+        world = {
+            name[len("world_") :]: data[name] for name in data.files if name.startswith("world_")
+        }
+        fields["world"] = WorldState(**world)
     return fields
 
 
@@ -185,9 +190,10 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
     )
 
 
-_FORMAT = "4"
+_FORMAT = "5"
 """Version of the cached file's layout (2: collision shares and world states kept; 3: the
-obstacles' windows; 4: the action taken)."""
+obstacles' windows; 4: the action taken; 5: a world state's None fields left out, which 4 wrote
+as arrays it could not read back)."""
 
 
 def cache_dir() -> Path:
