@@ -59,7 +59,6 @@ from numpy.typing import NDArray
 from qnav.contracts import delivery, wire
 from qnav.contracts.actions import Action
 from qnav.contracts.errors import PolicyFileError, PolicyInputError
-from qnav.contracts.judge_file import judged_actions
 from qnav.contracts.lookahead import shielded_actions
 from qnav.contracts.observation import target_features_of
 from qnav.contracts.wire import STOP, Pose2D, Scan, Twist2D, WireError
@@ -142,7 +141,7 @@ class Counters:
     policy_swaps: int = 0
     """Policies swapped in while running (`Controller.swap_policy`)."""
     overruled: int = 0
-    """Policy decisions the look ahead changed (`lookahead.mode` shield, plan or judge)."""
+    """Policy decisions the look ahead changed (`lookahead.mode` shield or plan)."""
     proximity: int = 0
     """Decisions the proximity stop changed (to a safe turn, or a stop)."""
 
@@ -195,8 +194,7 @@ class Status:
     """Version of the policy that decides (or would decide): `Controller.policy_version`."""
     risks: tuple[float, ...] | None = None
     """With `lookahead.mode = "shield"`: each action's share of forecast continuations
-    that collide; with "judge": 1 - the doom judge's P(safe); indexed by action (None
-    otherwise, or when stopped by a rule)."""
+    that collide, indexed by action (None otherwise, or when stopped by a rule)."""
 
     def to_dict(self) -> dict[str, Any]:
         """As one JSON object (the status message)."""
@@ -552,13 +550,6 @@ class Controller:
         mode = self.lookahead_settings.mode
         if mode == "plan":
             return Action(self.lookahead.plan(target_xy)), None
-        if mode == "judge":
-            assert self.lookahead.judge is not None  # built with mode judge
-            safe = self.lookahead.safety(target_xy)
-            threshold = self.lookahead.judge.contract.threshold
-            preferred = np.array([int(chosen)])
-            action = Action(int(judged_actions(preferred, safe[None], threshold)[0]))
-            return action, tuple((1.0 - safe).tolist())
         shares = self.lookahead.risks(target_xy)
         overrule_share = self.lookahead_settings.overrule_share
         safest = shielded_actions(q_values[None], shares[None], overrule_share)
@@ -687,21 +678,15 @@ class Controller:
                 "without a lidar)"
             )
         dynamics, robot_radius_m = contract.motion_model(str(runtime.path))
-        lookahead = Lookahead(
+        return Lookahead(
             self.lookahead_settings,
             tracker,
             dynamics=dynamics,
             robot_radius_m=robot_radius_m,
             control_period_s=contract.control_period_s,
             beam_angles_rad=beam_angles(contract.num_beams),
-            judge_backend=runtime.backend_name,
             max_scan_gap_s=self.scan_timeout_s,
         )
-        if lookahead.judge is not None:
-            lookahead.judge.check_fits(
-                contract.dynamics, contract.control_period_s, f"{runtime.path} drives"
-            )
-        return lookahead
 
     def _stop(self, now: float, reason: Reason, send: CommandSink | None) -> Output:
         self._restart_window()

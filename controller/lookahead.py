@@ -17,10 +17,6 @@ simulator's oracle plans with) do. Each decision:
    `plan_horizon_s` (the simulator's oracle planner, on the perceived state), whatever the
    policy's values.
 
-In "judge" mode steps 3-4 are learned instead: a doom judge file (`controller.judge`) gives each
-action's P(safe) from the same perceived state, and the policy's action is kept unless judged
-doomed (`contracts.judge_file.judged_actions`).
-
 `Lookahead` holds one car's state; the controller (`controller.decision`) calls it, and the
 simulator's in-process evaluation runs the same class (`qnav.tracking.LookaheadAgent`). Step 1
 runs on every scan, decision or not: a car waiting at rest keeps tracking, so its first
@@ -33,7 +29,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -41,7 +36,6 @@ from numpy.typing import NDArray
 
 from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.judge_file import encoded_surroundings, judge_inputs
 from qnav.contracts.lookahead import (
     LookaheadModel,
     best_first_actions,
@@ -51,7 +45,6 @@ from qnav.contracts.lookahead import (
 )
 from qnav.contracts.motion import Dynamics, InertiaDynamics
 from qnav.contracts.settings import check_range
-from qnav.controller.judge import DoomJudge
 from qnav.controller.perception import (
     ObstacleTracker,
     TrackerSettings,
@@ -59,7 +52,6 @@ from qnav.controller.perception import (
     box_walls,
     own_velocity,
 )
-from qnav.controller.policy import Backend
 
 F64 = NDArray[np.float64]
 
@@ -70,16 +62,12 @@ class LookaheadSettings:
 
     SECTION = "lookahead"
 
-    mode: Literal["off", "shield", "plan", "judge"] = "shield"
+    mode: Literal["off", "shield", "plan"] = "shield"
     """"off": the policy decides alone (a lidar-less policy needs it). "shield": the policy's
     best-valued action, unless at least `overrule_share` of the continuations after it collide:
     then its best-valued among the least likely to collide. "plan": the first action of the
     best-scoring candidate sequence (reach the target early, collide late or never, else end
-    near the target and clear of surfaces), the policy's values reported but not used. "judge":
-    the policy's action unless `judge_file` judges it doomed, then the action it judges safest
-    (learned, no forecast)."""
-    judge_file: str = ""
-    """With mode "judge": the doom judge file (`qnav lab label FOLDER ... --export FILE`)."""
+    near the target and clear of surfaces), the policy's values reported but not used."""
     room_size_m: float = 0.0
     """Side of the square room [0, size]^2 in the motion-capture frame: its walls are known (a
     lidar return on them is not an obstacle, and obstacles bounce off them). 0: not set, and a
@@ -104,13 +92,8 @@ class LookaheadSettings:
     or the scans broke off)."""
 
     def __post_init__(self) -> None:
-        if self.mode not in ("off", "shield", "plan", "judge"):
-            raise ConfigError(f"lookahead.mode = {self.mode!r}: choose off, shield, plan or judge")
-        if (self.mode == "judge") != bool(self.judge_file):
-            raise ConfigError(
-                f"lookahead.judge_file = {self.judge_file!r} with lookahead.mode = {self.mode!r}: "
-                "mode judge needs a doom judge file, and only it reads one"
-            )
+        if self.mode not in ("off", "shield", "plan"):
+            raise ConfigError(f"lookahead.mode = {self.mode!r}: choose off, shield or plan")
         check_range(self, "room_size_m", self.room_size_m, 0.0, 1000.0)
         check_range(self, "shield_horizon_s", self.shield_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "plan_horizon_s", self.plan_horizon_s, 0.0, 60.0, exclusive_low=True)
@@ -150,7 +133,6 @@ class Lookahead:
         robot_radius_m: float,
         control_period_s: float,
         beam_angles_rad: F64,
-        judge_backend: Backend = "onnxruntime",
         max_scan_gap_s: float = math.inf,
     ) -> None:
         self.settings = settings
@@ -182,9 +164,6 @@ class Lookahead:
         )
         self.horizon = max(1, round(horizon_s / control_period_s))
         """Control periods each candidate sequence runs."""
-        judging = settings.mode == "judge"
-        self.judge = DoomJudge(Path(settings.judge_file), judge_backend) if judging else None
-        """The doom judge of mode "judge" (else None)."""
         self.restart()
 
     def restart(self) -> None:
@@ -260,10 +239,6 @@ class Lookahead:
         """(A,) each first action's share of colliding continuations within the horizon."""
         return np.asarray(risks_of([self], [target_xy])[0])
 
-    def safety(self, target_xy: F64) -> F64:
-        """(A,) the doom judge's P(safe) of each action (mode "judge")."""
-        return np.asarray(safeties_of([self], [target_xy])[0])
-
 
 def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
     """(N, A) `Lookahead.risks` of several cars at once (one forecast over all of them; their
@@ -272,46 +247,6 @@ def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
         return np.zeros((0, NUM_ACTIONS))
     tails = np.concatenate([car.continuations() for car in lookaheads])
     return collision_shares(lookaheads[0].model, beliefs_of(lookaheads, targets_xy), tails)
-
-
-def safeties_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
-    """(N, A) `Lookahead.safety` of several cars at once (one call of the first car's judge)."""
-    if not lookaheads:
-        return np.zeros((0, NUM_ACTIONS))
-    judge = lookaheads[0].judge
-    if judge is None:
-        raise ConfigError("the doom judge's P(safe) needs lookahead.mode = 'judge'")
-    return judged_safety(
-        judge, [car.belief(t) for car, t in zip(lookaheads, targets_xy, strict=True)]
-    )
-
-
-def judged_safety(judge: DoomJudge, beliefs: list[Belief]) -> F64:
-    """(N, A) the judge's P(safe) of each action in each car's belief."""
-    return judge.safe_probability(*beliefs_inputs(beliefs, judge.contract.max_range_m))
-
-
-def beliefs_inputs(
-    beliefs: list[Belief], max_range_m: float
-) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """A doom judge's (context, obstacles) inputs of several cars' beliefs, one car at a time:
-    stacking pads beliefs with far obstacles, which the judge would see as occupied slots where a
-    car with fewer tracks has empty ones."""
-    parts = [
-        judge_inputs(
-            belief.velocity,
-            *encoded_surroundings(
-                belief.pose,
-                belief.target_xy,
-                belief.obstacle_xy,
-                belief.obstacle_velocity,
-                max_range_m,
-            ),
-        )
-        for belief in beliefs
-    ]
-    context, obstacles = (np.concatenate(part) for part in zip(*parts, strict=True))
-    return context, obstacles
 
 
 def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:

@@ -68,7 +68,7 @@ class GaugeSettings:
     """Frames per window (the paper's k)."""
     ordinary_share: float = 0.0
     """Share of the other states (every action safe, or every one doomed) kept as well, drawn
-    from the seed: the gauge keeps none; a set to train on doom labels (`qnav lab probe`) some."""
+    from the seed: the gauge keeps none."""
 
     def __post_init__(self) -> None:
         check_range(self, "episodes_per_driver", self.episodes_per_driver, 1, 10**7)
@@ -80,7 +80,7 @@ class GaugeSettings:
 
 DRIVERS = ("planner", "go-to-target", "a run's stored path")
 """Who drove the episodes a state comes from, by `DecisiveStates.driver` index (the last:
-a training run's own episodes, among re-drawn obstacles, `lab.redrawn`)."""
+a training run's own episodes among re-drawn obstacles, drawn by the retired `lab.redrawn`)."""
 
 
 class DecisiveStates(NamedTuple):

@@ -136,13 +136,6 @@ def collision_shares(
     return lookahead.collision_shares(lookahead_model(config), state, tails)
 
 
-def doom_label_safety(collide_share: NDArray[np.floating]) -> NDArray[np.float64]:
-    """(N, A) a P(safe) that judges exactly by the doom labels of the planner's collision shares
-    (N, A), for `contracts.judge_file.judged_actions` at threshold 1/2: above 1/2 exactly where
-    an action is not doomed, and where the preferred one is, the least colliding is safest."""
-    return np.asarray(1.0 - np.asarray(collide_share, dtype=np.float64) / 2)
-
-
 class StateError(NamedTuple):
     """How far from the true state a perceiver's estimate is: the spread (one standard
     deviation, per axis) of zero-mean Gaussian errors."""
@@ -177,7 +170,7 @@ PERCEIVED = (
     "robot_speed_mps",
     "robot_turn_radps",
 )
-"""What a perceiver is judged on (`qnav lab probe --perception`, `qnav lab probe --tracker`): the
+"""What a perceiver is judged on (the onboard tracker, `lab.tracking`): the
 nearest obstacle's position and velocity in the robot's frame, and the robot's own speed and
 turn rate (hidden under inertia)."""
 

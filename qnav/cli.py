@@ -47,7 +47,6 @@ VERB_EXTRAS = {
     "bench learner": ("train",),
     "bench cluster": ("train", "cluster"),
     "lab diagnose": ("train",),
-    "lab probe": ("train",),
     "lab imitate": ("train",),
 }
 """The verbs that cannot run without an extra: `qnav --help` marks them where it is missing, and
@@ -226,20 +225,12 @@ def _with_listing(parser: _Parser, target: str, intro: str) -> None:
 def _lookahead_option(parser: argparse.ArgumentParser, where: str) -> None:
     parser.add_argument(
         "--lookahead",
-        choices=["off", "shield", "plan", "judge"],
+        choices=["off", "shield", "plan"],
         default="off",
         help=f"{where}the controller's look ahead (lookahead.mode): the obstacle tracker feeds "
         "a forecast; shield keeps the policy's action unless 0.3 of its continuations collide "
         "within 6 s, then takes its best-valued among the least likely to collide; plan takes "
-        "the planner's (10 s ahead); judge keeps the policy's "
-        "action unless the doom judge file (--judge) finds it doomed",
-    )
-    parser.add_argument(
-        "--judge",
-        type=Path,
-        metavar="FILE.onnx",
-        help="with --lookahead judge: the doom judge file (lookahead.judge_file; "
-        "`qnav lab label FOLDER ... --export FILE`)",
+        "the planner's (10 s ahead)",
     )
 
 
@@ -253,7 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     lab = verbs.add_parser(
         "lab",
-        help="the research tools of lab/: calibrate, diagnose, gauge, probe, imitate "
+        help="the research tools of lab/: calibrate, diagnose, gauge, imitate "
         "(`qnav lab TOOL --help`)",
     )
     tools = lab.add_subparsers(dest="tool", metavar="TOOL", required=True, parser_class=_Parser)
@@ -481,108 +472,6 @@ def build_parser() -> argparse.ArgumentParser:
         "also score the best choice under each perception error (is doom learnable?)",
     )
     _flag(gauge, "--json", "print one JSON object per line")
-
-    audit = _verb(
-        tools,
-        "qnav.verbs.lab:audit",
-        "audit",
-        help="what judging doom gives a run's policy: alone, judged by the exact doom labels, "
-        "shielded by the exact collision shares, by the controller's forecast and by a judge "
-        "file, each with the decisive states it drove into and how often it took a safe action",
-    )
-    audit.add_argument("run", type=Path, help="training run folder of an obstacle scenario")
-    audit.add_argument(
-        "--judge",
-        type=Path,
-        metavar="FILE",
-        help="also a doom judge file (`qnav lab label --export`)",
-    )
-    audit.add_argument("--episodes", type=int, default=500, help="episodes per judgement (500)")
-    audit.add_argument(
-        "--judgements",
-        help="comma-separated, of alone, doom labels, collision shares, forecast (default: all; "
-        "`--judgements alone`: the policy's own exposure to decisive states, in a fifth of the "
-        "time)",
-    )
-    audit.add_argument(
-        "--seed", type=int, default=12345, help="layouts' seed (12345: the test protocol's)"
-    )
-    _flag(audit, "--json", "print one JSON object per judgement")
-
-    probe = _verb(
-        tools,
-        "qnav.verbs.lab:probe",
-        "probe",
-        help="perception ceiling: the Q-network fitted to the planner's doom labels, on the gauge",
-    )
-    _world_options(probe, "obstacles-inertia")
-    _repeated(
-        probe,
-        "--probe-set",
-        "probe_assignments",
-        "probe.FIELD=VALUE",
-        "change one probe setting, e.g. probe.epochs=20 or, with --perception, "
-        "perception.epochs=20 (repeatable; `qnav lab probe [--perception] --print-config` lists "
-        "them)",
-    )
-    _flag(
-        probe,
-        "--perception",
-        "instead: can the network's encoder and LSTM locate the nearest obstacle and its "
-        "velocity in a window? (median errors per pass)",
-    )
-    _flag(
-        probe,
-        "--tracker",
-        "instead: the onboard obstacle tracker's errors on the perception probe's drive "
-        "(settings tracker.FIELD and tracker_check.FIELD)",
-    )
-    add_print_config(probe)
-    _flag(probe, "--json", "print one JSON object per epoch")
-
-    label = _verb(
-        tools,
-        "qnav.verbs.lab:label",
-        "label",
-        help="doom labels spent where the fitted network doubts, in rounds kept in a folder "
-        "(rerun to resume or add rounds)",
-    )
-    label.add_argument(
-        "folder",
-        type=Path,
-        nargs="?",
-        help="folder of the rounds (made, or resumed where it holds some)",
-    )
-    label.add_argument(
-        "--rounds", type=int, default=4, help="doubt-led rounds the folder should hold (4)"
-    )
-    _world_options(label, "obstacles-inertia")
-    _repeated(
-        label,
-        "--probe-set",
-        "probe_assignments",
-        "SECTION.FIELD=VALUE",
-        "change one setting of the fit (probe.FIELD), of the rounds (doubt.FIELD) or of the "
-        "held-out decisive states (gauge.FIELD), e.g. doubt.episodes_per_round=3000 "
-        "(repeatable; `--print-config` lists them)",
-    )
-    label.add_argument(
-        "--test-episodes",
-        type=int,
-        default=0,
-        help="then test the latest fit as a shield: its threshold chosen on this many validation "
-        "episodes, then as many test-protocol episodes from the truth and from the onboard "
-        "tracker's estimate (0: not)",
-    )
-    label.add_argument(
-        "--export",
-        type=Path,
-        metavar="FILE.onnx",
-        help="with --test-episodes: write the latest fit as a doom judge file at the chosen "
-        "threshold, for the controller's lookahead.mode = judge",
-    )
-    add_print_config(label)
-    _flag(label, "--json", "print one JSON object per round")
 
     imitate = _verb(
         tools,
@@ -976,12 +865,6 @@ def build_parser() -> argparse.ArgumentParser:
         default=20,
         help="cars driven side by side, each timed alone and all forecast at once (20)",
     )
-    bench_lookahead.add_argument(
-        "--judge",
-        type=Path,
-        metavar="FILE.onnx",
-        help="also time a doom judge file's judgement (lookahead.mode = judge) of each belief",
-    )
     _flag(bench_lookahead, "--json", "print one JSON object")
     bench_controller = _verb(
         benches,
@@ -1256,7 +1139,7 @@ ZENOH_DAEMONS = frozenset(
 
 
 def verb_of(args: argparse.Namespace) -> str:
-    """The verb as typed: `train`, `lab probe`, `bench learner`."""
+    """The verb as typed: `train`, `lab gauge`, `bench learner`."""
     sub = getattr(args, "tool", None) or getattr(args, "bench", None)
     return f"{args.verb} {sub}" if sub else str(args.verb)
 

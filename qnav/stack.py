@@ -435,7 +435,7 @@ def stack_verb(args: argparse.Namespace) -> int:
 
     if not args.policy.is_file():
         raise ConfigError(f"--policy {args.policy} does not exist")
-    lookahead = None if args.lookahead == "off" else lookahead_settings(args.lookahead, args.judge)
+    lookahead = None if args.lookahead == "off" else lookahead_settings(args.lookahead)
     serve = None
     if args.serve_folder is not None or args.keys is not None:
         if args.serve_folder is None or args.keys is None:
@@ -589,16 +589,12 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
 
 
 def _lookahead_tables(lookahead: LookaheadSettings | None, room_size_m: float) -> dict[str, Any]:
-    """The controller's [lookahead] and [proximity] tables: `lookahead` in the stack's room, a
-    judge file by its absolute path (the daemon runs elsewhere), and the default proximity stop,
-    as the in-process agent runs them (`file_agent`); None: the policy alone (the look ahead
-    off, the proximity stop off)."""
+    """The controller's [lookahead] and [proximity] tables: `lookahead` in the stack's room, and
+    the default proximity stop, as the in-process agent runs them (`file_agent`); None: the
+    policy alone (the look ahead off, the proximity stop off)."""
     if lookahead is None:
         return {"lookahead": {"mode": "off"}, "proximity": {"enabled": False}}
-    values: dict[str, Any] = {"mode": lookahead.mode, "room_size_m": room_size_m}
-    if lookahead.judge_file:
-        values["judge_file"] = str(Path(lookahead.judge_file).resolve())
-    return {"lookahead": values}
+    return {"lookahead": {"mode": lookahead.mode, "room_size_m": room_size_m}}
 
 
 def in_process_outcomes(

@@ -10,26 +10,16 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.errors import ConfigError
-from qnav.contracts.judge_file import judged_actions
 from qnav.contracts.lookahead import shielded_actions
 from qnav.contracts.motion import action_velocities
 from qnav.contracts.observation import LidarSpec
-from qnav.controller.judge import DoomJudge
-from qnav.controller.lookahead import (
-    Lookahead,
-    LookaheadSettings,
-    judged_safety,
-    plans_of,
-    risks_of,
-    safeties_of,
-)
+from qnav.controller.lookahead import Lookahead, LookaheadSettings, plans_of, risks_of
 from qnav.controller.perception import TrackerSettings
 from qnav.controller.proximity import (
     ProximitySettings,
@@ -74,13 +64,9 @@ def noisy(
     return (scans_m + random.normal(0.0, sigma_m, scans_m.shape)).astype(np.float32)
 
 
-def lookahead_settings(mode: str, judge: Path | None) -> LookaheadSettings:
-    """The look ahead of `--lookahead MODE [--judge FILE]` (ConfigError naming the option)."""
-    if judge is not None and mode != "judge":
-        raise ConfigError(f"--judge {judge} is read only with --lookahead judge")
-    if mode == "judge" and judge is None:
-        raise ConfigError("--lookahead judge needs --judge FILE.onnx, a doom judge file")
-    return LookaheadSettings(mode=mode, judge_file=str(judge or ""))  # type: ignore[arg-type]
+def lookahead_settings(mode: str) -> LookaheadSettings:
+    """The look ahead of `--lookahead MODE`."""
+    return LookaheadSettings(mode=mode)  # type: ignore[arg-type]
 
 
 class QAgent(Protocol):
@@ -98,9 +84,7 @@ class LookaheadAgent:
     as each car runs it), in `lookahead.mode`: "shield", each action's share of colliding
     continuations is forecast from the tracker's obstacles and the room's walls and the policy's
     best-valued action stands unless it is too risky (`lookahead.overrule_share`), then its
-    best-valued among the safest; "plan", the planner on that state decides;
-    "judge", the doom judge file judges each action from that state and the policy's action is
-    kept unless judged doomed (the inner agent then needs no Q values: go-to-target will do).
+    best-valued among the safest; "plan", the planner on that state decides.
     With `proximity`, the controller's proximity stop then forbids motion into its safety field
     (`controller.proximity`), as the daemon applies it; the simulator has no stop, so where the
     field forbids every action (something inside the footprint: with the default footprint,
@@ -126,11 +110,6 @@ class LookaheadAgent:
         if self.settings.mode == "off":
             raise ConfigError("lookahead.mode = 'off': nothing to run beside the policy")
         self.cars = [world_lookahead(world, lookahead, tracker) for _ in range(num_worlds)]
-        judge = self.cars[0].judge if self.cars else None
-        if judge is not None:
-            judge.check_fits(
-                world.dynamics.kind, world.control_period_s, f"scenario {world.name!r} has"
-            )
         self.range_noise_m = range_noise_m
         self._noise = np.random.default_rng([seed, 31])
         self.steps = np.zeros(num_worlds, dtype=np.int64)
@@ -172,10 +151,6 @@ class LookaheadAgent:
         shares = None
         if self.settings.mode == "plan":
             action = plans_of(self.cars, targets)
-        elif self.settings.mode == "judge":
-            assert self.cars[0].judge is not None  # built with mode judge
-            safe = safeties_of(self.cars, targets)
-            action = judged_actions(chosen, safe, self.cars[0].judge.contract.threshold)
         else:
             shares = risks_of(self.cars, targets)
             action = shielded_actions(self.inner.last_q, shares, self.settings.overrule_share)
@@ -220,12 +195,10 @@ def time_lookahead(
     decisions: int = 2000,
     seed: int = 1005,
     worlds: int = 20,
-    judge: Path | None = None,
 ) -> dict[str, float]:
     """Wall time of the controller's look ahead per decision, one car at a time as the daemon
-    runs it: the tracker's update, the shield's forecast and the plan (and with a doom `judge`
-    file, its judgement of the shield's belief), on the perception probe's drive (go-to-target
-    with held random actions) of `worlds` cars; median and 99th percentile, milliseconds. Also
+    runs it: the tracker's update, the shield's forecast and the plan, on a drive of go-to-target
+    with held random actions by `worlds` cars; median and 99th percentile, milliseconds. Also
     the shield's forecast of all the cars at once, per car ("shield_batched"): what the lab's
     evaluations and labels pay per state."""
     tracker = TrackerSettings(obstacle_radius_m=world.obstacles.radius_m)
@@ -234,13 +207,10 @@ def time_lookahead(
         return world_lookahead(world, LookaheadSettings(mode=mode), tracker)
 
     pairs = [(car("shield"), car("plan")) for _ in range(worlds)]
-    judging = None if judge is None else DoomJudge(judge)
     batched = BatchedWorld(world, worlds, seed=seed)
     observation = batched.reset(seed)
     driver = WanderingGoToTarget(worlds, 0.3, seed)
     times: dict[str, list[float]] = {"track": [], "shield": [], "plan": [], "shield_batched": []}
-    if judging is not None:
-        times["judge"] = []
     while len(times["plan"]) < decisions:
         assert observation.scan_m is not None
         steps = batched.state.steps
@@ -256,10 +226,6 @@ def time_lookahead(
             tracked = time.perf_counter()
             shield.risks(target)
             shielded = time.perf_counter()
-            if judging is not None:  # from the shield's belief: the tracker is timed once
-                judged_safety(judging, [shield.belief(target)])
-                times["judge"].append(time.perf_counter() - shielded)
-                shielded = time.perf_counter()
             planner.observe(now, pose, now, scan)
             observed = time.perf_counter()
             planner.plan(target)

@@ -45,8 +45,6 @@ POLICY = Path(__file__).parent / "data" / "stack" / "policy.onnx"
 # 0.620 under the test protocol's 200 episodes, 0.500 on the first 50). It dodges badly; what
 # matters here is that the stack does what it does in process, among moving obstacles.
 OBSTACLES_POLICY = Path(__file__).parent / "data" / "stack" / "obstacles-inertia.onnx"
-OBSTACLES_JUDGE = Path(__file__).parent / "data" / "stack" / "obstacles-inertia-judge.onnx"
-"""A doom judge for obstacles-inertia (docs/controller.md, "The learned doom judge")."""
 EPISODES = 50
 
 
@@ -164,17 +162,6 @@ def test_with_a_10_hz_lidar_the_full_stack_dodges_as_the_same_lidar_does_in_proc
     # lidar.
     stack = _dodging(tmp_path / "stack", "--lookahead", "shield", "--lidar-turn-s", "0.1")
     assert stack["lidar_turn_s"] == 0.1
-
-
-@pytest.mark.stack
-@pytest.mark.timeout(1500)
-def test_with_a_learned_doom_judge_the_full_stack_dodges_as_the_judge_does_in_process(
-    tmp_path: Path,
-) -> None:
-    # The controller daemon asks a doom judge file (lookahead.mode = "judge", fitted to the
-    # planner's labels of a DQN run's own 600 episodes) from the tracker's obstacles; in process,
-    # `qnav eval --lookahead judge` asks the same file per world.
-    _dodging(tmp_path / "stack", "--lookahead", "judge", "--judge", str(OBSTACLES_JUDGE))
 
 
 def test_the_stack_on_sitl_needs_a_binary_and_a_loopback_only_namespace(tmp_path: Path) -> None:

@@ -205,7 +205,7 @@ def quiet_export(
 
 
 class HasMetadata(Protocol):
-    """A file's contract (`PolicyContract`, `contracts.judge_file.JudgeContract`)."""
+    """A file's contract (`PolicyContract`)."""
 
     def to_metadata(self) -> dict[str, str]: ...
 

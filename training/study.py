@@ -510,15 +510,6 @@ class BeyondThePaper(NamedTuple):
 
 BEYOND_THE_PAPER = (
     BeyondThePaper(
-        "judged",
-        "--lookahead judge --judge FILE",
-        "each run's DQN acting where its own doom judge file (FILE from `qnav lab label ... "
-        "--probe-set probe.redrawn_from=RUN --export FILE`), fitted to the planner's labels at "
-        "the run's own 600 episodes, keeps its action, and the judge's choice where it judges the "
-        "action doomed; on the onboard tracker, over the test protocol's layouts (learned; "
-        "docs/learner.md, 'The doom judge on the car')",
-    ),
-    BeyondThePaper(
         "shielded",
         "--lookahead shield",
         "each run's DQN shielded by the controller's look ahead: its greedy action unless at "

@@ -57,12 +57,12 @@ def bench_lookahead(args: argparse.Namespace) -> int:
     world = load_world(args.scenario, args.world_config, args.assignments)
     if args.cars < 1:
         raise ConfigError(f"--cars = {args.cars}: drive at least one car")
-    report = time_lookahead(world, args.decisions, worlds=args.cars, judge=args.judge)
+    report = time_lookahead(world, args.decisions, worlds=args.cars)
     if args.json:
         print(json.dumps(report))
         return 0
     print(f"{world.name}, {report['decisions']:.0f} decisions, one car at a time (ms):")
-    for name in ("track", "shield", "plan", *(["judge"] if args.judge else [])):
+    for name in ("track", "shield", "plan"):
         print(
             f"  {name:<7} p50 {report[name + '_ms_p50']:6.1f}  p99 {report[name + '_ms_p99']:6.1f}"
         )
@@ -120,7 +120,7 @@ def bench_controller(args: argparse.Namespace) -> int:
         lookahead, drive = None, None
         if args.lookahead != "off":
             world = scenario(PolicyRuntime(policy, backend="numpy").contract.scenario)
-            settings = lookahead_settings(args.lookahead, args.judge)
+            settings = lookahead_settings(args.lookahead)
             lookahead = replace(settings, room_size_m=world.arena.size_m)
             steps = max(round((args.seconds + 2) * rate) for rate in rates)
             drive = Path(scratch) / "drive.npz"

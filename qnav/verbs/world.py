@@ -127,11 +127,9 @@ def evaluate(args: argparse.Namespace) -> int:
     if args.state_error and args.tracker:
         raise ConfigError("--state-error and --tracker are two views of the state: choose one")
     looking = args.lookahead != "off"
-    judged_goto = args.lookahead == "judge" and args.policy is None and args.agent == "goto"
-    if looking and not judged_goto and (args.policy is None or args.random_action_prob):
+    if looking and (args.policy is None or args.random_action_prob):
         raise ConfigError(
-            "--lookahead runs beside a greedy policy: give --policy, no random actions (or "
-            "--agent goto with --lookahead judge)"
+            "--lookahead runs beside a greedy policy: give --policy, no random actions"
         )
     if args.range_noise_m and not (args.tracker or looking):
         raise ConfigError(
@@ -147,17 +145,15 @@ def evaluate(args: argparse.Namespace) -> int:
         from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
 
         shield = agent = LookaheadAgent(
-            cast(QAgent, agent),  # a StreamPolicyAgent, a TorchAgent, or go-to-target (judge)
+            cast(QAgent, agent),  # a StreamPolicyAgent or a TorchAgent
             world,
             worlds,
             tracker=TrackerSettings(),
-            lookahead=lookahead_settings(args.lookahead, args.judge),
+            lookahead=lookahead_settings(args.lookahead),
             range_noise_m=args.range_noise_m,
             seed=seed,
         )
         label += f", the controller's look ahead in {args.lookahead} mode"
-        if args.judge:
-            label += f" ({args.judge})"
     if args.random_action_prob:
         label += f" with {args.random_action_prob:.0%} random actions"
     if planner and args.tracker:

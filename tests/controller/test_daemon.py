@@ -327,23 +327,20 @@ def test_the_scan_triggered_daemon_stops_the_car_when_scans_stop_coming(
         listener.session.close()
 
 
-def test_the_daemon_with_a_doom_judge_reports_each_actions_judged_risk(
+def test_the_daemon_with_the_shield_on_the_numpy_backend_reports_each_actions_risk(
     tmp_path: Path,
     endpoint: str,
     make_policy: PolicyFactory,
-    make_judge: Callable[[str], Path],
     processes: list[subprocess.Popen[str]],
 ) -> None:
-    """`lookahead.mode = "judge"` on the numpy backend (a board without onnxruntime): every
-    policy decision carries the judge's risks, and the daemon still stops on SIGTERM."""
+    """`lookahead.mode = "shield"` on the numpy backend (a board without onnxruntime): every
+    policy decision carries the forecast's risks, and the daemon still stops on SIGTERM."""
     config = DaemonConfig(
         controller=ControllerSettings(
             policy=str(make_policy("obstacles-inertia")), trigger="scan", backend="numpy"
         ),
         zenoh=ZenohSettings(listen=(endpoint,), connect=()),
-        lookahead=LookaheadSettings(
-            mode="judge", judge_file=str(make_judge("obstacles-inertia")), room_size_m=10.0
-        ),
+        lookahead=LookaheadSettings(mode="shield", room_size_m=10.0),
     )
     daemon = start_daemon(tmp_path, config, processes)
     listener = Listener(endpoint)

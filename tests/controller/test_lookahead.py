@@ -83,19 +83,15 @@ def test_the_shield_refuses_a_policy_file_without_a_motion_model_naming_the_fix(
     Controller(runtime)  # without the shield the file runs as before
 
 
-@pytest.mark.parametrize("mode", ["shield", "judge"])
-def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes(
-    mode: str, make_judge: Callable[[str], Path]
-) -> None:
+def test_the_controller_takes_the_in_process_shields_actions_over_whole_episodes() -> None:
     # The daemon's decision step, fed the simulator's own messages stamped with its clock, and
-    # `qnav eval --lookahead MODE` on one stream: the same look ahead, the same actions, step
-    # by step (the forecast's shield, or a doom judge file's).
+    # `qnav eval --lookahead shield` on one stream: the same look ahead, the same actions, step
+    # by step.
     from qnav.tracking import LookaheadAgent
 
     world = scenario("obstacles-inertia")
     assert world.lidar is not None
-    judge = str(make_judge(world.name)) if mode == "judge" else ""
-    settings = LookaheadSettings(mode=mode, room_size_m=world.arena.size_m, judge_file=judge)  # type: ignore[arg-type]
+    settings = LookaheadSettings(mode="shield", room_size_m=world.arena.size_m)
     period, test = world.control_period_s, EvalSettings()
     overruled = 0
     # One controller for all episodes, stamped as the lockstep stack stamps them (episode i at

@@ -168,29 +168,22 @@ def test_each_method_beyond_the_paper_gets_its_own_row_and_goal_beside_the_paper
 ) -> None:
     spec = RunSpec("obstacles-inertia", "recurrent", 0)
     (tmp_path / f"{spec.name}.json").write_text(json.dumps(_result(spec, 0.66)))
-    for method, successes in (("judged", (0.80, 0.82)), ("shielded", (0.87, 0.89, 0.88))):
-        (tmp_path / method).mkdir()
-        for seed, success in enumerate(successes):
-            path = tmp_path / method / f"obstacles-inertia-recurrent-seed{seed}.json"
-            path.write_text(json.dumps(_fractions(success, 1000)))
+    (tmp_path / "shielded").mkdir()
+    for seed, success in enumerate((0.87, 0.89, 0.88)):
+        path = tmp_path / "shielded" / f"obstacles-inertia-recurrent-seed{seed}.json"
+        path.write_text(json.dumps(_fractions(success, 1000)))
     for seed, success in enumerate((0.84, 0.86)):  # the feedforward runs, shielded
         path = tmp_path / "shielded" / f"obstacles-inertia-feedforward-seed{seed}.json"
         path.write_text(json.dumps(_fractions(success, 1000)))
     bounds = References(_fractions(0.05, 1000), blind=_fractions(0.65), oracle=_fractions(0.95))
     text = results_markdown(tmp_path, {"obstacles-inertia": bounds})
     table = text.split("## Table I:")[1].split("##")[0]
-    assert "| Recurrent, judged (beyond the paper; 1000 episodes) | 2 | 0.810 +- 0.010 |" in table
     assert "| Recurrent, shielded (beyond the paper; 1000 episodes) | 3 | 0.880 +- 0.008 |" in table
     assert (
         "| Feedforward, shielded (beyond the paper; 1000 episodes) | 2 | 0.850 +- 0.010 |" in table
     )
-    assert "Feedforward, judged" not in table  # no feedforward run was judged
     assert "| Recurrent | 1 | 0.660 +- 0.000 |" in table  # the paper's method keeps its rows
-    assert "Judged: each run's DQN" in table and "Shielded: each run's DQN" in table
-    assert (
-        "| Table I, beyond the paper: recurrent judged reaches the paper's 0.872 and >= 0.8 of "
-        "the headroom | 0.810, headroom 0.53 | 2 | **not met** |" in text
-    )
+    assert "Shielded: each run's DQN" in table
     assert (
         "| Table I, beyond the paper: recurrent shielded reaches the paper's 0.872 and >= 0.8 of "
         "the headroom | 0.880, headroom 0.77 | 3 | **not met** |" in text
@@ -199,5 +192,8 @@ def test_each_method_beyond_the_paper_gets_its_own_row_and_goal_beside_the_paper
         "| Table I, beyond the paper: recurrent shielded beats feedforward shielded by >= 0.1 | "
         "0.880 vs 0.850 | 3 + 2 | **not met** |" in text
     )
-    assert "recurrent judged beats" not in text  # nothing to compare with
     assert "beyond the paper" not in text.split("## Table IV:")[1]  # none there
+    for path in (tmp_path / "shielded").glob("*-feedforward-*.json"):
+        path.unlink()
+    alone = results_markdown(tmp_path, {"obstacles-inertia": bounds})
+    assert "recurrent shielded beats" not in alone  # nothing to compare with
