@@ -874,7 +874,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _bench_policy_file(bench_controller)
     bench_controller.add_argument(
-        "--rates", default="5,50", help="comma-separated scan rates in Hz (5,50)"
+        "--rates",
+        help="comma-separated scan rates in Hz (5,50; with --lookahead, the policy's own rate: "
+        "the look ahead decides on every scan)",
     )
     bench_controller.add_argument(
         "--seconds", type=float, default=30.0, help="timed seconds per rate (30)"

@@ -114,12 +114,15 @@ def bench_controller(args: argparse.Namespace) -> int:
     from qnav.sim.config import scenario
     from qnav.tracking import lookahead_settings
 
-    rates = [float(r) for r in args.rates.split(",")]
+    rates = [float(r) for r in (args.rates or "5,50").split(",")]
     with tempfile.TemporaryDirectory() as scratch:
         policy = args.policy or _paper_sized_policy(Path(scratch), args.weights)
         lookahead, drive = None, None
         if args.lookahead != "off":
-            world = scenario(PolicyRuntime(policy, backend="numpy").contract.scenario)
+            contract = PolicyRuntime(policy, backend="numpy").contract
+            world = scenario(contract.scenario)
+            if args.rates is None:  # the look ahead on every scan: the policy's rate
+                rates = [1.0 / contract.control_period_s]
             settings = lookahead_settings(args.lookahead)
             lookahead = replace(settings, room_size_m=world.arena.size_m)
             steps = max(round((args.seconds + 2) * rate) for rate in rates)
