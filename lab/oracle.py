@@ -162,19 +162,6 @@ frames 0.2 s apart give velocities to a few cm/s: "lidar-grade" is what a perfec
 the window could know, "tracker" a good hand-built obstacle tracker, "coarse" a sloppy one."""
 
 
-PERCEIVED = (
-    "obstacle_ahead_m",
-    "obstacle_left_m",
-    "obstacle_forward_mps",
-    "obstacle_leftward_mps",
-    "robot_speed_mps",
-    "robot_turn_radps",
-)
-"""What a perceiver is judged on (the onboard tracker, `lab.tracking`): the
-nearest obstacle's position and velocity in the robot's frame, and the robot's own speed and
-turn rate (hidden under inertia)."""
-
-
 def with_error(world: WorldState, error: StateError, random: np.random.Generator) -> WorldState:
     """A copy of the state as a perceiver with `error` would estimate it (fresh draws)."""
 

@@ -1,20 +1,14 @@
-"""The onboard obstacle tracker (`controller.perception`) measured against the simulator's truth,
-and the oracle planner driven by what it perceives instead of the true state.
-
-`qnav lab probe --tracker` prints the tracker's errors in the same terms as the perception probe
-(`qnav lab probe --perception`), so the two perceivers sit in one table; `qnav eval --agent oracle
---tracker` runs the planner on the tracker's estimate under the test protocol.
+"""The oracle planner driven by what the onboard obstacle tracker (`controller.perception`)
+perceives instead of the true state: `qnav eval --agent oracle --tracker` runs it under the test
+protocol.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from tqdm import tqdm
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import InertiaDynamics
@@ -25,10 +19,10 @@ from qnav.controller.perception import (
     box_walls,
     own_velocity,
 )
-from qnav.lab.oracle import PERCEIVED, run_oracle
+from qnav.lab.oracle import run_oracle
 from qnav.sim.config import WorldConfig
-from qnav.sim.evaluate import EvalResult, EvalSettings, WanderingGoToTarget
-from qnav.sim.world import BatchedWorld, Observation, WorldState
+from qnav.sim.evaluate import EvalResult, EvalSettings
+from qnav.sim.world import Observation, WorldState
 from qnav.tracking import lidar_of, noisy
 
 F64 = NDArray[np.float64]
@@ -139,113 +133,3 @@ def run_perceiving_oracle(
     state (the walls and the target it knows, as a car indoors does)."""
     trackers = WorldTrackers(config, tracker, range_noise_m, settings.seed)
     return run_oracle(config, settings, perceive=trackers.perceive_state, progress=progress)
-
-
-@dataclass(frozen=True)
-class TrackerCheckSettings:
-    """The drive the tracker is judged on (`qnav lab probe --tracker`), as the perception
-    probe's."""
-
-    SECTION = "tracker_check"
-
-    samples: int = 4_000
-    """States judged (each with the nearest obstacle within `max_distance_m`)."""
-    max_distance_m: float = 4.0
-    """States whose nearest obstacle is farther than this are skipped."""
-    explore_share: float = 0.3
-    """Share of steps where a held random action replaces go-to-target's."""
-    warmup_frames: int = 5
-    """Frames of an episode before its states are judged (the policy's window)."""
-    seed: int = 1005
-    """Seed of the layouts (the perception probe's held-out layouts)."""
-    range_noise_m: float = 0.0
-    """Gaussian noise (one standard deviation) added to each range the tracker reads: the
-    simulator's lidar is exact, a real one is not."""
-
-
-class TrackerErrors(NamedTuple):
-    """Absolute errors of the tracker over the judged states, by `PERCEIVED` name."""
-
-    median: dict[str, float]
-    """Median absolute error of each quantity, in its unit."""
-    p90: dict[str, float]
-    """90th percentile."""
-    missed_share: float
-    """Share of judged states where the tracker had no track within 1 m of the nearest
-    obstacle (its error then counts against the nearest track, or the robot itself)."""
-    samples: int
-    """States judged."""
-    update_ms: tuple[float, float]
-    """Median and 99th percentile wall time of one tracker update (one scan), milliseconds."""
-
-
-def measure_tracker(
-    world: WorldConfig,
-    tracker: TrackerSettings | None = None,
-    check: TrackerCheckSettings | None = None,
-    progress: bool = False,
-) -> TrackerErrors:
-    """Drive go-to-target with held random actions (the perception probe's drive) and compare
-    the tracker's nearest obstacle (position and velocity in the robot's frame) and the robot's
-    own speed and turn rate with the truth."""
-    if not world.obstacles.count:
-        raise ConfigError(f"scenario {world.name!r} has no moving obstacles to track")
-    tracker = tracker or TrackerSettings()
-    check = check or TrackerCheckSettings()
-    worlds = 200
-    batched = BatchedWorld(world, worlds, seed=check.seed)
-    observation = batched.reset(check.seed)
-    trackers = WorldTrackers(world, tracker, check.range_noise_m, check.seed)
-    driver = WanderingGoToTarget(worlds, check.explore_share, check.seed)
-    errors: list[F64] = []
-    missed = 0
-    bar = tqdm(total=check.samples, desc="tracker", unit="state", disable=not progress)
-    while len(errors) < check.samples:
-        state = batched.state
-        perceived = trackers.perceive_state(state, observation)
-        for row in np.flatnonzero(state.steps >= check.warmup_frames - 1).tolist():
-            true = _nearest_in_robot_frame(state, state, row)
-            if true[4] > check.max_distance_m:
-                continue
-            estimate = _nearest_in_robot_frame(perceived, state, row)
-            missed += int(_closest_track_m(perceived, state, row) > 1.0)
-            errors.append(
-                np.abs(
-                    np.concatenate(
-                        [estimate[:4] - true[:4], perceived.velocity[row] - state.velocity[row]]
-                    )
-                )
-            )
-            bar.update(int(len(errors) <= check.samples))
-        observation = batched.step(driver(observation.target_features())).observation
-    bar.close()
-    table = np.array(errors[: check.samples])
-    median = dict(zip(PERCEIVED, np.median(table, axis=0).tolist(), strict=True))
-    p90 = dict(zip(PERCEIVED, np.percentile(table, 90, axis=0).tolist(), strict=True))
-    update_ms = np.percentile(np.array(trackers.update_s) * 1e3, [50, 99])
-    return TrackerErrors(
-        median, p90, missed / len(errors), len(table), (float(update_ms[0]), float(update_ms[1]))
-    )
-
-
-def _nearest_in_robot_frame(view: WorldState, truth: WorldState, row: int) -> F64:
-    """(5,) the nearest obstacle of `view` in the true robot's frame: ahead, left, forward
-    velocity, leftward velocity, distance."""
-    pose = truth.pose[row]
-    offset = view.obstacle_xy[row] - pose[:2]
-    nearest = int(np.argmin(np.linalg.norm(offset, axis=1)))
-    cos, sin = np.cos(pose[2]), np.sin(pose[2])
-    rotate = np.array([[cos, sin], [-sin, cos]])
-    return np.concatenate(
-        [
-            rotate @ offset[nearest],
-            rotate @ view.obstacle_velocity[row, nearest],
-            [np.linalg.norm(offset[nearest])],
-        ]
-    )
-
-
-def _closest_track_m(perceived: WorldState, truth: WorldState, row: int) -> float:
-    offset = truth.obstacle_xy[row] - truth.pose[row, :2]
-    nearest = truth.obstacle_xy[row, int(np.argmin(np.linalg.norm(offset, axis=1)))]
-    return float(np.min(np.linalg.norm(perceived.obstacle_xy[row] - nearest, axis=1)))

@@ -20,7 +20,6 @@ from typing import Any
 from qnav import __version__
 from qnav.contracts.errors import ConfigError, PolicyFileError, PolicyInputError
 from qnav.contracts.health import DEFAULT_MAX_AGE_S
-from qnav.contracts.observation import WINDOW_LENGTH
 from qnav.contracts.policy_file import WEIGHT_TYPES
 from qnav.options import add_print_config
 from qnav.training.config import PRESETS
@@ -47,7 +46,6 @@ VERB_EXTRAS = {
     "bench learner": ("train",),
     "bench cluster": ("train", "cluster"),
     "lab diagnose": ("train",),
-    "lab imitate": ("train",),
 }
 """The verbs that cannot run without an extra: `qnav --help` marks them where it is missing, and
 they stop with one line naming it. (A verb that needs one only with some options, such as
@@ -244,8 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     lab = verbs.add_parser(
         "lab",
-        help="the research tools of lab/: calibrate, diagnose, gauge, imitate "
-        "(`qnav lab TOOL --help`)",
+        help="the research tools of lab/: calibrate, diagnose, gauge (`qnav lab TOOL --help`)",
     )
     tools = lab.add_subparsers(dest="tool", metavar="TOOL", required=True, parser_class=_Parser)
 
@@ -472,30 +469,6 @@ def build_parser() -> argparse.ArgumentParser:
         "also score the best choice under each perception error (is doom learnable?)",
     )
     _flag(gauge, "--json", "print one JSON object per line")
-
-    imitate = _verb(
-        tools,
-        "qnav.verbs.lab:imitate",
-        "imitate",
-        help="behaviour-cloning ceiling: train the network to copy the oracle planner, test it",
-    )
-    _world_options(imitate, "obstacles-increment")
-    _flag(
-        imitate,
-        "--privileged",
-        "copy with a network given the obstacles' exact positions and velocities instead",
-    )
-    imitate.add_argument(
-        "--window",
-        type=int,
-        default=WINDOW_LENGTH,
-        help=f"observations per decision (paper: {WINDOW_LENGTH})",
-    )
-    _settings_options(
-        imitate, "qnav.lab.imitation_settings:ImitationSettings", "imitation settings"
-    )
-    _flag(imitate, "--json", "print the result as JSON")
-    add_print_config(imitate)
 
     reproduce = _verb(
         verbs,

@@ -3,7 +3,7 @@
 
 The look ahead is the class a car's daemon runs (`controller.lookahead.Lookahead`), built here
 for a simulated world's room, motion model and lidar, so the simulator's evaluation and the car
-decide alike. (The tracker's measurements against the truth are the lab's: `lab.tracking`.)
+decide alike.
 """
 
 from __future__ import annotations

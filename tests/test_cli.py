@@ -115,7 +115,6 @@ def _print_config_argv(verb: str, folder: Path) -> list[str]:
         "fake-vehicle",
         "sim-car",
         "serve",
-        "lab imitate",
     ],
 )
 def test_every_verb_with_settings_prints_them_as_toml(verb: str, tmp_path: Path) -> None:
@@ -137,7 +136,6 @@ def _without(blocked: str, code: str, folder: Path) -> subprocess.CompletedProce
     ("blocked", "argv", "extra"),
     [
         ("torch", ["train", "--scenario", "walls-increment", "--episodes", "2"], "train"),
-        ("torch", ["lab", "imitate", "--scenario", "walls-increment"], "train"),
         ("torch", ["bench", "learner"], "train"),
         ("matplotlib", ["render", "--scenario", "walls-inertia", "--out", "unused"], "viz"),
         # Needed only with this option: named when the import fails.
@@ -176,10 +174,10 @@ def test_help_marks_the_verbs_whose_extra_is_missing(tmp_path: Path) -> None:
     assert "research (lab/" in full
 
 
-def test_imitate_help_imports_no_torch(tmp_path: Path) -> None:
+def test_train_help_lists_its_generated_options_without_importing_torch(tmp_path: Path) -> None:
     code = (
         "from qnav.cli import main\n"
-        "try:\n    main(['lab', 'imitate', '--help'])\n"
+        "try:\n    main(['train', '--help'])\n"
         "except SystemExit as done:\n    assert done.code == 0\n"
         "print('torch imported' if sys.modules.get('torch') else 'no torch')"
     )
@@ -188,11 +186,11 @@ def test_imitate_help_imports_no_torch(tmp_path: Path) -> None:
         capture_output=True, text=True, timeout=120, check=False, cwd=tmp_path,
     )  # fmt: skip
     assert shown.returncode == 0, shown.stderr
-    assert "--dagger-rounds" in shown.stdout
+    assert "--imitation-rounds" in shown.stdout
     assert shown.stdout.strip().endswith("no torch")
     blocked = _without("torch", code, tmp_path)
     assert blocked.returncode == 0, blocked.stderr
-    assert "--dagger-rounds" in blocked.stdout
+    assert "--imitation-rounds" in blocked.stdout
 
 
 @pytest.mark.parametrize("verb", ["controller", "bridge", "fake-vehicle"])

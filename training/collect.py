@@ -16,26 +16,20 @@ from qnav.training.episode_log import Episode
 
 def collect_round(
     config: WorldConfig,
-    agent: Agent | None,
+    agent: Agent,
     seed: int,
     episode_ids: NDArray[np.int64],
     *,
-    demonstrator: Callable[[WorldState], NDArray[np.int64]] | None = None,
     labeller: Callable[[WorldState], NDArray[np.int64]] | None = None,
 ) -> list[Episode]:
     """Run one episode per world, each with the layout of (seed, its episode id), to its end.
 
-    With a `demonstrator` (the worlds' full state -> actions, e.g. `lab.oracle.OracleDriver`)
-    it drives instead of the agent (which may then be None). With a `labeller` the episodes
-    store its action for each state visited instead of the action taken (DAgger's labels).
-    Both serve `lab.imitate`; training runs drive with the agent."""
-    if agent is None and demonstrator is None:
-        raise ValueError("collect_round needs an agent or a demonstrator")
+    With a `labeller` (the worlds' full state -> actions) the episodes store its action for
+    each state visited instead of the action taken (DAgger's labels, `training.imitation`)."""
     n = episode_ids.size
     state = reset(config, np.full(n, seed, dtype=np.int64), episode_ids)
     observation = observe(config, state)
-    if agent is not None:
-        agent.start(np.arange(n), episode_ids)
+    agent.start(np.arange(n), episode_ids)
     poses, scans, clearances, actions = (
         [observation.pose],
         [observation.scan_m],
@@ -47,11 +41,7 @@ def collect_round(
     ending = np.full(n, Outcome.RUNNING, dtype=np.int64)
     active = np.ones(n, dtype=bool)
     while active.any():
-        if demonstrator is not None:
-            action = demonstrator(state)
-        else:
-            assert agent is not None
-            action = agent.act(observation)
+        action = agent.act(observation)
         recorded = action if labeller is None else labeller(state)
         state, observation, transition = step(config, state, action)
         poses.append(observation.pose)

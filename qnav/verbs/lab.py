@@ -1,19 +1,13 @@
-"""Handlers of `qnav lab`: the research tools of lab/ (calibrate, diagnose, gauge, imitate)."""
+"""Handlers of `qnav lab`: the research tools of lab/ (calibrate, diagnose, gauge)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 from qnav.contracts.errors import ConfigError
-from qnav.options import config_text, settings_from_args
-from qnav.sim.config import WorldConfig, load_world
-
-if TYPE_CHECKING:
-    from qnav.lab.imitate import ImitationResult
-    from qnav.lab.imitation_settings import ImitationSettings
+from qnav.sim.config import load_world
 
 
 def calibrate(args: argparse.Namespace) -> int:
@@ -135,57 +129,3 @@ def gauge(args: argparse.Namespace) -> int:
             )
             print(f"{row['policy']}: {shares}")
     return 0
-
-
-def imitate(args: argparse.Namespace) -> int:
-    """Copy the oracle planner with the learner's network; test the copy."""
-    from qnav.lab.imitate import imitate as measure
-    from qnav.lab.imitation_settings import ImitationSettings
-
-    world: WorldConfig = load_world(args.scenario, args.world_config, args.assignments)
-    settings = settings_from_args(ImitationSettings(), args)
-    if args.print_config:
-        print(config_text(settings), end="")
-        return 0
-    if args.privileged:
-        from qnav.lab.privileged import imitate_privileged
-
-        result = imitate_privileged(world, settings)
-    else:
-        result = measure(world, settings, args.window)
-    if args.json:
-        print(json.dumps(result.to_dict()))
-        return 0
-    print(_imitation_report(world.name, settings, result, privileged=args.privileged))
-    return 0
-
-
-def _imitation_report(
-    world: str, settings: ImitationSettings, result: ImitationResult, *, privileged: bool
-) -> str:
-    copy = "a network given the world's state" if privileged else settings.model
-    test = result.test
-    lines = [
-        f"{world}, {copy}: planner success {result.planner_success:.3f} on the "
-        f"{settings.episodes} copied episodes ({result.windows} decisions)",
-        f"clone agrees with the planner on {result.train_agreement:.1%} of copied decisions, "
-        f"{result.held_out_agreement:.1%} of held-out ones",
-    ]
-    if result.planner_self_agreement is not None:
-        lines.append(
-            "the planner, asked again on the held-out states, picks the same action on "
-            f"{result.planner_self_agreement:.1%} of them"
-        )
-    lines += [
-        f"dodges (the planner's action is not go-to-target's): {result.dodge_share:.1%} of "
-        f"held-out decisions; the clone copies {result.dodge_agreement:.1%} of them and goes to "
-        f"the target instead on {result.dodge_as_baseline:.1%}",
-        f"clone, test protocol ({test.episodes} episodes of up to 500 steps): success "
-        f"{test.success:.3f}, collision {test.collision:.3f}, unfinished {test.unfinished:.3f}",
-    ]
-    lines += [
-        f"DAgger round {r['round']}: {r['windows']} decisions, test success {r['test_success']:.3f}"
-        for r in result.dagger
-    ]
-    lines.append(f"{result.minutes} minutes")
-    return "\n".join(lines)

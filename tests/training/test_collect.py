@@ -1,4 +1,4 @@
-"""Collection rounds: who drives, and what is stored."""
+"""Collection rounds: what is stored."""
 
 from collections.abc import Callable
 
@@ -19,14 +19,6 @@ def _always(action: int) -> Callable[[WorldState], NDArray[np.int64]]:
         return np.full(state.pose.shape[0], action, dtype=np.int64)
 
     return choose
-
-
-def test_a_demonstrator_drives_instead_of_the_agent() -> None:
-    episodes = collect_round(WORLD, None, 0, IDS, demonstrator=_always(0))
-    for episode in episodes:
-        assert (episode.action == 0).all()
-        # Always forward: the heading never changes.
-        np.testing.assert_allclose(episode.pose[:, 2], episode.pose[0, 2])
 
 
 def test_a_labeller_is_stored_while_the_agent_drives() -> None:
