@@ -19,6 +19,7 @@ from pathlib import Path
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.transport import secure_client_config, secure_hub_config
 from qnav.contracts.wire import PUBLISHERS
+from qnav.verbs.parser import Verbs, flag, verb
 
 IDENTITIES = ("hub", "controller", "bridge", "recorder", "sensors", "operator", "server")
 """The identities of config/zenoh-secure.json5: the listening hub, each daemon, the sensors
@@ -141,3 +142,31 @@ def certs_verb(args: argparse.Namespace) -> int:
     for path in written:
         print(f"wrote {path}")
     return 0
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav certs`: its options."""
+    _add_certs(verbs)
+
+
+def _add_certs(verbs: Verbs) -> None:
+    """`qnav certs FOLDER`."""
+    parser = verb(
+        verbs,
+        certs_verb,
+        "certs",
+        help="a test CA and a certificate per identity, for zenoh's mutual TLS",
+    )
+    parser.add_argument("folder", type=Path, help="where to write them (e.g. certs/)")
+    parser.add_argument(
+        "--names",
+        nargs="+",
+        help="identities (default: hub controller bridge recorder sensors operator server)",
+    )
+    parser.add_argument(
+        "--endpoint",
+        default="tls/127.0.0.1:7447",
+        help="the hub's TLS endpoint written into the zenoh configs (tls/127.0.0.1:7447)",
+    )
+    flag(parser, "--print-commands", "print the openssl commands, run nothing")
+    flag(parser, "--force", "replace the certificates and keys already in FOLDER")

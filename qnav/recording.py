@@ -21,6 +21,7 @@ from qnav.controller.recording import (
     read_recordings,
     record,
 )
+from qnav.verbs.parser import Verbs, flag, repeated, verb, zenoh_options
 
 
 def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -199,3 +200,83 @@ def _into_controller(args: argparse.Namespace, messages: list[RecordedMessage], 
             f"the policy, the same action {same} times"
         )
     return 0
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav record`, `qnav recover` and `qnav playback`: their options."""
+    _add_record(verbs)
+    _add_recover(verbs)
+    _add_playback(verbs)
+
+
+def _add_record(verbs: Verbs) -> None:
+    """`qnav record`."""
+    parser = verb(
+        verbs,
+        record_verb,
+        "record",
+        help="record the project's zenoh topics to MCAP (ROS 2 profile, CDR)",
+    )
+    parser.add_argument("--config", type=Path, metavar="FILE", help="recorder TOML file")
+    parser.add_argument("--out", type=Path, help="output folder (default recordings/)")
+    parser.add_argument(
+        "--folder", type=Path, help="write into exactly this folder (no timestamped subfolder)"
+    )
+    parser.add_argument(
+        "--duration-s", type=float, default=0.0, help="stop after this long (0: at SIGINT)"
+    )
+    zenoh_options(parser)
+
+
+def _add_recover(verbs: Verbs) -> None:
+    """`qnav recover PATH...`."""
+    parser = verb(
+        verbs,
+        recover_verb,
+        "recover",
+        help="make a killed recording whole: every complete message, indexed, with metadata.yaml",
+    )
+    parser.add_argument(
+        "paths", nargs="+", type=Path, help="recording folders or .mcap files (cut or not)"
+    )
+
+
+def _add_playback(verbs: Verbs) -> None:
+    """`qnav playback FILE...`, onto zenoh or into the controller."""
+    parser = verb(
+        verbs,
+        playback_verb,
+        "playback",
+        help="publish MCAP recordings back onto zenoh at their recorded timing, or feed them "
+        "into the controller's decision step (--into-controller)",
+    )
+    parser.add_argument("files", type=Path, nargs="+", help="MCAP files or folders of them")
+    parser.add_argument("--speed", type=float, default=1.0, help="time factor (2: twice as fast)")
+    zenoh_options(parser)
+    replay = parser.add_argument_group(
+        "into the controller",
+        "no zenoh: the recording's inputs through a fresh controller, on "
+        "the recording's clock (docs/recordings.md)",
+    )
+    flag(
+        replay,
+        "--into-controller",
+        "feed the recording into the controller's decision step and report its decisions",
+    )
+    replay.add_argument("--policy", type=Path, metavar="FILE.onnx", help="policy file")
+    replay.add_argument(
+        "--config", type=Path, metavar="FILE", help="controller TOML (safety, lidar, topics)"
+    )
+    repeated(
+        replay,
+        "--set",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one controller setting, e.g. --set safety.pose_timeout_s=1.0",
+    )
+    replay.add_argument(
+        "--trigger",
+        choices=["scan", "period"],
+        help="decide on each scan (default, as `qnav stack` runs the daemon) or every period",
+    )
+    flag(replay, "--json", "print the decisions as JSON lines")

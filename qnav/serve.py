@@ -33,7 +33,8 @@ from qnav.contracts.errors import ConfigError, PolicyFileError
 from qnav.contracts.policy_file import PolicyContract
 from qnav.contracts.transport import StoppedError, ZenohSettings, open_session
 from qnav.controller.onnx_file import parse_onnx
-from qnav.options import config_text, settings_from_args
+from qnav.options import add_print_config, config_text, settings_from_args
+from qnav.verbs.parser import Verbs, flag, settings_options, verb, zenoh_options
 
 log = logging.getLogger("qnav.serve")
 
@@ -374,3 +375,60 @@ def keys_verb(args: argparse.Namespace) -> int:
     print(f"wrote {private_path} (keep it on the desktop: it signs policies)")
     print(f"wrote {public_path} (copy it to the car: [policy] public_key)")
     return 0
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav keys` and `qnav serve`: their options."""
+    _add_keys(verbs)
+    _add_serve(verbs)
+
+
+def _add_keys(verbs: Verbs) -> None:
+    """`qnav keys FOLDER`."""
+    parser = verb(
+        verbs,
+        keys_verb,
+        "keys",
+        help="an Ed25519 key pair that signs the policies qnav serve delivers",
+    )
+    parser.add_argument("folder", type=Path, help="where to write the key pair (e.g. keys/)")
+    flag(parser, "--force", "replace an existing key pair")
+
+
+def _add_serve(verbs: Verbs) -> None:
+    """`qnav serve SOURCE... --key FILE`."""
+    parser = verb(
+        verbs,
+        serve_verb,
+        "serve",
+        help="serve exported policies to cars over zenoh, announcing the best (docs/serve.md)",
+    )
+    parser.add_argument(
+        "sources",
+        nargs="+",
+        type=Path,
+        metavar="SOURCE",
+        help="policy files (.onnx), or folders searched for them (run folders, runs/)",
+    )
+    parser.add_argument(
+        "--key",
+        type=Path,
+        required=True,
+        metavar="FILE",
+        help="the Ed25519 private key that signs announcements (qnav keys DIR)",
+    )
+    settings_options(
+        parser,
+        "qnav.serve:ServeSettings",
+        "serving",
+        skip=("sources", "private_key", "zenoh"),
+    )
+    parser.add_argument(
+        "--zenoh-config",
+        type=Path,
+        metavar="FILE",
+        help="a zenoh JSON5 configuration (TLS, access control: qnav certs writes "
+        "zenoh-server.json5)",
+    )
+    zenoh_options(parser)
+    add_print_config(parser)

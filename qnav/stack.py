@@ -35,6 +35,7 @@ from typing import IO, TYPE_CHECKING, Any
 from qnav.contracts.daemon import free_port
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import from_dict, to_toml
+from qnav.verbs.parser import Verbs, flag, lookahead_option, verb
 
 if TYPE_CHECKING:
     from qnav.controller.lookahead import LookaheadSettings
@@ -694,3 +695,66 @@ def episode_agreement(
         ended = names.get(Outcome(int(transition.outcome[0])), "unfinished")
         counts["same_outcome"] += ended == entry["outcome"]
     return counts
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav stack`: its options."""
+    _add_stack(verbs)
+
+
+def _add_stack(verbs: Verbs) -> None:
+    """`qnav stack --policy FILE.onnx`."""
+    parser = verb(
+        verbs,
+        stack_verb,
+        "stack",
+        help="the full stack as separate processes (sim-car, controller, bridge, recorder)",
+    )
+    parser.add_argument("--policy", type=Path, required=True, help="policy file (.onnx)")
+    parser.add_argument("--scenario", help="world (default: the policy's training scenario)")
+    parser.add_argument("--episodes", type=int, default=20, help="episodes (20)")
+    lookahead_option(parser, "in the controller, and alike in the in-process comparison: ")
+    parser.add_argument("--out", type=Path, default=Path("out/stack"), help="output folder")
+    flag(parser, "--no-record", "do not record to MCAP")
+    flag(parser, "--json", "print one JSON object")
+    parser.add_argument(
+        "--vehicle",
+        choices=["sim", "sitl"],
+        default="sim",
+        help="the car: the MAVLink test vehicle (sim), or ArduPilot Rover SITL driven in GUIDED "
+        "with the pose from the autopilot (sitl; loopback-only namespace, `make stack-sitl`)",
+    )
+    flag(
+        parser,
+        "--real-time",
+        "the sim-car in real time: the car moves under whatever command it has while the "
+        "next is decided (latency and load included); default: lockstep (`sim-car --lockstep`), "
+        "the same episodes as in process. --vehicle sitl always runs in real time",
+    )
+    parser.add_argument(
+        "--sitl-binary", type=Path, help="ardurover binary for --vehicle sitl ($ARDUPILOT_SITL)"
+    )
+    parser.add_argument(
+        "--lidar-turn-s",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="a rotating lidar whose turn takes S seconds (0.1: 10 Hz): each beam cast from where "
+        "the car and the obstacles were at its own time, sent with LaserScan's time_increment, "
+        "and the same lidar in the in-process comparison (the world's lidar_turn_s; lockstep "
+        "only; default 0: instantaneous scans)",
+    )
+    parser.add_argument(
+        "--serve-folder",
+        type=Path,
+        metavar="DIR",
+        help="also run `qnav serve DIR` on the stack's zenoh hub; the controller takes its "
+        "policies (policy.source = server), --policy being its starting file (docs/serve.md)",
+    )
+    parser.add_argument(
+        "--keys",
+        type=Path,
+        metavar="DIR",
+        help="with --serve-folder: the key pair `qnav keys DIR` made (the server signs with its "
+        "private key, the controller trusts its public key)",
+    )

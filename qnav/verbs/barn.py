@@ -13,6 +13,7 @@ from qnav.sim.benchmark import BenchmarkResult, run_benchmark, top_speed_mps
 from qnav.sim.config import WorldConfig, changed_world, scenario
 from qnav.sim.evaluate import Agent, GoToTargetAgent, RandomAgent, StreamPolicyAgent
 from qnav.sim.layouts import layouts_of
+from qnav.verbs.parser import Verbs, verb
 
 BATCH = 64
 """Worlds run together."""
@@ -120,3 +121,24 @@ def convert(args: argparse.Namespace) -> int:
     )
     print(f"wrote {args.out}: {len(layouts)} worlds of up to {layouts.most_cylinders} cylinders")
     return 0
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav barn-convert`: its options."""
+    _add_convert(verbs)
+
+
+def _add_convert(verbs: Verbs) -> None:
+    """`qnav barn-convert FOLDER -o FILE.npz ...`."""
+    parser = verb(
+        verbs,
+        convert,
+        "barn-convert",
+        help="write a folder of BARN-format worlds as one compact file (sim/data/barn.npz)",
+    )
+    parser.add_argument("folder", type=Path, help="folder of world_N.world and path_files/")
+    parser.add_argument("-o", "--out", type=Path, required=True, help="the .npz to write")
+    parser.add_argument("--name", default="", help="the worlds' name in reports (the folder's)")
+    parser.add_argument("--source", required=True, help="where the worlds come from (a URL)")
+    parser.add_argument("--commit", required=True, help="the source's commit")
+    parser.add_argument("--licence", required=True, help="the worlds' licence")

@@ -9,7 +9,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.policy_file import WEIGHT_TYPES
 from qnav.sim.config import WorldConfig, load_world
+from qnav.verbs.parser import Verbs, flag, lookahead_option, verb, world_options
 
 if TYPE_CHECKING:
     from qnav.controller.bench_e2e import Drive
@@ -182,3 +184,175 @@ def bench_bridge(args: argparse.Namespace) -> int:
     )
     print(json.dumps(result.report()) if args.json else result.text())
     return 0
+
+
+def add_benches(benches: Verbs) -> None:
+    """`qnav bench sim|learner|policy|lookahead|controller|cluster|bridge`: their options."""
+    _add_sim(benches)
+    _add_learner(benches)
+    _add_policy(benches)
+    _add_lookahead(benches)
+    _add_controller(benches)
+    _add_cluster(benches)
+    _add_bridge(benches)
+
+
+def _add_sim(benches: Verbs) -> None:
+    """`qnav bench sim`."""
+    parser = verb(
+        benches,
+        bench_sim,
+        "sim",
+        help="simulator env-steps per second on one core",
+    )
+    world_options(parser, "obstacles-inertia")
+    parser.add_argument(
+        "--batches", default="1,16,64,256", help="comma-separated batch sizes (1,16,64,256)"
+    )
+    parser.add_argument(
+        "--seconds", type=float, default=2.0, help="timed seconds per configuration (2)"
+    )
+    flag(parser, "--no-scaling", "skip beam/obstacle scaling")
+    flag(
+        parser,
+        "--barn",
+        "in BARN's worlds (the barn scenario, each world of the batch in a layout of its own), "
+        "driven by random actions and by the planner given the map",
+    )
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_learner(benches: Verbs) -> None:
+    """`qnav bench learner`."""
+    parser = verb(
+        benches,
+        bench_learner,
+        "learner",
+        help="one training iteration's GFLOP/s against the machine's matmul rate",
+    )
+    parser.add_argument(
+        "--model", default="recurrent", choices=["recurrent", "feedforward"], help="Q-network"
+    )
+    parser.add_argument("--batch", type=int, default=256, help="batch size (256)")
+    parser.add_argument("--repeats", type=int, default=10, help="timed iterations (10)")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (2)")
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_policy(benches: Verbs) -> None:
+    """`qnav bench policy`."""
+    parser = verb(
+        benches,
+        bench_policy,
+        "policy",
+        help="per-decision latency of the onboard runtime, per backend, one thread",
+    )
+    bench_policy_file(parser)
+    parser.add_argument(
+        "--backends", default="onnxruntime,numpy", help="comma-separated (onnxruntime,numpy)"
+    )
+    parser.add_argument(
+        "--decisions", type=int, default=3000, help="timed decisions per backend (3000)"
+    )
+    parser.add_argument(
+        "--gap-ms",
+        type=float,
+        default=0.0,
+        help="sleep before each timed decision, as a daemon waits between scans (0: back to "
+        "back, caches warm; 20 or 200: the 50 Hz or 5 Hz case)",
+    )
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_lookahead(benches: Verbs) -> None:
+    """`qnav bench lookahead`."""
+    parser = verb(
+        benches,
+        bench_lookahead,
+        "lookahead",
+        help="the controller's look ahead per decision: tracker update, shield forecast, plan",
+    )
+    world_options(parser, "obstacles-inertia")
+    parser.add_argument("--decisions", type=int, default=2000, help="timed decisions (2000)")
+    parser.add_argument(
+        "--cars",
+        type=int,
+        default=20,
+        help="cars driven side by side, each timed alone and all forecast at once (20)",
+    )
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_controller(benches: Verbs) -> None:
+    """`qnav bench controller`."""
+    parser = verb(
+        benches,
+        bench_controller,
+        "controller",
+        help="end to end: scan published by one process to command received by another",
+    )
+    bench_policy_file(parser)
+    parser.add_argument(
+        "--rates",
+        help="comma-separated scan rates in Hz (5,50; with --lookahead, the policy's own rate: "
+        "the look ahead decides on every scan)",
+    )
+    parser.add_argument("--seconds", type=float, default=30.0, help="timed seconds per rate (30)")
+    lookahead_option(parser, "in the daemon, on a drive through the simulated room: ")
+    parser.add_argument(
+        "--cpu", type=int, metavar="N", help="pin the daemon to core N (default: not pinned)"
+    )
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_cluster(benches: Verbs) -> None:
+    """`qnav bench cluster`."""
+    parser = verb(
+        benches,
+        bench_cluster,
+        "cluster",
+        help="a small fixed study on 1 Ray worker, then on 2: wall times and ratio",
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="timed pairs (3)")
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_bridge(benches: Verbs) -> None:
+    """`qnav bench bridge`."""
+    parser = verb(
+        benches,
+        bench_bridge,
+        "bridge",
+        help="command on zenoh to MAVLink on the wire, and the failsafe stop's delay",
+    )
+    parser.add_argument("--commands", type=int, default=1000, help="timed commands (1000)")
+    parser.add_argument(
+        "--output", default="manual", choices=["manual", "guided"], help="output mode (manual)"
+    )
+    parser.add_argument(
+        "--timeout-s", type=float, default=0.5, help="failsafe.command_timeout_s (0.5)"
+    )
+    parser.add_argument("--stops", type=int, default=5, help="failsafe stops timed (5)")
+    flag(
+        parser,
+        "--baseline",
+        "also time a bare zenoh-to-UDP echo process: the floor this machine sets",
+    )
+    flag(parser, "--json", "print one JSON object")
+
+
+def bench_policy_file(bench: argparse.ArgumentParser) -> None:
+    """The policy a latency bench times: a file, or the paper-sized one in either weight type."""
+    policy = bench.add_mutually_exclusive_group()
+    policy.add_argument(
+        "--policy",
+        type=Path,
+        default=None,
+        help="policy file (default: an untrained paper-sized recurrent policy, exported here)",
+    )
+    policy.add_argument(
+        "--weights",
+        choices=WEIGHT_TYPES,
+        default="float32",
+        help="weights of the default paper-sized policy: float32 or int8 (float32)",
+    )

@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 from dataclasses import replace
+from pathlib import Path
 
 from qnav.contracts.errors import ConfigError
 from qnav.sim.config import load_world
+from qnav.verbs.parser import Verbs, flag, verb, world_options
 
 
 def calibrate(args: argparse.Namespace) -> int:
@@ -129,3 +131,69 @@ def gauge(args: argparse.Namespace) -> int:
             )
             print(f"{row['policy']}: {shares}")
     return 0
+
+
+def add_tools(tools: Verbs) -> None:
+    """`qnav lab calibrate|diagnose|gauge`: their options."""
+    _add_calibrate(tools)
+    _add_diagnose(tools)
+    _add_gauge(tools)
+
+
+def _add_calibrate(tools: Verbs) -> None:
+    """`qnav lab calibrate`."""
+    parser = verb(
+        tools,
+        calibrate,
+        "calibrate",
+        help="random, go-to-target and oracle agents in the paper's scenarios, beside its rows",
+    )
+    parser.add_argument(
+        "--episodes", type=int, default=2000, help="random and go-to-target episodes (2000)"
+    )
+    parser.add_argument(
+        "--oracle-episodes",
+        type=int,
+        default=1000,
+        help="oracle episodes per obstacle scenario (1000; about 4 CPU-minutes each)",
+    )
+    parser.add_argument("--seed", type=int, default=2024, help="seed of the test layouts")
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_diagnose(tools: Verbs) -> None:
+    """`qnav lab diagnose RUN`."""
+    parser = verb(
+        tools,
+        diagnose,
+        "diagnose",
+        help="why a run learns or not: generalisation gap, target sensitivity, action mix, "
+        "test layouts against the blind controller, decisive states",
+    )
+    parser.add_argument("run", type=Path, help="training run folder (finished or not)")
+    parser.add_argument(
+        "--fresh-episodes", type=int, default=64, help="fresh episodes to measure on (64)"
+    )
+
+
+def _add_gauge(tools: Verbs) -> None:
+    """`qnav lab gauge [RUN...]`."""
+    parser = verb(
+        tools,
+        gauge,
+        "gauge",
+        help="decisive-state gauge: how often a policy avoids a doomed action where it matters",
+    )
+    world_options(parser, "obstacles-inertia")
+    parser.add_argument(
+        "runs", nargs="*", type=Path, help="training run folders to score (each in its own world)"
+    )
+    parser.add_argument(
+        "--episodes", type=int, default=400, help="episodes per driver behind the state set (400)"
+    )
+    flag(
+        parser,
+        "--ceiling",
+        "also score the best choice under each perception error (is doom learnable?)",
+    )
+    flag(parser, "--json", "print one JSON object per line")

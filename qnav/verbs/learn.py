@@ -9,11 +9,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from qnav.contracts.errors import ConfigError
+from qnav.contracts.policy_file import WEIGHT_TYPES
 from qnav.contracts.settings import load_toml, with_overrides
-from qnav.options import config_text, settings_from_args
+from qnav.options import add_print_config, config_text, settings_from_args
 from qnav.sim.config import WorldConfig, load_world
 from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, RandomAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
+from qnav.training.config import PRESETS
+from qnav.verbs.parser import Parser, Verbs, flag, repeated, settings_options, verb, world_options
 
 if TYPE_CHECKING:
     from qnav.training.study import Engine, References, RunSpec, StudySettings
@@ -215,3 +218,199 @@ def figures(args: argparse.Namespace) -> int:
     for path in write_figures(args.run, args.out):
         print(f"wrote {path}")
     return 0
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav train`, `export`, `figures`, `reproduce` and `sweep`: their options."""
+    _add_train(verbs)
+    _add_export(verbs)
+    _add_figures(verbs)
+    _add_reproduce(verbs)
+    _add_sweep(verbs)
+
+
+def _add_train(verbs: Verbs) -> None:
+    """`qnav train`: the learner's settings over a preset."""
+    parser = verb(verbs, train, "train", help="train a Q-network (resumes a killed run)")
+    world_options(parser)
+    parser.add_argument(
+        "--preset",
+        default="fast",
+        choices=list(PRESETS),
+        help="fast: our schedule for 2 CPU cores (default); paper: the paper's exact schedule; "
+        "dagger: imitation of the planner given the map (worlds of layouts: the clutter scenario)",
+    )
+    parser.add_argument(
+        "--train-config", type=Path, metavar="FILE", help="TOML file with a [train] table"
+    )
+    repeated(
+        parser,
+        "--train-set",
+        "train_assignments",
+        "train.FIELD=VALUE",
+        "change one learner setting (repeatable; as its option below)",
+    )
+    settings_options(
+        parser,
+        "qnav.training.config:TrainSettings",
+        "learner settings (each over the preset, --train-config and --train-set)",
+    )
+    parser.add_argument("--run-dir", type=Path, help="run folder (default runs/SCENARIO/...)")
+    flag(parser, "--quiet", "no progress bar")
+    add_print_config(parser)
+
+
+def _add_export(verbs: Verbs) -> None:
+    """`qnav export RUN`."""
+    parser = verb(
+        verbs,
+        export,
+        "export",
+        help="write a run's policy as one ONNX file with its contract, and test it",
+    )
+    parser.add_argument(
+        "run",
+        type=Path,
+        help="training run folder, or a policy file (.onnx, e.g. of the earlier "
+        "qnav-policy/1 layout) to export again in this layout from its own weights",
+    )
+    parser.add_argument(
+        "-o", "--output", type=Path, default=None, help="policy file (default RUN/policy.onnx)"
+    )
+    parser.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=None,
+        help="test-protocol episodes run on the exported file and recorded in it (0: none; "
+        "default 200 for a run or a change of --weights, else 0 for a policy file, whose "
+        "recorded results are kept)",
+    )
+    parser.add_argument(
+        "--weights",
+        choices=WEIGHT_TYPES,
+        default=None,
+        help="how the large weights are stored: float32, or int8 (a quarter of the bytes, "
+        "quicker decisions; its test records how often it agrees with float32). Default: "
+        "float32 for a run, the file's own for a policy file",
+    )
+    flag(parser, "--quiet", "no progress bar")
+
+
+def _add_figures(verbs: Verbs) -> None:
+    """`qnav figures RUN`."""
+    parser = verb(
+        verbs,
+        figures,
+        "figures",
+        help="action maps (paper figure 3) and trajectories (figure 10) of a run",
+    )
+    parser.add_argument("run", type=Path, help="training run folder")
+    parser.add_argument("--out", type=Path, default=Path("docs/img"), help="output folder")
+
+
+def _add_reproduce(verbs: Verbs) -> None:
+    """`qnav reproduce`: the paper's study."""
+    parser = verb(
+        verbs,
+        reproduce,
+        "reproduce",
+        help="the paper's whole study, resumable: trains, tests, writes the tables",
+    )
+    study_options(parser, Path("runs/study"))
+    parser.add_argument(
+        "--results-dir", type=Path, default=Path("results"), help="one JSON per run (committed)"
+    )
+    parser.add_argument(
+        "--docs", type=Path, default=Path("docs/results.md"), help="the tables, as Markdown"
+    )
+    flag(
+        parser,
+        "--ablation",
+        "also run the target re-drawing ablation (none / paper / hindsight) in the chosen "
+        "scenarios among walls-increment and obstacles-inertia",
+    )
+    parser.add_argument(
+        "--ablation-seeds", default="0", help="comma-separated seeds of the ablation runs (0)"
+    )
+    flag(parser, "--tables-only", "rewrite the tables from results/, train nothing")
+
+
+def _add_sweep(verbs: Verbs) -> None:
+    """`qnav sweep`: a grid of settings."""
+    parser = verb(
+        verbs,
+        sweep,
+        "sweep",
+        help="train every point of a settings grid (resumable; locally or on Ray)",
+    )
+    study_options(parser, Path("runs/sweep"), scenarios="walls-inertia", models="recurrent",
+                   seeds="0")  # fmt: skip
+    parser.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=V1,V2,...",
+        help="one setting and its values, e.g. --grid train.learning_rate=1e-4,3e-4 (repeatable: "
+        "every combination is a run; train.* are learner settings, other sections the world's)",
+    )
+    repeated(
+        parser,
+        "--set",
+        "common",
+        "SECTION.FIELD=VALUE",
+        "a setting of every run, e.g. --set train.episodes=100 (repeatable)",
+    )
+    parser.add_argument(
+        "--results-dir",
+        type=Path,
+        default=Path("runs/sweep/results"),
+        help="one JSON per run (a run with one is skipped)",
+    )
+
+
+def study_options(
+    parser: Parser,
+    runs_dir: Path,
+    scenarios: str = "obstacles-inertia,walls-inertia,walls-increment,obstacles-increment",
+    models: str = "recurrent,feedforward",
+    seeds: str = "0,1,2,3,4",
+) -> None:
+    """What runs a study or a sweep, and where: its plan, the local runner or Ray."""
+    parser.add_argument("--jobs", type=int, default=1, help="local runner: trainings at once (1)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads per training, and CPUs of its Ray task (default: the machine's "
+        "cores / --jobs; with --engine ray, 2)",
+    )
+    parser.add_argument("--preset", default="fast", choices=list(PRESETS), help="schedule")
+    parser.add_argument("--scenarios", default=scenarios, help=f"comma-separated ({scenarios})")
+    parser.add_argument("--models", default=models, help=f"comma-separated models ({models})")
+    parser.add_argument("--seeds", default=seeds, help=f"comma-separated seeds ({seeds})")
+    parser.add_argument(
+        "--time-budget-min",
+        type=float,
+        default=None,
+        help="start no new run after this many minutes (the rest waits for the next batch)",
+    )
+    parser.add_argument(
+        "--runs-dir",
+        type=Path,
+        default=runs_dir,
+        help=f"run folders ({runs_dir}); on a cluster without --artifacts, a path every node "
+        "shares",
+    )
+    engine = parser.add_argument_group("engine (docs/cluster.md)")
+    engine.add_argument(
+        "--engine",
+        default="local",
+        choices=["local", "ray"],
+        help="local: `qnav train` processes on this machine (default); ray: one Ray task per run "
+        "(pip install '.[cluster]')",
+    )
+    settings_options(
+        parser,
+        "qnav.training.cluster:ClusterSettings",
+        "Ray settings (with --engine ray)",
+    )

@@ -8,10 +8,22 @@ import json
 import logging
 import sys
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from qnav.contracts.errors import ConfigError
-from qnav.options import config_text
+from qnav.contracts.health import DEFAULT_MAX_AGE_S
+from qnav.options import add_print_config, config_text
+from qnav.verbs.parser import (
+    Verbs,
+    flag,
+    repeated,
+    settings_options,
+    verb,
+    with_listing,
+    world_options,
+    zenoh_options,
+)
 
 if TYPE_CHECKING:
     from qnav.firmware_bridge.settings import BridgeSettings
@@ -171,3 +183,178 @@ def health(args: argparse.Namespace) -> int:
     healthy, explanation = check_health(path, args.max_age_s)
     print(f"{'healthy' if healthy else 'unhealthy'}: {explanation}")
     return 0 if healthy else 1
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav controller`, `sim-car`, `health`, `bridge`, `calibrate-car` and `fake-vehicle`:
+    their options."""
+    _add_controller(verbs)
+    _add_sim_car(verbs)
+    _add_health(verbs)
+    _add_bridge(verbs)
+    _add_calibrate_car(verbs)
+    _add_fake_vehicle(verbs)
+
+
+def _add_controller(verbs: Verbs) -> None:
+    """`qnav controller`: the onboard daemon."""
+    parser = verb(
+        verbs,
+        controller,
+        "controller",
+        help="the onboard daemon: scans, poses, targets in over zenoh, motor commands out",
+    )
+    with_listing(
+        parser,
+        "qnav.controller.config:DaemonConfig",
+        "settings (--set SECTION.FIELD=VALUE, or in the --config file; defaults below)",
+    )
+    parser.add_argument(
+        "--config", type=Path, metavar="FILE", help="TOML settings (config/controller.toml)"
+    )
+    parser.add_argument(
+        "--policy", type=Path, metavar="FILE.onnx", help="policy file (over controller.policy)"
+    )
+    repeated(
+        parser,
+        "--set",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one setting, e.g. --set controller.trigger=scan (repeatable)",
+    )
+    add_print_config(parser)
+
+
+def _add_sim_car(verbs: Verbs) -> None:
+    """`qnav sim-car`: the simulator as the car."""
+    parser = verb(
+        verbs,
+        sim_car,
+        "sim-car",
+        help="the simulator as the car: scans and poses out on zenoh, motion in over MAVLink",
+    )
+    world_options(parser, "walls-increment")
+    settings_options(parser, "qnav.simcar.car:SimCarSettings", "sim-car settings")
+    add_print_config(parser)
+    parser.add_argument("--log", type=Path, help="write the episodes as JSON lines here")
+    zenoh_options(parser)
+
+
+def _add_health(verbs: Verbs) -> None:
+    """`qnav health`: the image's HEALTHCHECK."""
+    parser = verb(
+        verbs,
+        health,
+        "health",
+        help="exit 0 while a daemon's loop beats (its QNAV_HEALTH_FILE is fresh): the image's "
+        "HEALTHCHECK",
+    )
+    parser.add_argument(
+        "--file", type=Path, metavar="PATH", help="health file (default: $QNAV_HEALTH_FILE)"
+    )
+    parser.add_argument(
+        "--max-age-s",
+        type=float,
+        default=DEFAULT_MAX_AGE_S,
+        help=f"oldest acceptable beat in seconds ({DEFAULT_MAX_AGE_S:g})",
+    )
+
+
+def _add_bridge(verbs: Verbs) -> None:
+    """`qnav bridge`: zenoh to MAVLink."""
+    parser = verb(
+        verbs,
+        bridge,
+        "bridge",
+        help="the firmware bridge: commands from zenoh to the car over MAVLink",
+    )
+    with_listing(
+        parser,
+        "qnav.firmware_bridge.settings:BridgeSettings",
+        "settings (--set SECTION.FIELD=VALUE, or in the --config file; defaults below)",
+    )
+    parser.add_argument(
+        "--config", type=Path, metavar="FILE", help="TOML settings (see config/bridge.toml)"
+    )
+    repeated(
+        parser,
+        "--set",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one setting, e.g. --set mavlink.connection=udpin:0.0.0.0:14550",
+    )
+    add_print_config(parser)
+    parser.add_argument(
+        "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
+    )
+
+
+def _add_calibrate_car(verbs: Verbs) -> None:
+    """`qnav calibrate-car`: a bounded pattern through a running bridge."""
+    parser = verb(
+        verbs,
+        calibrate_car,
+        "calibrate-car",
+        help="drive a short bounded pattern through a running bridge and fit its speed and "
+        "turn-rate scales from the vehicle's own velocity (the car must be armed, and watched)",
+    )
+    parser.add_argument(
+        "--config", type=Path, metavar="FILE", help="the bridge's TOML settings (its zenoh)"
+    )
+    repeated(
+        parser,
+        "--set",
+        "assignments",
+        "SECTION.FIELD=VALUE",
+        "change one bridge setting (as `qnav bridge --set`)",
+    )
+    parser.add_argument(
+        "--max-distance-m", type=float, default=15.0, help="abort beyond this (15 m)"
+    )
+    parser.add_argument(
+        "--wait-s", type=float, default=60.0, help="wait this long for an armed car (60 s)"
+    )
+    flag(parser, "--json", "print one JSON object")
+    flag(
+        parser,
+        "--write",
+        "write the measured scales into the --config file's [output] section (restart the "
+        "bridge to drive with them; until then it assumes a fast car)",
+    )
+
+
+def _add_fake_vehicle(verbs: Verbs) -> None:
+    """`qnav fake-vehicle`: a MAVLink car for tests."""
+    parser = verb(
+        verbs,
+        fake_vehicle,
+        "fake-vehicle",
+        help="a small MAVLink car that behaves like ArduPilot Rover",
+    )
+    with_listing(
+        parser,
+        "qnav.simcar.mavlink_vehicle:MavlinkVehicleSettings",
+        "settings (--set FIELD=VALUE, or in the --config file; defaults below)",
+    )
+    parser.add_argument("--config", type=Path, metavar="FILE", help="TOML file of vehicle settings")
+    parser.add_argument(
+        "--connection",
+        help="MAVLink connection string (default udpout:127.0.0.1:14550, to the bridge)",
+    )
+    parser.add_argument(
+        "--signing-key-file", metavar="FILE", help="sign, and accept only signed messages"
+    )
+    repeated(
+        parser,
+        "--set",
+        "assignments",
+        "FIELD=VALUE",
+        "change one setting, e.g. --set dynamics.max_speed_mps=1.0 (repeatable)",
+    )
+    parser.add_argument(
+        "--pose-period-s", type=float, default=1.0, help="log the pose this often (0: never)"
+    )
+    add_print_config(parser)
+    parser.add_argument(
+        "--log-level", default="info", choices=["debug", "info", "warning"], help="(info)"
+    )

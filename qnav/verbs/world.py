@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import cast
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import IncrementDynamics
 from qnav.contracts.settings import to_markdown
-from qnav.options import config_text, settings_from_args
+from qnav.options import add_print_config, config_text, settings_from_args
 from qnav.sim.config import SCENARIOS, WorldConfig, changed_world, load_world, scenario
 from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
 from qnav.sim.evaluate import evaluate as run_evaluation
+from qnav.verbs.parser import Verbs, flag, lookahead_option, settings_options, verb, world_options
 
 
 def _world(args: argparse.Namespace) -> WorldConfig:
@@ -207,3 +209,104 @@ def render(args: argparse.Namespace) -> int:
     )
     print(f"wrote {png}\nwrote {gif}")
     return 0
+
+
+def add_verbs(verbs: Verbs) -> None:
+    """`qnav scenarios`, `qnav eval` and `qnav render`: their options."""
+    _add_scenarios(verbs)
+    _add_eval(verbs)
+    _add_render(verbs)
+
+
+def _add_scenarios(verbs: Verbs) -> None:
+    """`qnav scenarios [--reference]`."""
+    parser = verb(verbs, scenarios, "scenarios", help="list the built-in scenarios")
+    flag(
+        parser,
+        "--reference",
+        "print the reference of every world setting instead (docs/settings.md)",
+    )
+
+
+def _add_eval(verbs: Verbs) -> None:
+    """`qnav eval`: the test protocol over an agent, a run or a policy file."""
+    parser = verb(
+        verbs,
+        evaluate,
+        "eval",
+        help="run the paper's test protocol and print success, collision, unfinished",
+    )
+    world_options(parser, default=None)
+    parser.add_argument(
+        "--agent",
+        default="random",
+        choices=["random", "goto", "oracle", "dwa", "map"],
+        help="without --policy: random (the paper's Random rows), goto (turn to the target "
+        "and drive, blind to obstacles), oracle (a planner that knows the obstacles' future: "
+        "an upper bound on success; slow); with --barn also dwa (the Dynamic Window Approach "
+        "on the lidar, no map) and map (a planner given the map: an upper bound)",
+    )
+    parser.add_argument(
+        "--barn",
+        nargs="?",
+        const="",
+        metavar="DIR",
+        help="BARN's protocol, one run per world, over DIR's world_N.world files (with "
+        "path_files/ beside them, as published), or BARN's 300 worlds (committed) without DIR: "
+        "success, collision, timeout, BARN's metric and loops, overall and by world",
+    )
+    parser.add_argument(
+        "--state-error",
+        choices=["exact", "lidar-grade", "tracker", "coarse"],
+        help="with --agent oracle: plan on a noisy estimate of the state, as a perceive-then-plan "
+        "controller would (errors in lab.oracle.PERCEPTION_LEVELS)",
+    )
+    flag(
+        parser,
+        "--tracker",
+        "with --agent oracle: plan on the onboard obstacle tracker's estimate "
+        "(controller.perception: lidar plus pose, the room's walls known) instead of the truth",
+    )
+    lookahead_option(parser, "with --policy: ")
+    parser.add_argument(
+        "--range-noise-m",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --tracker or --lookahead: Gaussian noise added to the ranges the tracker reads",
+    )
+    parser.add_argument(
+        "--policy",
+        type=Path,
+        metavar="RUN_DIR|FILE.onnx",
+        help="a training run folder (torch) or an exported policy file (the onboard runtime); "
+        "without it the random agent acts",
+    )
+    parser.add_argument(
+        "--backend",
+        default="onnxruntime",
+        choices=["onnxruntime", "numpy"],
+        help="runtime backend for a policy file (default onnxruntime)",
+    )
+    parser.add_argument(
+        "--random-action-prob",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="with --policy: take a random action with probability P at each step",
+    )
+    add_print_config(parser, markdown=True)
+    settings_options(parser, "qnav.sim.evaluate:EvalSettings", "test protocol")
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_render(verbs: Verbs) -> None:
+    """`qnav render`: one episode drawn."""
+    parser = verb(verbs, render, "render", help="draw an episode to PNG and animated GIF")
+    world_options(parser, "obstacles-inertia")
+    parser.add_argument("--agent", default="random", choices=["random"], help="who acts")
+    parser.add_argument("--seed", type=int, default=0, help="world seed (default 0)")
+    parser.add_argument("--episode", type=int, default=0, help="episode index of that seed")
+    parser.add_argument("--max-steps", type=int, default=None, help="cut the episode short")
+    flag(parser, "--rays", "draw the lidar rays")
+    parser.add_argument("--out", type=Path, default=Path("out/render"), help="output folder")
