@@ -145,8 +145,8 @@ def test_with_the_look_ahead_the_full_stack_dodges_as_the_shield_does_in_process
     tmp_path: Path,
 ) -> None:
     # The controller daemon runs the tracker and the forecast on the wire's scans and poses
-    # (lookahead.mode = "shield"); in process, `qnav eval --lookahead shield` runs the same look
-    # ahead per world.
+    # (lookahead.mode = "shield") and its proximity stop, as shipped; in process the same look
+    # ahead and stop run per world (`qnav.tracking.LookaheadAgent`).
     _dodging(tmp_path / "stack", "--lookahead", "shield")
 
 
