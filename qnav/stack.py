@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from qnav.controller.lookahead import LookaheadSettings
     from qnav.sim.config import WorldConfig
     from qnav.sim.evaluate import Agent
+    from qnav.sitl import SitlProcess
 
 
 @dataclass(frozen=True)
@@ -281,110 +282,42 @@ def run_stack(
     With `lidar_turn_s`, the world's lidar rotates (its `lidar_turn_s`): each scan's beams leave
     over that many seconds while the car and the obstacles move (lockstep only).
     """
-    from tqdm import tqdm
-
     from qnav.contracts.policy_file import PolicyContract
     from qnav.controller.onnx_file import read_onnx
     from qnav.sim.config import scenario as load_scenario
-    from qnav.simcar.car import SimCarSettings
 
     contract = PolicyContract.from_metadata(read_onnx(policy).metadata, str(policy))
     world = replace(load_scenario(scenario or contract.scenario), lidar_turn_s=lidar_turn_s)
     files = StackFiles(out)
     hub = f"tcp/127.0.0.1:{free_port()}"
-    mavlink_port = free_port(socket.SOCK_DGRAM)
-    sitl = None
-    vehicle_args = ["--vehicle-connection", f"udpin:127.0.0.1:{mavlink_port}"]
     lockstep = lockstep and sitl_binary is None  # the firmware keeps its own time
-    if lockstep:
-        vehicle_args.append("--lockstep")
-    if lidar_turn_s:
-        if not lockstep:
-            raise ConfigError("--lidar-turn-s needs lockstep (not --real-time, not --vehicle sitl)")
-        vehicle_args += ["--set", f"lidar_turn_s={lidar_turn_s!r}"]
-    bridge_values = None
-    if sitl_binary is not None:
-        from qnav.sitl import SITL_PARAMS, SKID_PARAMS, SitlProcess
-
-        sitl = SitlProcess(
-            sitl_binary, files.root / "sitl", [SITL_PARAMS, SKID_PARAMS], model="rover-skid"
-        )
-        vehicle_args = ["--firmware-connection", sitl.serial0]
-        bridge_values = sitl_bridge_settings(sitl.serial1)
-    write_configs(
-        files,
-        policy,
-        hub,
-        mavlink_port,
-        world.robot_radius_m,
-        bridge_values=bridge_values,
-        public_key=None if serve is None else serve.public_key,
-        # In lockstep the world waits for the controller: a scan's age in wall time is the
-        # stack's, not the world's, and a stop for a stale scan would restart the policy's
-        # window mid-episode. The controller waits as long as the sim-car does.
-        input_timeout_s=(
-            SimCarSettings().lockstep_timeout_s + world.control_period_s if lockstep else 0.0
-        ),
-        lookahead=lookahead,
-        room_size_m=world.arena.size_m,
+    vehicle = _vehicle(files, lockstep, sitl_binary, lidar_turn_s)
+    _configure(
+        files, policy, hub, vehicle, world, lockstep=lockstep, serve=serve, lookahead=lookahead
     )
-    rest_args = [] if serve is None else ["--rest-s", str(serve.rest_s)]
+    sim_car_args = [
+        "--scenario", world.name, "--episodes", str(episodes),
+        "--first-episode", str(first_episode), "--listen", hub, *vehicle.args,
+        "--log", str(files.episodes), *([] if serve is None else ["--rest-s", str(serve.rest_s)]),
+    ]  # fmt: skip
     daemons = Daemons(files)
-    outcomes: list[str] = []
-    steps: list[int] = []
     started = time.monotonic()
     try:
-        if sitl is not None:
-            sitl.start()
-        # The recorder and the daemons first: they wait for the sim-car, which is the zenoh hub,
-        # so nothing the sim-car publishes is missed.
-        if record:
-            daemons.start("recorder", "record", "--folder", str(files.recording), "--connect", hub)
-        daemons.start("controller", "controller", "--config", str(files.controller_toml))
-        daemons.start("bridge", "bridge", "--config", str(files.bridge_toml))
-        if serve is not None:
-            daemons.start(
-                "server", "serve", str(serve.folder), "--key", str(serve.private_key),
-                "--connect", hub, "--poll-s", str(serve.poll_s),
-                "--announce-interval-s", str(serve.announce_interval_s),
-            )  # fmt: skip
-        sim_car = daemons.start(
-            "sim-car",
-            "sim-car",
-            "--scenario", world.name,
-            "--episodes", str(episodes),
-            "--first-episode", str(first_episode),
-            "--listen", hub,
-            *vehicle_args,
-            "--log", str(files.episodes),
-            *rest_args,
-            stdout=subprocess.PIPE,
-        )  # fmt: skip
-        assert sim_car.stdout is not None
-        with tqdm(total=episodes, desc="stack episodes", unit="ep", disable=not progress) as bar:
-            for line in sim_car.stdout:
-                if line.startswith("episode "):
-                    outcomes.append(line.split()[2].rstrip(","))
-                    steps.append(int(line.split()[3]))
-                    bar.update(1)
-                    bar.set_postfix(success=f"{outcomes.count('success') / len(outcomes):.2f}")
-                daemons.check_alive()
-        if sim_car.wait() != 0:
-            tail = files.log("sim-car").read_text().strip().splitlines()[-5:]
-            raise RuntimeError("sim-car failed:\n  " + "\n  ".join(tail))
+        if vehicle.sitl is not None:
+            vehicle.sitl.start()
+        _start_daemons(daemons, files, hub, record, serve)
+        outcomes, steps = _drive(daemons, files, sim_car_args, episodes, progress)
     finally:
         codes = daemons.stop()
-        if sitl is not None:
-            sitl.stop()
+        if vehicle.sitl is not None:
+            vehicle.sitl.stop()
     count = max(len(outcomes), 1)
     return {
         "policy": str(policy),
         "scenario": world.name,
         "episodes": len(outcomes),
-        "success": outcomes.count("success") / count,
-        "collision": outcomes.count("collision") / count,
-        "unfinished": outcomes.count("unfinished") / count,
-        "vehicle": "sitl" if sitl is not None else "sim",
+        **{name: outcomes.count(name) / count for name in ("success", "collision", "unfinished")},
+        "vehicle": "sitl" if vehicle.sitl is not None else "sim",
         "timing": "lockstep" if lockstep else "real time",
         "lidar_turn_s": lidar_turn_s,
         "outcomes": outcomes,
@@ -396,6 +329,122 @@ def run_stack(
         "served": None if serve is None else str(serve.folder),
         "recording": sorted(str(p) for p in files.recording.glob("*.mcap")),
     }
+
+
+def _configure(
+    files: StackFiles,
+    policy: Path,
+    hub: str,
+    vehicle: _Vehicle,
+    world: WorldConfig,
+    *,
+    lockstep: bool,
+    serve: StackServe | None,
+    lookahead: LookaheadSettings | None,
+) -> None:
+    """The daemons' settings files for this stack (`write_configs`)."""
+    from qnav.simcar.car import SimCarSettings
+
+    write_configs(
+        files,
+        policy,
+        hub,
+        vehicle.mavlink_port,
+        world.robot_radius_m,
+        bridge_values=vehicle.bridge_values,
+        public_key=None if serve is None else serve.public_key,
+        # In lockstep the world waits for the controller: a scan's age in wall time is the
+        # stack's, not the world's, and a stop for a stale scan would restart the policy's
+        # window mid-episode. The controller waits as long as the sim-car does.
+        input_timeout_s=(
+            SimCarSettings().lockstep_timeout_s + world.control_period_s if lockstep else 0.0
+        ),
+        lookahead=lookahead,
+        room_size_m=world.arena.size_m,
+    )
+
+
+@dataclass
+class _Vehicle:
+    """The car the sim-car drives: the MAVLink test vehicle or ArduPilot Rover SITL."""
+
+    mavlink_port: int
+    """The bridge's MAVLink port on loopback (the test vehicle's)."""
+    args: list[str]
+    """The sim-car's options that name the car (and its lockstep and lidar)."""
+    sitl: SitlProcess | None = None
+    """The autopilot, with `--vehicle sitl`."""
+    bridge_values: dict[str, Any] | None = None
+    """The bridge's settings for SITL's serial ports."""
+
+
+def _vehicle(
+    files: StackFiles, lockstep: bool, sitl_binary: Path | None, lidar_turn_s: float
+) -> _Vehicle:
+    """The test vehicle (in lockstep, or real time), or SITL with `sitl_binary`."""
+    mavlink_port = free_port(socket.SOCK_DGRAM)
+    args = ["--vehicle-connection", f"udpin:127.0.0.1:{mavlink_port}"]
+    if lockstep:
+        args.append("--lockstep")
+    if lidar_turn_s:
+        if not lockstep:
+            raise ConfigError("--lidar-turn-s needs lockstep (not --real-time, not --vehicle sitl)")
+        args += ["--set", f"lidar_turn_s={lidar_turn_s!r}"]
+    if sitl_binary is None:
+        return _Vehicle(mavlink_port, args)
+    from qnav.sitl import SITL_PARAMS, SKID_PARAMS, SitlProcess
+
+    sitl = SitlProcess(
+        sitl_binary, files.root / "sitl", [SITL_PARAMS, SKID_PARAMS], model="rover-skid"
+    )
+    return _Vehicle(
+        mavlink_port,
+        ["--firmware-connection", sitl.serial0],
+        sitl,
+        sitl_bridge_settings(sitl.serial1),
+    )
+
+
+def _start_daemons(
+    daemons: Daemons, files: StackFiles, hub: str, record: bool, serve: StackServe | None
+) -> None:
+    """The recorder and the daemons first: they wait for the sim-car, which is the zenoh hub,
+    so nothing the sim-car publishes is missed."""
+    if record:
+        daemons.start("recorder", "record", "--folder", str(files.recording), "--connect", hub)
+    daemons.start("controller", "controller", "--config", str(files.controller_toml))
+    daemons.start("bridge", "bridge", "--config", str(files.bridge_toml))
+    if serve is not None:
+        daemons.start(
+            "server", "serve", str(serve.folder), "--key", str(serve.private_key),
+            "--connect", hub, "--poll-s", str(serve.poll_s),
+            "--announce-interval-s", str(serve.announce_interval_s),
+        )  # fmt: skip
+
+
+def _drive(
+    daemons: Daemons, files: StackFiles, sim_car_args: list[str], episodes: int, progress: bool
+) -> tuple[list[str], list[int]]:
+    """The sim-car's episodes to their end: each one's outcome and steps, as it reports them,
+    the other daemons checked alive after every line."""
+    from tqdm import tqdm
+
+    outcomes: list[str] = []
+    steps: list[int] = []
+    sim_car = daemons.start("sim-car", "sim-car", *sim_car_args, stdout=subprocess.PIPE)
+    assert sim_car.stdout is not None
+    with tqdm(total=episodes, desc="stack episodes", unit="ep", disable=not progress) as bar:
+        for line in sim_car.stdout:
+            if line.startswith("episode "):
+                outcomes.append(line.split()[2].rstrip(","))
+                steps.append(int(line.split()[3]))
+                bar.update(1)
+                bar.set_postfix(success=f"{outcomes.count('success') / len(outcomes):.2f}")
+            daemons.check_alive()
+    if sim_car.wait() != 0:
+        tail = files.log("sim-car").read_text().strip().splitlines()[-5:]
+        raise RuntimeError("sim-car failed:\n  " + "\n  ".join(tail))
+    return outcomes, steps
 
 
 def episode_health(episodes_log: Path) -> dict[str, int]:
@@ -443,19 +492,7 @@ def stack_verb(args: argparse.Namespace) -> int:
             raise ConfigError("--serve-folder and --keys go together (docs/serve.md)")
         serve = StackServe(args.serve_folder, args.keys)
         serve.check()
-    sitl_binary = None
-    if args.vehicle == "sitl":
-        from qnav.sitl import SITL_ENV, network_is_isolated, sitl_binary_from_env
-
-        sitl_binary = args.sitl_binary or sitl_binary_from_env()
-        if sitl_binary is None:
-            raise ConfigError(f"--vehicle sitl needs --sitl-binary or {SITL_ENV} (docs/bridge.md)")
-        if not network_is_isolated():
-            # SITL serves unauthenticated TCP ports: only loopback may reach them.
-            raise ConfigError(
-                "--vehicle sitl runs only in a network namespace of its own (loopback only): "
-                "`make stack-sitl`, or `unshare --net sh -c 'ip link set lo up && qnav stack ...'`"
-            )
+    sitl_binary = _sitl_binary(args) if args.vehicle == "sitl" else None
     with sigterm_interrupts():
         result = run_stack(
             args.policy,
@@ -486,48 +523,58 @@ def stack_verb(args: argparse.Namespace) -> int:
         lidar_turn_s=args.lidar_turn_s,
     )
     result["response"] = action_response(args.out / "episodes.jsonl", result["scenario"])
-    if args.json:
-        print(json.dumps(result))
-        return 0
-    print(
+    print(json.dumps(result) if args.json else _report(result))
+    return 0
+
+
+def _sitl_binary(args: argparse.Namespace) -> Path:
+    """The ardurover binary of `--vehicle sitl`; ConfigError where there is none, or where this
+    network namespace reaches beyond loopback."""
+    from qnav.sitl import SITL_ENV, network_is_isolated, sitl_binary_from_env
+
+    sitl_binary: Path | None = args.sitl_binary or sitl_binary_from_env()
+    if sitl_binary is None:
+        raise ConfigError(f"--vehicle sitl needs --sitl-binary or {SITL_ENV} (docs/bridge.md)")
+    if not network_is_isolated():
+        # SITL serves unauthenticated TCP ports: only loopback may reach them.
+        raise ConfigError(
+            "--vehicle sitl runs only in a network namespace of its own (loopback only): "
+            "`make stack-sitl`, or `unshare --net sh -c 'ip link set lo up && qnav stack ...'`"
+        )
+    return sitl_binary
+
+
+def _report(result: dict[str, Any]) -> str:
+    """`qnav stack`'s result as its lines: the stack, its health, the same episodes in process,
+    and where its files are."""
+    health, same = result["health"], result["in_process"]
+    agreement, response = result["agreement"], result["response"]
+    lines = [
         f"full stack ({result['vehicle']}, {result['timing']}), {result['scenario']}, "
         f"{result['episodes']} episodes ({result['wall_s']:.0f} s): success "
         f"{result['success']:.3f}, collision {result['collision']:.3f}, unfinished "
-        f"{result['unfinished']:.3f}"
-    )
-    health = result["health"]
-    print(
+        f"{result['unfinished']:.3f}",
         f"per control period, of {health['steps']}: the controller had not decided on the scan "
         f"in time {health['undecided']}, decided on another pose {health['stale_pose']}, "
-        f"stopped {health['stops']}; commands too late for lockstep {health['late']}"
-    )
-    if "in_process" in result:
-        same = result["in_process"]
-        print(
-            f"in process, same episodes: success {same['success']:.3f}, collision "
-            f"{same['collision']:.3f}, unfinished {same['unfinished']:.3f}; "
-            f"gap {result['gap']:+.3f}; mean steps {result['mean_steps']} in the stack, "
-            f"{same['mean_steps']} in process"
-        )
-        agreement = result["agreement"]
-        print(
-            f"episode by episode, beside the policy in process on one stream as the controller "
-            f"runs it: the same actions in {agreement['same_actions']} of "
-            f"{agreement['episodes']}, the same outcome in {agreement['same_outcome']}"
-        )
-        response = result["response"]
-        print(
-            f"per control period: forward {response['forward_m_per_step']} m "
-            f"(trained {response['trained_m_per_step']}), turn {response['turn_rad_per_step']} "
-            f"rad (trained {response['trained_rad_per_step']}); by place in a run of one "
-            f"action (1st, 2nd, 3rd, 4th+): forward {response['forward_m_by_run']} m, "
-            f"turn {response['turn_rad_by_run']} rad; scan to command (median) "
-            f"{response['scan_to_command_ms']} ms"
-        )
-    print(f"configuration, logs and episode log in {result['folder']}")
+        f"stopped {health['stops']}; commands too late for lockstep {health['late']}",
+        f"in process, same episodes: success {same['success']:.3f}, collision "
+        f"{same['collision']:.3f}, unfinished {same['unfinished']:.3f}; "
+        f"gap {result['gap']:+.3f}; mean steps {result['mean_steps']} in the stack, "
+        f"{same['mean_steps']} in process",
+        f"episode by episode, beside the policy in process on one stream as the controller "
+        f"runs it: the same actions in {agreement['same_actions']} of "
+        f"{agreement['episodes']}, the same outcome in {agreement['same_outcome']}",
+        f"per control period: forward {response['forward_m_per_step']} m "
+        f"(trained {response['trained_m_per_step']}), turn {response['turn_rad_per_step']} "
+        f"rad (trained {response['trained_rad_per_step']}); by place in a run of one "
+        f"action (1st, 2nd, 3rd, 4th+): forward {response['forward_m_by_run']} m, "
+        f"turn {response['turn_rad_by_run']} rad; scan to command (median) "
+        f"{response['scan_to_command_ms']} ms",
+        f"configuration, logs and episode log in {result['folder']}",
+    ]
     if result["recording"]:
-        print(f"recording: {', '.join(result['recording'])}")
-    return 0
+        lines.append(f"recording: {', '.join(result['recording'])}")
+    return "\n".join(lines)
 
 
 def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:

@@ -291,16 +291,10 @@ class _Scene:
 
     def __init__(self, record: EpisodeRecord, rays: bool, dpi: int) -> None:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.collections import LineCollection
-        from matplotlib.colors import to_rgba
         from matplotlib.figure import Figure
-        from matplotlib.lines import Line2D
-        from matplotlib.patches import Circle
 
         self.record = record
         config = record.config
-        size_m = config.arena.size_m
-        radius_m = config.robot_radius_m
         self.rays = rays and record.scans is not None and config.lidar is not None
 
         self.figure: Figure = Figure(figsize=_FIGSIZE_IN, dpi=dpi)
@@ -308,9 +302,9 @@ class _Scene:
         self.figure.subplots_adjust(left=0.08, right=0.72, bottom=0.09, top=0.92)
         ax: Axes = self.figure.add_subplot()
         self.axes = ax
-        margin_m = max(0.6, 1.2 * radius_m)
-        ax.set_xlim(-margin_m, size_m + margin_m)
-        ax.set_ylim(-margin_m, size_m + margin_m)
+        margin_m = max(0.6, 1.2 * config.robot_radius_m)
+        ax.set_xlim(-margin_m, config.arena.size_m + margin_m)
+        ax.set_ylim(-margin_m, config.arena.size_m + margin_m)
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
@@ -318,16 +312,46 @@ class _Scene:
         ax.set_axisbelow(True)
 
         handles: list[Any] = []
-        segments = wall_segments(config.arena)
+        self._draw_walls(handles)
+        self._draw_rays(handles)  # first, so they pass under everything else
+        self._draw_obstacles(handles)
+        self._draw_target_and_start(handles)
+        self._draw_robot(handles)
+        ax.legend(
+            handles=handles,
+            loc="upper left",
+            bbox_to_anchor=(1.02, 1.0),
+            borderaxespad=0.0,
+            fontsize="small",
+            frameon=False,
+        )
+        self.title: Text = ax.set_title("")
+        # Everything drawn in the arena, for blitting; z-order decides what lies on top.
+        self._data_artists: list[Artist] = sorted(
+            [*ax.collections, *ax.patches, *ax.lines], key=lambda artist: artist.get_zorder()
+        )
+        self._background: Any = None
+
+    def _draw_walls(self, handles: list[Any]) -> None:
+        """The arena's walls, and their legend entry."""
+        from matplotlib.collections import LineCollection
+        from matplotlib.lines import Line2D
+
+        segments = wall_segments(self.record.config.arena)
         walls = np.stack([segments.start, segments.end], axis=1)
-        ax.add_collection(
+        self.axes.add_collection(
             LineCollection(
                 list(walls), colors=_WALL_COLOUR, linewidths=4.0, capstyle="butt", zorder=3
             )
         )
         handles.append(Line2D([], [], color=_WALL_COLOUR, linewidth=4.0, label="wall"))
 
-        # Rays first, so they pass under everything else.
+    def _draw_rays(self, handles: list[Any]) -> None:
+        """The lidar's rays (hits and misses, set by `show`), where they are drawn."""
+        from matplotlib.collections import LineCollection
+        from matplotlib.colors import to_rgba
+        from matplotlib.lines import Line2D
+
         self.ray_hits: LineCollection = LineCollection(
             [], colors=[to_rgba(_RAY_COLOUR, 0.35)], linewidths=0.6, zorder=1
         )
@@ -335,21 +359,27 @@ class _Scene:
             [], colors=[to_rgba(_RAY_COLOUR, 0.1)], linewidths=0.6, linestyles="dotted", zorder=1
         )
         if self.rays:
-            ax.add_collection(self.ray_hits)
-            ax.add_collection(self.ray_misses)
+            self.axes.add_collection(self.ray_hits)
+            self.axes.add_collection(self.ray_misses)
             handles.append(
                 Line2D([], [], color=_RAY_COLOUR, alpha=0.5, linewidth=0.8, label="lidar rays")
             )
 
-        num_obstacles = record.obstacle_xy.shape[1]
+    def _draw_obstacles(self, handles: list[Any]) -> None:
+        """One circle per moving obstacle, each in its own colour, and their trails."""
+        from matplotlib.collections import LineCollection
+        from matplotlib.colors import to_rgba
+        from matplotlib.patches import Circle
+
+        num_obstacles = self.record.obstacle_xy.shape[1]
         cycle = [f"C{i}" for i in range(1, 10) if i != 2]  # C0 is the path, C2 the target
         self.obstacle_rgba = np.array(
             [to_rgba(cycle[i % len(cycle)]) for i in range(num_obstacles)], dtype=np.float64
         ).reshape(num_obstacles, 4)
         self.trails: LineCollection = LineCollection([], linewidths=1.5, zorder=2)
-        ax.add_collection(self.trails)
+        self.axes.add_collection(self.trails)
         self.obstacles: list[Circle] = []
-        obstacle_radius_m = config.obstacles.radius_m
+        obstacle_radius_m = self.record.config.obstacles.radius_m
         for rgba in self.obstacle_rgba:
             circle = Circle(
                 (0.0, 0.0),
@@ -359,7 +389,7 @@ class _Scene:
                 linewidth=1.2,
                 zorder=4,
             )
-            ax.add_patch(circle)
+            self.axes.add_patch(circle)
             self.obstacles.append(circle)
         if num_obstacles:
             handles.append(
@@ -372,6 +402,12 @@ class _Scene:
                 )
             )
 
+    def _draw_target_and_start(self, handles: list[Any]) -> None:
+        """The target with its reach radius, and the start with its heading."""
+        from matplotlib.patches import Circle
+
+        ax, record = self.axes, self.record
+        radius_m = record.config.robot_radius_m
         target = record.target_xy
         ax.add_patch(
             Circle(
@@ -396,7 +432,6 @@ class _Scene:
             label="target (reach radius)",
         )
         handles.append(target_marker)
-
         start = record.poses[0]
         (start_marker,) = ax.plot(
             [start[0]],
@@ -419,13 +454,19 @@ class _Scene:
             zorder=5,
         )
 
+    def _draw_robot(self, handles: list[Any]) -> None:
+        """The robot's path, body and heading (placed by `show`)."""
+        from matplotlib.colors import to_rgba
+        from matplotlib.patches import Circle
+
+        ax = self.axes
         (self.path,) = ax.plot(
             [], [], color=_PATH_COLOUR, linewidth=1.6, zorder=5, label="robot path"
         )
         handles.append(self.path)
         self.robot: Circle = Circle(
             (0.0, 0.0),
-            radius_m,
+            self.record.config.robot_radius_m,
             facecolor=(*to_rgba(_PATH_COLOUR)[:3], 0.25),
             edgecolor=_PATH_COLOUR,
             linewidth=1.5,
@@ -435,21 +476,6 @@ class _Scene:
         ax.add_patch(self.robot)
         handles.append(self.robot)
         self.heading: Line2D = ax.plot([], [], color="navy", linewidth=2.0, zorder=8)[0]
-
-        ax.legend(
-            handles=handles,
-            loc="upper left",
-            bbox_to_anchor=(1.02, 1.0),
-            borderaxespad=0.0,
-            fontsize="small",
-            frameon=False,
-        )
-        self.title: Text = ax.set_title("")
-        # Everything drawn in the arena, for blitting; z-order decides what lies on top.
-        self._data_artists: list[Artist] = sorted(
-            [*ax.collections, *ax.patches, *ax.lines], key=lambda artist: artist.get_zorder()
-        )
-        self._background: Any = None
 
     def show(self, t: int) -> None:
         """Move every moving artist to where it was after step t."""

@@ -244,3 +244,40 @@ def test_only_the_shell_parses_command_lines() -> None:
         if found.name == "argparse"
     ]
     assert parsers == []
+
+
+MAX_FUNCTION_LINES = 80
+"""The longest a function of the product may be, from its def line to its last (decorators
+aside); the lab and the tests are not the product."""
+
+
+def _long_functions(path: Path, relative_to: Path = ROOT) -> list[str]:
+    """The functions and methods of `path`, at any depth, longer than `MAX_FUNCTION_LINES`."""
+    where = path.relative_to(relative_to)
+    return [
+        f"{where}:{node.lineno} {node.name} ({length} lines)"
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and (length := (node.end_lineno or node.lineno) - node.lineno + 1) > MAX_FUNCTION_LINES
+    ]
+
+
+def test_no_function_of_the_product_is_longer_than_80_lines() -> None:
+    long = [found for folder in [*PARTS, "qnav"] for path in _folder_files(folder)
+            for found in _long_functions(path)]  # fmt: skip
+    assert not long, "split these:\n" + "\n".join(long)
+
+
+def test_the_length_check_sees_methods_and_nested_functions(tmp_path: Path) -> None:
+    def function(name: str, lines: int, indent: str = "") -> str:
+        return f"{indent}def {name}() -> None:\n" + f"{indent}    x = 1\n" * (lines - 1)
+
+    (tmp_path / "long.py").write_text(
+        function("short", 80)
+        + "class A:\n"
+        + function("method", 81, "    ")
+        + "def outer() -> None:\n"
+        + function("inner", 81, "    ")
+    )
+    found = _long_functions(tmp_path / "long.py", relative_to=tmp_path)
+    assert sorted(entry.split()[1] for entry in found) == ["inner", "method", "outer"]

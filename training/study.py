@@ -651,7 +651,7 @@ def _goal_lines(
 ) -> list[str]:
     """The issues' goals, each with what the finished runs reach (and the methods beyond the
     paper's)."""
-    lines = [
+    return [
         "## Goals",
         "",
         "Each goal against the runs finished so far (a goal over 5 seeds is provisional until",
@@ -659,15 +659,32 @@ def _goal_lines(
         "",
         _row("goal", "ours", "n", "verdict"),
         _row(*["---"] * 4),
+        *_success_goal_rows(results),
+        *_margin_goal_rows(results),
+        *_headroom_goal_rows(results, references),
+        *_beyond_goal_rows(references, beyond),
+        *_compute_goal_rows(results),
+        "",
     ]
+
+
+def _success_goal_rows(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Each table's recurrent success against its goal."""
+    rows = []
     for scenario, goal in SUCCESS_GOALS.items():
         runs = _runs(results, scenario, "recurrent")
         label = f"Table {paper.TABLES[scenario]} ({scenario}) recurrent success >= {goal:g}"
         if not runs:
-            lines.append(_row(label, "not run yet", 0, ""))
+            rows.append(_row(label, "not run yet", 0, ""))
             continue
         mean = _mean_success(runs)
-        lines.append(_row(label, f"{mean:.3f}", len(runs), _verdict(mean >= goal)))
+        rows.append(_row(label, f"{mean:.3f}", len(runs), _verdict(mean >= goal)))
+    return rows
+
+
+def _margin_goal_rows(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Each table's recurrent runs against its feedforward ones (by its margin, where asked)."""
+    rows = []
     for scenario in SCENARIOS:
         recurrent, feedforward = (_runs(results, scenario, m) for m in MODELS)
         margin = RECURRENT_MARGIN.get(scenario, 0.0)
@@ -675,9 +692,9 @@ def _goal_lines(
             f" by >= {margin:g}" if margin else ""
         )
         if not recurrent or not feedforward:
-            lines.append(_row(label, "not run yet", f"{len(recurrent)} + {len(feedforward)}", ""))
+            rows.append(_row(label, "not run yet", f"{len(recurrent)} + {len(feedforward)}", ""))
             continue
-        lines.append(
+        rows.append(
             _beats_row(
                 label,
                 [r["test"]["success"] for r in recurrent],
@@ -685,6 +702,14 @@ def _goal_lines(
                 margin,
             )
         )
+    return rows
+
+
+def _headroom_goal_rows(
+    results: dict[str, dict[str, Any]], references: dict[str, References]
+) -> list[str]:
+    """Each obstacle table's share of the headroom the recurrent runs take."""
+    rows = []
     for scenario in (s for s in SCENARIOS if s.startswith("obstacles")):
         runs = _runs(results, scenario, "recurrent")
         bounds = references.get(scenario)
@@ -693,21 +718,28 @@ def _goal_lines(
             "headroom, (success - blind) / (oracle - blind)"
         )
         if not runs or bounds is None or bounds.blind is None or bounds.oracle is None:
-            lines.append(_row(label, "not run yet", len(runs), ""))
+            rows.append(_row(label, "not run yet", len(runs), ""))
             continue
         blind, oracle = bounds.blind["success"], bounds.oracle["success"]
         taken = headroom_taken(_mean_success(runs), blind, oracle)
-        lines.append(
+        rows.append(
             _row(label, f"{taken:.2f} (blind {blind:.3f}, oracle {oracle:.3f})", len(runs),
                  _verdict(taken >= HEADROOM_GOAL))
         )  # fmt: skip
+    return rows
+
+
+def _beyond_goal_rows(references: dict[str, References], beyond: Beyond) -> list[str]:
+    """The methods beyond the paper's: recurrent against feedforward, and against the paper's
+    figure and the headroom."""
+    rows = []
     for (method, model, scenario), tests in beyond.items():
         if model != "recurrent":
             continue
         feedforward = beyond[method, "feedforward", scenario]
         margin = RECURRENT_MARGIN.get(scenario, 0.0)
         if tests and feedforward and margin:
-            lines.append(
+            rows.append(
                 _beats_row(f"Table {paper.TABLES[scenario]}, beyond the paper: recurrent {method} "
                            f"beats feedforward {method} by >= {margin:g}",
                            [t["success"] for t in tests], [t["success"] for t in feedforward],
@@ -719,12 +751,18 @@ def _goal_lines(
         goal = paper.RECURRENT[scenario][0][0]
         mean = float(np.mean([t["success"] for t in tests]))
         taken = headroom_taken(mean, bounds.blind["success"], bounds.oracle["success"])
-        lines.append(
+        rows.append(
             _row(f"Table {paper.TABLES[scenario]}, beyond the paper: recurrent {method} reaches "
                  f"the paper's {goal:g} and >= {HEADROOM_GOAL:g} of the headroom",
                  f"{mean:.3f}, headroom {taken:.2f}", len(tests),
                  _verdict(mean >= goal and taken >= HEADROOM_GOAL))
         )  # fmt: skip
+    return rows
+
+
+def _compute_goal_rows(results: dict[str, dict[str, Any]]) -> list[str]:
+    """How quickly the walls-only runs learn, and how long runs take against their limits."""
+    rows = []
     walls = [
         r
         for s in SCENARIOS
@@ -734,7 +772,7 @@ def _goal_lines(
     if walls:
         reached = [(r.get("first_reached", {}).get("0.99") or {}).get("episodes") for r in walls]
         within = sum(e is not None and e <= WALLS_LEARNED_WITHIN_EPISODES for e in reached)
-        lines.append(
+        rows.append(
             _row(f"walls-only, recurrent: 0.99 validation success within "
                  f"{WALLS_LEARNED_WITHIN_EPISODES} episodes", f"{within} of {len(walls)} runs",
                  len(walls), _verdict(within == len(walls)))
@@ -743,12 +781,12 @@ def _goal_lines(
         runs = [r for r in _study_runs(results) if r["scenario"].startswith(kind)]
         if runs:
             inside = sum(_minutes(r) <= limit for r in runs)
-            lines.append(
+            rows.append(
                 _row(f"{kind} runs take at most {limit:g} minutes", f"{inside} of {len(runs)} "
                      f"runs (longest {max(map(_minutes, runs)):.1f})", len(runs),
                      _verdict(inside == len(runs)))
             )  # fmt: skip
-    return [*lines, ""]
+    return rows
 
 
 def _reference_rows(scenario: str, bounds: References | None) -> list[str]:
@@ -808,9 +846,22 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
         for model in MODELS
         for scenario in SCENARIOS
     }
-    header = _row("agent", "n", "success", "collision", "unfinished", "paper s / c / u")
-    rule = _row(*["---"] * 6)
-    lines = [
+    lines = [*_intro_lines(results), *_goal_lines(results, references, beyond)]
+    for scenario in SCENARIOS:
+        lines += _table_lines(scenario, results, references.get(scenario), beyond)
+    lines += _generalisation_lines(results)
+    lines += _ablation_lines(results)
+    lines += _compute_lines(results)
+    return "\n".join(lines) + "\n"
+
+
+_HEADER = _row("agent", "n", "success", "collision", "unfinished", "paper s / c / u")
+_RULE = _row(*["---"] * 6)
+
+
+def _intro_lines(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The results page's title, how it is made, and the study's status."""
+    return [
         "# Results: the paper's tables, reproduced",
         "",
         "Generated by `qnav reproduce` from `results/*.json` (one file per training run). Each",
@@ -829,44 +880,53 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
         "paper's method stops near the blind go-to-target controller's level (the Go-to-target "
         "rows; docs/learner.md, 'The re-pinned obstacle world').",
         "",
-        *_goal_lines(results, references, beyond),
     ]
-    for scenario in SCENARIOS:
-        lines += [f"## Table {paper.TABLES[scenario]}: {scenario}", "", header, rule]
-        lines += _reference_rows(scenario, references.get(scenario))
-        for model, reference in (
-            ("feedforward", paper.FEEDFORWARD),
-            ("recurrent", paper.RECURRENT),
-        ):
-            runs = _runs(results, scenario, model)
-            quoted = _paper_cell(*reference[scenario])
-            if not runs:
-                lines.append(_row(model.capitalize(), 0, "not run yet", "", "", quoted))
-                continue
-            tests = [r["test"] for r in runs]
-            best = max(tests, key=lambda t: t["success"])
-            lines.append(_row(model.capitalize(), len(runs), *_cells(tests), quoted))
-            lines.append(
-                _row(
-                    f"{model.capitalize()} (best)",
-                    "",
-                    *(f"{best[k]:.3f}" for k in ("success", "collision", "unfinished")),
-                    "",
-                )
+
+
+def _table_lines(
+    scenario: str,
+    results: dict[str, dict[str, Any]],
+    bounds: References | None,
+    beyond: Beyond,
+) -> list[str]:
+    """One of the paper's tables: the reference agents, each model's runs and its best, the
+    methods beyond the paper's, the gauge."""
+    lines = [f"## Table {paper.TABLES[scenario]}: {scenario}", "", _HEADER, _RULE]
+    lines += _reference_rows(scenario, bounds)
+    for model, reference in (("feedforward", paper.FEEDFORWARD), ("recurrent", paper.RECURRENT)):
+        runs = _runs(results, scenario, model)
+        quoted = _paper_cell(*reference[scenario])
+        if not runs:
+            lines.append(_row(model.capitalize(), 0, "not run yet", "", "", quoted))
+            continue
+        tests = [r["test"] for r in runs]
+        best = max(tests, key=lambda t: t["success"])
+        lines.append(_row(model.capitalize(), len(runs), *_cells(tests), quoted))
+        lines.append(
+            _row(
+                f"{model.capitalize()} (best)",
+                "",
+                *(f"{best[k]:.3f}" for k in ("success", "collision", "unfinished")),
+                "",
             )
-        for method, model in itertools.product(BEYOND_THE_PAPER, reversed(MODELS)):
-            tests = beyond[method.folder, model, scenario]
-            if tests:
-                lines.append(
-                    _row(f"{model.capitalize()}, {method.folder} (beyond the paper; "
-                         f"{int(tests[0]['episodes'])} episodes)", len(tests), *_cells(tests), "")
-                )  # fmt: skip
-        lines += [*_gauge_line(results, scenario), *_beyond_lines(scenario, beyond), ""]
-    lines += [
+        )
+    for method, model in itertools.product(BEYOND_THE_PAPER, reversed(MODELS)):
+        tests = beyond[method.folder, model, scenario]
+        if tests:
+            lines.append(
+                _row(f"{model.capitalize()}, {method.folder} (beyond the paper; "
+                     f"{int(tests[0]['episodes'])} episodes)", len(tests), *_cells(tests), "")
+            )  # fmt: skip
+    return [*lines, *_gauge_line(results, scenario), *_beyond_lines(scenario, beyond), ""]
+
+
+def _generalisation_lines(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The cross-dynamics tests and the random test actions, beside the paper's."""
+    lines = [
         "## Generalisation and random test actions",
         "",
-        header.replace("agent", "test"),
-        rule,
+        _HEADER.replace("agent", "test"),
+        _RULE,
     ]
     extra_tests = [
         ((trained, "recurrent"), "cross_dynamics", f"recurrent, trained on {trained}, tested on "
@@ -883,7 +943,12 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
             lines.append(_row(label, len(tests), *_cells(tests), quoted))
         else:
             lines.append(_row(label, 0, "not run yet", "", "", quoted))
-    lines += [
+    return lines
+
+
+def _ablation_lines(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The target re-drawing ablation: each rule's runs, how soon they reach each level."""
+    lines = [
         "",
         "## Target re-drawing ablation",
         "",
@@ -915,7 +980,12 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
         for relabel in RELABELS:
             runs = _runs(results, scenario, "recurrent", relabel, ablation=True)
             lines.append(_ablation_row(scenario, relabel, runs))
-    lines += [
+    return lines
+
+
+def _compute_lines(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Each scenario's and model's wall time per run, and how soon it first reached 0.99."""
+    lines = [
         "",
         "## Compute",
         "",
@@ -942,4 +1012,4 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
                          ", ".join("-" if e is None else str(int(e)) for e in first),
                          runs[0]["iterations"])
                 )  # fmt: skip
-    return "\n".join(lines) + "\n"
+    return lines

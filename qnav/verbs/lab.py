@@ -49,6 +49,22 @@ def diagnose(args: argparse.Namespace) -> int:
 def gauge(args: argparse.Namespace) -> int:
     """The decisive states of a world with the baselines' scores, or each run's score on its
     own world's states beside its test success."""
+    rows = [] if args.runs else _baseline_rows(args)
+    rows += [_run_row(run, args.episodes) for run in args.runs]
+    for row in rows:
+        if args.json:
+            print(json.dumps(row))
+        else:
+            shares = ", ".join(
+                f"{key} {value:.3f}" for key, value in row.items() if isinstance(value, float)
+            )
+            print(f"{row['policy']}: {shares}")
+    return 0
+
+
+def _baseline_rows(args: argparse.Namespace) -> list[dict[str, object]]:
+    """The baselines' scores on the decisive states of the world `args` give (and the best
+    choice under each perception error, with --ceiling); prints how many states there are."""
     from qnav.contracts.actions import Action
     from qnav.lab.decisive import (
         DRIVERS,
@@ -63,74 +79,57 @@ def gauge(args: argparse.Namespace) -> int:
     from qnav.lab.decisive import score as judge
     from qnav.lab.oracle import PERCEPTION_LEVELS
 
-    rows: list[dict[str, object]] = []
-    if not args.runs:
-        world = load_world(args.scenario, args.world_config, args.assignments)
-        if not world.obstacles.count:
-            raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
-        states = cached(world, GaugeSettings(episodes_per_driver=args.episodes), progress=True)
-        if len(states.doomed) == 0:
-            raise ConfigError(
-                f"no decisive states in {states.visited.sum()} visited: raise --episodes"
-            )
-        baselines: list[tuple[str, GaugeResult]] = [
-            ("random", random_expectation(states)),
-            ("go-to-target", judge(states, go_to_target_choices(states))),
-            *((f"always {a.name.lower()}", constant_choice(states, a)) for a in Action),
+    world = load_world(args.scenario, args.world_config, args.assignments)
+    if not world.obstacles.count:
+        raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
+    states = cached(world, GaugeSettings(episodes_per_driver=args.episodes), progress=True)
+    if len(states.doomed) == 0:
+        raise ConfigError(f"no decisive states in {states.visited.sum()} visited: raise --episodes")
+    baselines: list[tuple[str, GaugeResult]] = [
+        ("random", random_expectation(states)),
+        ("go-to-target", judge(states, go_to_target_choices(states))),
+        *((f"always {a.name.lower()}", constant_choice(states, a)) for a in Action),
+    ]
+    if args.ceiling:
+        baselines += [
+            (f"best choice, {level} state", perception_ceiling(world, states, error))
+            for level, error in PERCEPTION_LEVELS.items()
         ]
-        if args.ceiling:
-            baselines += [
-                (f"best choice, {level} state", perception_ceiling(world, states, error))
-                for level, error in PERCEPTION_LEVELS.items()
-            ]
-        for name, result in baselines:
-            rows.append(
-                {
-                    "policy": name,
-                    "safe": result.safe,
-                    "balanced": result.balanced,
-                    **result.by_driver,
-                }
-            )
-        visited = dict(zip(DRIVERS, states.visited.tolist(), strict=True))
-        print(
-            f"{len(states.doomed)} decisive states in {sum(visited.values())} visited "
-            f"(planner {visited['planner']}, go-to-target {visited['go-to-target']})"
-        )
-    for run in args.runs:
-        from qnav.lab.diagnose import decisive_report
-        from qnav.lab.gauge import decisive_states
-        from qnav.training.run_folder import load_network
+    visited = dict(zip(DRIVERS, states.visited.tolist(), strict=True))
+    print(
+        f"{len(states.doomed)} decisive states in {sum(visited.values())} visited "
+        f"(planner {visited['planner']}, go-to-target {visited['go-to-target']})"
+    )
+    return [
+        {"policy": name, "safe": result.safe, "balanced": result.balanced, **result.by_driver}
+        for name, result in baselines
+    ]
 
-        network, settings = load_network(run)
-        train = replace(settings.train, gauge_episodes=args.episodes)
-        world = replace(settings.world, max_episode_steps=train.max_episode_steps)
-        report = decisive_report(
-            network, decisive_states(world, train, progress=True), world, train.gamma
-        )
-        results = run / "results.json"
-        test = json.loads(results.read_text())["test"]["success"] if results.exists() else None
-        rows.append(
-            {
-                "policy": str(run),
-                "safe": report.safe,
-                "balanced": report.balanced,
-                **report.by_driver,
-                "value_gap": report.value_gap,
-                "target_ranks_safe": report.target_ranks_safe,
-                "target_gap": report.target_gap,
-                "test_success": test,
-            }
-        )
-    for row in rows:
-        if args.json:
-            print(json.dumps(row))
-        else:
-            shares = ", ".join(
-                f"{key} {value:.3f}" for key, value in row.items() if isinstance(value, float)
-            )
-            print(f"{row['policy']}: {shares}")
-    return 0
+
+def _run_row(run: Path, episodes: int) -> dict[str, object]:
+    """A training run's score on its own world's decisive states, beside its test success."""
+    from qnav.lab.diagnose import decisive_report
+    from qnav.lab.gauge import decisive_states
+    from qnav.training.run_folder import load_network
+
+    network, settings = load_network(run)
+    train = replace(settings.train, gauge_episodes=episodes)
+    world = replace(settings.world, max_episode_steps=train.max_episode_steps)
+    report = decisive_report(
+        network, decisive_states(world, train, progress=True), world, train.gamma
+    )
+    results = run / "results.json"
+    test = json.loads(results.read_text())["test"]["success"] if results.exists() else None
+    return {
+        "policy": str(run),
+        "safe": report.safe,
+        "balanced": report.balanced,
+        **report.by_driver,
+        "value_gap": report.value_gap,
+        "target_ranks_safe": report.target_ranks_safe,
+        "target_gap": report.target_gap,
+        "test_success": test,
+    }
 
 
 def add_tools(tools: Verbs) -> None:

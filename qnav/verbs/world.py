@@ -6,16 +6,26 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.motion import IncrementDynamics
 from qnav.contracts.settings import to_markdown
 from qnav.options import add_print_config, config_text, settings_from_args
 from qnav.sim.config import SCENARIOS, WorldConfig, changed_world, load_world, scenario
-from qnav.sim.evaluate import Agent, EvalSettings, GoToTargetAgent, RandomAgent, StreamPolicyAgent
+from qnav.sim.evaluate import (
+    Agent,
+    EvalResult,
+    EvalSettings,
+    GoToTargetAgent,
+    RandomAgent,
+    StreamPolicyAgent,
+)
 from qnav.sim.evaluate import evaluate as run_evaluation
 from qnav.verbs.parser import Verbs, flag, lookahead_option, settings_options, verb, world_options
+
+if TYPE_CHECKING:
+    from qnav.tracking import LookaheadAgent
 
 
 def _world(args: argparse.Namespace) -> WorldConfig:
@@ -70,57 +80,95 @@ def evaluate(args: argparse.Namespace) -> int:
 
         return evaluate_barn(args)
     eval_settings = settings_from_args(EvalSettings(), args)
-    seed = eval_settings.seed
     worlds = min(eval_settings.num_worlds, eval_settings.episodes)
-    agent: Agent
-    if args.policy is not None and args.policy.suffix == ".onnx":
-        from qnav.controller.policy import Expectation, PolicyRuntime
-
-        probe = PolicyRuntime(args.policy, backend=args.backend)
-        world = load_world(
-            args.scenario or probe.contract.scenario, args.world_config, args.assignments
-        )
-        expect = Expectation(
-            num_beams=world.lidar.num_beams if world.lidar else 0,
-            control_period_s=world.control_period_s,
-        )
-        runtime = PolicyRuntime(
-            args.policy, backend=args.backend, num_streams=worlds, expect=expect
-        )
-        agent = StreamPolicyAgent(runtime, worlds, args.random_action_prob, seed=seed)
-        label = f"policy file {args.policy} ({args.backend})"
-    elif args.policy is None:
-        world = load_world(args.scenario or "walls-inertia", args.world_config, args.assignments)
-        agent, label = (
-            (RandomAgent(worlds, seed=seed), "random agent")
-            if args.agent == "random"
-            else (GoToTargetAgent(), "go-to-target baseline")
-            if args.agent == "goto"
-            else (RandomAgent(worlds, seed=seed), "oracle planner (knows the future)")
-        )
-    else:
-        from qnav.training.agent import policy_agent
-        from qnav.training.run_folder import load_network
-
-        network, run = load_network(args.policy)
-        world = (
-            load_world(args.scenario, args.world_config, args.assignments)
-            if args.scenario
-            else changed_world(run.world, args.world_config, args.assignments)
-        )
-        agent = policy_agent(
-            network,
-            world,
-            worlds,
-            run.train.window,
-            epsilon=args.random_action_prob,
-            hold_steps=1,
-            seed=seed,
-        )
-        label = f"{run.train.model} policy {args.policy}"
+    world, agent, label = _evaluated(args, worlds, eval_settings.seed)
     if args.print_config:
         print(config_text(world, markdown=args.markdown), end="")
         return 0
+    _check_views(args)
+    shield = None
+    if args.lookahead != "off":
+        shield = agent = _looking_ahead(args, agent, world, worlds, eval_settings.seed)
+        label += f", the controller's look ahead in {args.lookahead} mode"
+    if args.random_action_prob:
+        label += f" with {args.random_action_prob:.0%} random actions"
+    if args.policy is None and args.agent == "oracle":
+        result, planning = _planned(args, world, eval_settings)
+        label += planning
+    else:
+        result = run_evaluation(world, agent, eval_settings, progress=not args.json)
+    if args.json:
+        print(json.dumps(result.fractions()))
+        return 0
+    steps = eval_settings.max_episode_steps
+    print(f"{world.name}, {label}, {result.episodes} episodes of up to {steps} steps")
+    for name in ("success", "collision", "unfinished"):
+        value = getattr(result, name)
+        print(f"  {name:<11} {value:.3f} +- {result.standard_error(value):.3f}")
+    print(f"  mean length {result.mean_steps:.1f} steps")
+    if shield is not None:
+        print(f"  overruled  {shield.overruled_share:.3f} of the policy's decisions")
+    return 0
+
+
+def _evaluated(args: argparse.Namespace, worlds: int, seed: int) -> tuple[WorldConfig, Agent, str]:
+    """The world, the agent that acts in it and what to call it: a policy file's, a run's
+    network's, or (without --policy) random, go-to-target or the planner's (run apart)."""
+    if args.policy is not None and args.policy.suffix == ".onnx":
+        return _file_agent(args, worlds, seed)
+    if args.policy is not None:
+        return _run_agent(args, worlds, seed)
+    world = load_world(args.scenario or "walls-inertia", args.world_config, args.assignments)
+    if args.agent == "goto":
+        return world, GoToTargetAgent(), "go-to-target baseline"
+    if args.agent == "random":
+        return world, RandomAgent(worlds, seed=seed), "random agent"
+    return world, RandomAgent(worlds, seed=seed), "oracle planner (knows the future)"
+
+
+def _file_agent(args: argparse.Namespace, worlds: int, seed: int) -> tuple[WorldConfig, Agent, str]:
+    """A policy file through the onboard runtime, in its own scenario unless --scenario."""
+    from qnav.controller.policy import Expectation, PolicyRuntime
+
+    probe = PolicyRuntime(args.policy, backend=args.backend)
+    world = load_world(
+        args.scenario or probe.contract.scenario, args.world_config, args.assignments
+    )
+    expect = Expectation(
+        num_beams=world.lidar.num_beams if world.lidar else 0,
+        control_period_s=world.control_period_s,
+    )
+    runtime = PolicyRuntime(args.policy, backend=args.backend, num_streams=worlds, expect=expect)
+    agent = StreamPolicyAgent(runtime, worlds, args.random_action_prob, seed=seed)
+    return world, agent, f"policy file {args.policy} ({args.backend})"
+
+
+def _run_agent(args: argparse.Namespace, worlds: int, seed: int) -> tuple[WorldConfig, Agent, str]:
+    """A training run's network (torch), in the run's world unless --scenario."""
+    from qnav.training.agent import policy_agent
+    from qnav.training.run_folder import load_network
+
+    network, run = load_network(args.policy)
+    world = (
+        load_world(args.scenario, args.world_config, args.assignments)
+        if args.scenario
+        else changed_world(run.world, args.world_config, args.assignments)
+    )
+    agent = policy_agent(
+        network,
+        world,
+        worlds,
+        run.train.window,
+        epsilon=args.random_action_prob,
+        hold_steps=1,
+        seed=seed,
+    )
+    return world, agent, f"{run.train.model} policy {args.policy}"
+
+
+def _check_views(args: argparse.Namespace) -> None:
+    """ConfigError naming the options that do not go together: the planner's views of the
+    state, the look ahead beside anything but a greedy policy, the tracker's range noise."""
     planner = args.policy is None and args.agent == "oracle"
     if args.state_error and not planner:
         raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
@@ -141,28 +189,35 @@ def evaluate(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"--range-noise-m = {args.range_noise_m} is out of range: allowed [0, inf)"
         )
-    shield = None
-    if looking:
-        from qnav.controller.perception import TrackerSettings
-        from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
 
-        shield = agent = LookaheadAgent(
-            cast(QAgent, agent),  # a StreamPolicyAgent or a TorchAgent
-            world,
-            worlds,
-            tracker=TrackerSettings(),
-            lookahead=lookahead_settings(args.lookahead),
-            range_noise_m=args.range_noise_m,
-            seed=seed,
-        )
-        label += f", the controller's look ahead in {args.lookahead} mode"
-    if args.random_action_prob:
-        label += f" with {args.random_action_prob:.0%} random actions"
-    if planner and args.tracker:
+
+def _looking_ahead(
+    args: argparse.Namespace, agent: Agent, world: WorldConfig, worlds: int, seed: int
+) -> LookaheadAgent:
+    """The policy's agent with the controller's look ahead in --lookahead's mode."""
+    from qnav.controller.perception import TrackerSettings
+    from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
+
+    return LookaheadAgent(
+        cast(QAgent, agent),  # a StreamPolicyAgent or a TorchAgent
+        world,
+        worlds,
+        tracker=TrackerSettings(),
+        lookahead=lookahead_settings(args.lookahead),
+        range_noise_m=args.range_noise_m,
+        seed=seed,
+    )
+
+
+def _planned(
+    args: argparse.Namespace, world: WorldConfig, eval_settings: EvalSettings
+) -> tuple[EvalResult, str]:
+    """The oracle planner's episodes, on the truth, a noisy estimate (--state-error) or the
+    onboard tracker's (--tracker), and what the label adds."""
+    if args.tracker:
         from qnav.controller.perception import TrackerSettings
         from qnav.lab.tracking import run_perceiving_oracle
 
-        label += ", planning on the onboard tracker's estimate"
         result = run_perceiving_oracle(
             world,
             eval_settings,
@@ -170,27 +225,14 @@ def evaluate(args: argparse.Namespace) -> int:
             range_noise_m=args.range_noise_m,
             progress=not args.json,
         )
-    elif planner:
-        from qnav.lab.oracle import PERCEPTION_LEVELS, run_oracle
+        return result, ", planning on the onboard tracker's estimate"
+    from qnav.lab.oracle import PERCEPTION_LEVELS, run_oracle
 
-        error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
-        if error is not None:
-            label += f", planning on a {args.state_error} estimate of the state"
-        result = run_oracle(world, eval_settings, state_error=error, progress=not args.json)
-    else:
-        result = run_evaluation(world, agent, eval_settings, progress=not args.json)
-    if args.json:
-        print(json.dumps(result.fractions()))
-        return 0
-    steps = eval_settings.max_episode_steps
-    print(f"{world.name}, {label}, {result.episodes} episodes of up to {steps} steps")
-    for name in ("success", "collision", "unfinished"):
-        value = getattr(result, name)
-        print(f"  {name:<11} {value:.3f} +- {result.standard_error(value):.3f}")
-    print(f"  mean length {result.mean_steps:.1f} steps")
-    if shield is not None:
-        print(f"  overruled  {shield.overruled_share:.3f} of the policy's decisions")
-    return 0
+    error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
+    result = run_oracle(world, eval_settings, state_error=error, progress=not args.json)
+    if error is None:
+        return result, ""
+    return result, f", planning on a {args.state_error} estimate of the state"
 
 
 def render(args: argparse.Namespace) -> int:
