@@ -37,15 +37,22 @@ def add_settings_options(
     skip: frozenset[str] = frozenset(),
 ) -> None:
     """One `--PREFIX-FIELD` option per field of the frozen dataclass `cls` (nested dataclasses
-    give `--PREFIX-SECTION-FIELD`), in a group `title`, its help the field's docstring.
+    give `--PREFIX-SECTION-FIELD`, in a group of their own described by the field's docstring),
+    in a group `title`, its help the field's docstring.
 
     `skip` names fields (dotted for nested ones) left to hand-written options."""
     group = parser.add_argument_group(title) if title else parser
-    _add_fields(group, cls, prefix, "", skip)
+    _add_fields(parser, group, cls, prefix, path="", skip=skip)
 
 
 def _add_fields(
-    group: argparse._ActionsContainer, cls: type, prefix: str, path: str, skip: frozenset[str]
+    parser: argparse.ArgumentParser,
+    group: argparse._ActionsContainer,
+    cls: type,
+    prefix: str,
+    *,
+    path: str,
+    skip: frozenset[str],
 ) -> None:
     docs = field_docs(cls)
     hints = typing.get_type_hints(cls)
@@ -57,7 +64,8 @@ def _add_fields(
             continue
         annotation = hints[field.name]
         if dataclasses.is_dataclass(annotation) and isinstance(annotation, type):
-            _add_fields(group, annotation, prefix, f"{dotted}.", skip)
+            section = parser.add_argument_group(dotted, docs.get(field.name, "").replace("%", "%%"))
+            _add_fields(parser, section, annotation, prefix, path=f"{dotted}.", skip=skip)
             continue
         flag = "--" + f"{prefix}{dotted}".replace("_", "-").replace(".", "-")
         help_text = docs.get(field.name, "").replace("%", "%%")
