@@ -65,7 +65,10 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
     """Every stored round, in order."""
     rounds = []
     for path in sorted(folder.glob("round-*.npz")):
-        with np.load(path) as data:
+        with np.load(path) as stored:
+            # Each read of an npz member loads the whole array again: read each once, and copy
+            # each episode's part out of it, so no episode keeps the whole round alive.
+            data = {name: stored[name] for name in stored.files}
             lengths = data["lengths"]
             frame_ends = np.cumsum(lengths + 1)
             action_ends = np.cumsum(lengths)
@@ -80,15 +83,15 @@ def read_rounds(folder: Path) -> list[list[Episode]]:
                 frames = slice(frame_ends[i] - length - 1, frame_ends[i])
                 episodes.append(
                     Episode(
-                        pose=data["pose"][frames],
-                        scan_m=data["scan"][frames] if has_scan else None,
-                        clearance_m=data["clearance"][frames],
-                        action=data["action"][action_ends[i] - length : action_ends[i]],
-                        target_xy=data["target"][i],
+                        pose=data["pose"][frames].copy(),
+                        scan_m=data["scan"][frames].copy() if has_scan else None,
+                        clearance_m=data["clearance"][frames].copy(),
+                        action=data["action"][action_ends[i] - length : action_ends[i]].copy(),
+                        target_xy=data["target"][i].copy(),
                         outcome=int(data["outcome"][i]),
-                        obstacle_xy=data["obstacle_xy"][frames] if has_obstacles else None,
+                        obstacle_xy=data["obstacle_xy"][frames].copy() if has_obstacles else None,
                         obstacle_velocity=(
-                            data["obstacle_velocity"][frames] if has_obstacles else None
+                            data["obstacle_velocity"][frames].copy() if has_obstacles else None
                         ),
                     )
                 )
