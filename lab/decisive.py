@@ -29,7 +29,6 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from qnav.contracts.observation import (
-    OBSTACLE_FEATURES,
     FrameWindow,
     distance_scale_m,
 )
@@ -89,9 +88,6 @@ class DecisiveStates(NamedTuple):
 
     windows: NDArray[np.float32]
     """(K, k, F) the last k encoded frames (scan and target features), oldest first."""
-    obstacle_windows: NDArray[np.float32]
-    """(K, k, OBSTACLE_FEATURES) the encoded obstacles of the same frames, for networks given
-    obstacle inputs (`contracts.observation.obstacle_features`)."""
     collide_share: NDArray[np.float32]
     """(K, A) the share of the planner's continuations after each action that collide (1 where
     doomed): how close to doom each action is."""
@@ -119,18 +115,14 @@ class DecisiveStates(NamedTuple):
         """Read what `save` wrote."""
         return cls(**load_with_world(path))
 
-    def policy_windows(self, obstacle_inputs: bool) -> NDArray[np.float32]:
-        """(K, k, F) the windows a network sees: with the obstacles appended to each frame, for a
-        network given obstacle inputs."""
-        if not obstacle_inputs:
-            return self.windows
-        return np.concatenate([self.windows, self.obstacle_windows], axis=-1)
+    def policy_windows(self) -> NDArray[np.float32]:
+        """(K, k, F) the windows a network sees."""
+        return self.windows
 
     def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> DecisiveStates:
         """The states `keep` selects (a mask or indices), with the visit counts unchanged."""
         return self._replace(
             windows=self.windows[keep],
-            obstacle_windows=self.obstacle_windows[keep],
             collide_share=self.collide_share[keep],
             world=take_rows(self.world, np.arange(len(self.doomed))[keep]),
             driver=self.driver[keep],
@@ -177,11 +169,10 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
         *found, seen = _drive_and_keep(config, settings, act, index, progress)
         parts.append(found)
         visited.append(seen)
-    windows, obstacle_windows, share, world, driver, taken = zip(*parts, strict=True)
+    windows, share, world, driver, taken = zip(*parts, strict=True)
     collide_share = np.concatenate(share)
     return DecisiveStates(
         windows=np.concatenate(windows),
-        obstacle_windows=np.concatenate(obstacle_windows),
         collide_share=collide_share,
         world=concatenate_rows(world),
         driver=np.concatenate(driver),
@@ -190,10 +181,11 @@ def collect(config: WorldConfig, settings: GaugeSettings, progress: bool = False
     )
 
 
-_FORMAT = "5"
+_FORMAT = "6"
 """Version of the cached file's layout (2: collision shares and world states kept; 3: the
 obstacles' windows; 4: the action taken; 5: a world state's None fields left out, which 4 wrote
-as arrays it could not read back)."""
+as arrays it could not read back; 6: no obstacle windows, for networks given obstacle inputs
+(retired))."""
 
 
 def cache_dir() -> Path:
@@ -234,32 +226,30 @@ def _drive_and_keep(
 ) -> tuple[
     NDArray[np.float32],
     NDArray[np.float32],
-    NDArray[np.float32],
     WorldState,
     NDArray[np.int8],
     NDArray[np.int8],
     int,
 ]:
     max_range_m = distance_scale_m(config.lidar)
-    plain = _frame_size(config)  # the scan and the target; the obstacles follow
+    plain = _frame_size(config)  # the scan and the target
     chance = np.random.default_rng([settings.seed, index])
-    windows, obstacle_windows, shares, worlds, taken = [], [], [], [], []
+    windows, shares, worlds, taken = [], [], [], []
     visited = 0
     episodes = np.arange(settings.episodes_per_driver, dtype=np.int64)
     batches = np.array_split(episodes, -(-episodes.size // settings.num_worlds))
     for batch in tqdm(batches, desc=f"gauge {DRIVERS[index]}", disable=not progress):
         state = reset(config, np.full(batch.size, settings.seed), batch)
         observation = observe(config, state)
-        window = FrameWindow(batch.size, plain + OBSTACLE_FEATURES, settings.window)
+        window = FrameWindow(batch.size, plain, settings.window)
         running = np.arange(batch.size)
         for _ in range(settings.max_episode_steps):
-            frames = window.advance(observation.frames(max_range_m, obstacle_inputs=True))
+            frames = window.advance(observation.frames(max_range_m))
             share = collision_shares(config, state)
             keep = is_decisive(share == 1.0)
             if settings.ordinary_share:
                 keep |= chance.random(keep.size) < settings.ordinary_share
-            windows.append(frames[keep, :, :plain])
-            obstacle_windows.append(frames[keep, :, plain:])
+            windows.append(frames[keep])
             shares.append(share[keep].astype(np.float32))
             worlds.append(take_rows(state, np.flatnonzero(keep)))
             actions = act(state, observation)
@@ -277,7 +267,6 @@ def _drive_and_keep(
     world = concatenate_rows(worlds)
     return (
         np.concatenate(windows),
-        np.concatenate(obstacle_windows),
         np.concatenate(shares),
         world,
         np.full(count, index, dtype=np.int8),

@@ -105,7 +105,7 @@ def decisive_report(
     """Score the network's greedy choices, its values and its one-step targets on the decisive
     states of `world`."""
     network.eval()
-    windows = states.policy_windows(network.obstacle_inputs)
+    windows = states.policy_windows()
     q = q_values(network, windows)
     mine = score(states, q.argmax(axis=1))
     targets = one_step_targets(network, world, states, windows, gamma)
@@ -147,7 +147,7 @@ def one_step_targets(
     targets = []
     for action in range(NUM_ACTIONS):
         _, seen, transition = step(world, states.world, np.full(len(windows), action))
-        frame = seen.frames(scale_m, network.obstacle_inputs)
+        frame = seen.frames(scale_m)
         later = q_values(network, np.concatenate([windows[:, 1:], frame[:, None]], axis=1))
         going_on = ~np.asarray(transition.terminated)
         targets.append(transition.reward + gamma * going_on * later.max(axis=1))

@@ -42,7 +42,7 @@ class DecisiveGauge:
             self._decisive = decisive_states(self.world, self.settings, self.progress)
         judged = score(
             self._decisive,
-            greedy_actions(network, self._decisive.policy_windows(network.obstacle_inputs)),
+            greedy_actions(network, self._decisive.policy_windows()),
         )
         return GaugeScore(safe=judged.safe, balanced=judged.balanced)
 

@@ -64,9 +64,7 @@ class TorchAgent:
         self.exploration.start(worlds)
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
-        windows = self.window.advance(
-            observation.frames(self.max_range_m, self.network.obstacle_inputs)
-        )
+        windows = self.window.advance(observation.frames(self.max_range_m))
         with torch.no_grad():
             device = next(self.network.parameters()).device
             q = self.network(torch.from_numpy(windows).to(device)).cpu().numpy()

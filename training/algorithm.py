@@ -10,9 +10,7 @@ from __future__ import annotations
 import copy
 from typing import Any, NamedTuple
 
-import numpy as np
 import torch
-from numpy.typing import NDArray
 from torch import Tensor
 from torch.nn import functional
 
@@ -42,7 +40,6 @@ class DoubleDQN:
             self.optimizer,
             batch,
             window=settings.window,
-            loss_kind=settings.loss,
             grad_clip_norm=settings.grad_clip_norm,
             bf16=self.bf16,
         )
@@ -94,9 +91,7 @@ class Update(NamedTuple):
     """What one gradient step measured."""
 
     loss: float
-    """The batch's TD loss (importance-weighted where the batch carries weights)."""
-    td_error: NDArray[np.float32]
-    """(N,) y - Q(s, a) per transition, for the replay's priorities."""
+    """The batch's TD loss."""
 
 
 def td_update(
@@ -106,7 +101,6 @@ def td_update(
     batch: Batch,
     *,
     window: int,
-    loss_kind: str = "mse",
     grad_clip_norm: float = 0.0,
     bf16: bool = False,
 ) -> Update:
@@ -133,13 +127,7 @@ def td_update(
         q_next_target,
         torch.from_numpy(batch.discount).to(device),
     )
-    if loss_kind == "huber":
-        per_transition = functional.smooth_l1_loss(q_taken, y, reduction="none")
-    else:
-        per_transition = functional.mse_loss(q_taken, y, reduction="none")
-    if batch.weight is not None:
-        per_transition = per_transition * torch.from_numpy(batch.weight).to(device)
-    loss = per_transition.mean()
+    loss = functional.mse_loss(q_taken, y, reduction="none").mean()
     optimizer.zero_grad(set_to_none=True)
     loss.backward()  # type: ignore[no-untyped-call]
     if grad_clip_norm > 0:
@@ -147,8 +135,7 @@ def td_update(
             [p for group in optimizer.param_groups for p in group["params"]], grad_clip_norm
         )
     optimizer.step()
-    td_error = (y - q_taken).detach().cpu().numpy().astype(np.float32)
-    return Update(float(loss.item()), td_error)
+    return Update(float(loss.item()))
 
 
 def soft_update(target: QNetwork, online: QNetwork, rate: float) -> None:

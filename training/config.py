@@ -90,33 +90,15 @@ class TrainSettings:
     """Exploration probability of the first episode (paper: 0.7)."""
     epsilon_decay: float = 0.98
     """Factor applied to epsilon after each episode (paper: 0.98)."""
-    epsilon_min: float = 0.0
-    """Floor under epsilon (paper: none)."""
-    hold_steps: int = 5
-    """Steps a random choice is held (paper: 5)."""
     relabel: Relabel = "paper"
     """Target of a sampled transition: fresh random (paper), a later pose (hindsight), own."""
-    priority_exponent: float = 0.0
-    """Prioritized replay (Schaul et al. 2016): draw stored steps in proportion to their last
-    |TD error| to this power (0: uniformly, as the paper; its future work). Targets and
-    obstacles are still re-drawn per sample, so a priority says how hard the step is under
-    some target, not under the next one."""
-    priority_correction_start: float = 0.4
-    """Importance-weight exponent at the first iteration, annealed linearly to 1 at the last."""
     obstacle_redraw_probability: float = 0.0
     """Chance that a sampled transition sees freshly drawn obstacles along its stored path
     instead of the episode's own (`training.sampling.redraw_obstacles_in_windows`; paper: none)."""
-    obstacle_inputs: bool = False
-    """Give the network the nearest obstacles' positions and velocities beside the lidar, as
-    the onboard tracker estimates them (exact in simulation; `contracts.observation.
-    obstacle_features`; paper: the lidar alone). Lifts the decisive-state gauge, not success
-    (docs/learner.md, "Perception given"); policy files cannot carry it yet."""
     window: int = WINDOW_LENGTH
     """Observations per network input (paper: k = 5)."""
     hidden_size: int = 512
     """LSTM and hidden layer width (paper: 512)."""
-    loss: Literal["mse", "huber"] = "mse"
-    """TD loss: the paper's squared error, or Huber."""
     grad_clip_norm: float = 0.0
     """Clip the gradient's global norm to this (0: no clipping; paper: none)."""
     max_episode_steps: int = 200
@@ -156,8 +138,6 @@ class TrainSettings:
         check_range(self, "target_smoothing", self.target_smoothing, 0.0, 1.0)
         check_range(self, "epsilon_start", self.epsilon_start, 0.0, 1.0)
         check_range(self, "epsilon_decay", self.epsilon_decay, 0.0, 1.0)
-        check_range(self, "epsilon_min", self.epsilon_min, 0.0, 1.0)
-        check_range(self, "hold_steps", self.hold_steps, 1, 10_000)
         check_range(self, "obstacle_redraw_probability", self.obstacle_redraw_probability, 0.0, 1.0)
         check_range(self, "window", self.window, 1, 1000)
         check_range(self, "hidden_size", self.hidden_size, 1, 100_000)
@@ -165,8 +145,6 @@ class TrainSettings:
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
         check_range(self, "eval_every_episodes", self.eval_every_episodes, 0, 10**7)
         check_range(self, "gauge_episodes", self.gauge_episodes, 0, 10**7)
-        check_range(self, "priority_exponent", self.priority_exponent, 0.0, 10.0)
-        check_range(self, "priority_correction_start", self.priority_correction_start, 0.0, 1.0)
         check_range(self, "eval_episodes", self.eval_episodes, 1, 10**7)
         check_range(self, "snapshot_every_episodes", self.snapshot_every_episodes, 0, 10**7)
         check_range(self, "final_eval_episodes", self.final_eval_episodes, 1, 10**7)
@@ -174,15 +152,9 @@ class TrainSettings:
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise ConfigError(f"train.device = {self.device!r}: choose auto, cpu, cuda or cuda:N")
 
-    def priority_correction(self, iteration: int) -> float:
-        """Importance-weight exponent at an iteration: from the start value to 1 over the run."""
-        total = max(1.0, self.iterations_per_episode * (self.episodes - self.warmup_episodes))
-        start = self.priority_correction_start
-        return start + (1.0 - start) * min(1.0, iteration / total)
-
     def epsilon(self, episode: int) -> float:
         """Exploration probability of the given (0-based) training episode."""
-        return max(self.epsilon_min, self.epsilon_start * self.epsilon_decay**episode)
+        return self.epsilon_start * self.epsilon_decay**episode
 
 
 PAPER = TrainSettings()

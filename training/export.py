@@ -66,13 +66,7 @@ def policy_contract(
     weight_type: str = "float32",
 ) -> PolicyContract:
     """The contract of `network` trained in `world` (no evaluation yet), its weights to be
-    stored as `weight_type` (float32 or int8). A network given obstacle inputs has no policy
-    file: the contract and the onboard runtime take the lidar and the target alone."""
-    if network.obstacle_inputs:
-        raise PolicyFileError(
-            f"{training_run} was trained with train.obstacle_inputs = true, which policy files "
-            "do not carry yet (the onboard runtime feeds the lidar and the target alone)"
-        )
+    stored as `weight_type` (float32 or int8)."""
     velocities = action_velocities(world.dynamics, world.control_period_s)
     streaming = StreamingQNetwork(network, window_length)
     return PolicyContract(

@@ -46,7 +46,7 @@ def action_grid(
     state = reset(world, np.zeros(n, np.int64), np.zeros(n, np.int64))
     pose = np.stack([centre + gx.ravel(), centre + gy.ravel(), np.full(n, math.pi / 2)], axis=1)
     state = state._replace(pose=pose, target_xy=np.full((n, 2), centre))
-    frames = observe(world, state).frames(distance_scale_m(world.lidar), network.obstacle_inputs)
+    frames = observe(world, state).frames(distance_scale_m(world.lidar))
     with torch.no_grad():
         device = next(network.parameters()).device
         windows = torch.from_numpy(np.repeat(frames[:, None], window, axis=1)).to(device)

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 from torch.nn import functional
 
 from qnav.contracts.actions import NUM_ACTIONS
-from qnav.contracts.observation import OBSTACLE_FEATURES, TARGET_FEATURES
+from qnav.contracts.observation import TARGET_FEATURES
 from qnav.contracts.policy_file import CONV_CHANNELS, CONV_KERNEL, CONV_LAYERS, CONV_STRIDE
 from qnav.sim.config import WorldConfig
 from qnav.training.config import ModelKind, TrainSettings
@@ -88,13 +88,11 @@ class QNetwork(nn.Module):
         kind: ModelKind,
         num_beams: int | None,
         hidden_size: int = 512,
-        obstacle_inputs: bool = False,
     ) -> None:
         super().__init__()
         self.kind: ModelKind = kind
         self.num_beams = num_beams or 0
         self.hidden_size = hidden_size
-        self.obstacle_inputs = obstacle_inputs
         self.encoder = LidarEncoder(num_beams) if num_beams else None
         self.feature_size = (
             (self.encoder.output_size if self.encoder else 0) + self.frame_size - self.num_beams
@@ -112,7 +110,7 @@ class QNetwork(nn.Module):
     @property
     def frame_size(self) -> int:
         """Values per input frame."""
-        return self.num_beams + TARGET_FEATURES + (OBSTACLE_FEATURES if self.obstacle_inputs else 0)
+        return self.num_beams + TARGET_FEATURES
 
     def frame_features(self, frames: Tensor) -> Tensor:
         """(N, T, F) frames -> (N, T, D) features; the encoder runs once per frame."""
@@ -257,4 +255,4 @@ def lstm_last_output(lstm: nn.LSTM, inputs: Tensor) -> Tensor:
 def make_network(world: WorldConfig, settings: TrainSettings) -> QNetwork:
     """The Q-network for this world and these settings (fresh weights)."""
     beams = world.lidar.num_beams if world.lidar else None
-    return QNetwork(settings.model, beams, settings.hidden_size, settings.obstacle_inputs)
+    return QNetwork(settings.model, beams, settings.hidden_size)

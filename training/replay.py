@@ -20,11 +20,9 @@ from numpy.typing import NDArray
 
 from qnav.contracts.motion import Outcome, outcome
 from qnav.contracts.observation import (
-    OBSTACLE_FEATURES,
     distance_scale_m,
     encode_scan,
     encode_target,
-    obstacle_features,
     target_features,
 )
 from qnav.sim.config import WorldConfig
@@ -48,11 +46,6 @@ class Batch(NamedTuple):
     """(N,) m: steps taken before bootstrapping (1 <= m <= n)."""
     discount: NDArray[np.float32]
     """(N,) gamma ** m, the bootstrap's discount."""
-    stored: NDArray[np.int64] | None = None
-    """(N,) the stored frames the transitions leave (set by `training.sampling.sample`), for
-    `EpisodeReplay.reprioritise`."""
-    weight: NDArray[np.float32] | None = None
-    """(N,) importance weights of a prioritized sample (None: uniform, all 1)."""
 
 
 class Seen(NamedTuple):
@@ -62,20 +55,14 @@ class Seen(NamedTuple):
     """(N, k + n, B) encoded scans."""
     clearances: NDArray[np.float64]
     """(N, k + n) exact clearances."""
-    obstacles: NDArray[np.float32] | None
-    """(N, k + n, OBSTACLE_FEATURES) encoded obstacles (None: the network is not given them)."""
 
 
 class EpisodeReplay:
     """All frames of all episodes in flat arrays, with per-frame episode bounds."""
 
-    def __init__(
-        self, config: WorldConfig, capacity_frames: int, window: int, obstacle_inputs: bool = False
-    ) -> None:
+    def __init__(self, config: WorldConfig, capacity_frames: int, window: int) -> None:
         self.config = config
         self.window = window
-        self.obstacle_inputs = obstacle_inputs
-        """Frames end with the encoded obstacles (`contracts.observation.obstacle_features`)."""
         self.num_beams = config.lidar.num_beams if config.lidar else 0
         self.max_range_m = distance_scale_m(config.lidar)
         self.pose = np.zeros((capacity_frames, 3))
@@ -90,15 +77,8 @@ class EpisodeReplay:
             (capacity_frames if self.has_obstacles else 0, self.num_beams), dtype=np.float32
         )
         self.walls_clearance = np.zeros(capacity_frames if self.has_obstacles else 0)
-        self.obstacles = np.zeros(
-            (capacity_frames if self.obstacle_inputs else 0, OBSTACLE_FEATURES), dtype=np.float32
-        )
         self.first = np.zeros(capacity_frames, dtype=np.int64)
         self.last = np.zeros(capacity_frames, dtype=np.int64)
-        # Proportional priorities (Schaul et al. 2016): a stored step's last |TD error|, the
-        # largest one seen for steps never sampled yet.
-        self.priority = np.zeros(capacity_frames)
-        self._max_priority = 1.0
         self.size = 0
         self.episodes = 0
         self._transitions: list[NDArray[np.int64]] = []
@@ -127,18 +107,11 @@ class EpisodeReplay:
             self.walls_clearance[span] = clearance(
                 episode.pose[:, :2], self.config.arena, no_obstacles, 0.0
             )
-        if self.obstacle_inputs:
-            if episode.obstacle_xy is None or episode.obstacle_velocity is None:
-                raise ValueError("obstacle inputs need episodes that kept their obstacles")
-            self.obstacles[span] = obstacle_features(
-                episode.pose, episode.obstacle_xy, episode.obstacle_velocity
-            )
         self.action[self.size : self.size + frames - 1] = episode.action
         self.own_target[span] = episode.target_xy
         self.first[span] = self.size
         self.last[span] = self.size + frames - 1
         self._transitions.append(np.arange(self.size, self.size + frames - 1))
-        self.priority[self.size : self.size + frames - 1] = self._max_priority
         self._transition_index = np.zeros(0, dtype=np.int64)
         self.size += frames
         self.episodes += 1
@@ -148,13 +121,6 @@ class EpisodeReplay:
         if not self._transition_index.size:
             self._transition_index = np.concatenate(self._transitions)
         return self._transition_index
-
-    def reprioritise(self, index: NDArray[np.int64], td_error: NDArray[np.floating]) -> None:
-        """Set the sampled steps' priorities to their new |TD error| (plus a floor, so that no
-        step is never drawn again)."""
-        priority = np.abs(td_error) + 1e-3
-        self.priority[index] = priority
-        self._max_priority = max(self._max_priority, float(priority.max()))
 
     def window_index(self, now: NDArray[np.int64], n_step: int) -> NDArray[np.int64]:
         """Stored frames (N, k + n) of the windows of the transitions leaving frames `now`: the
@@ -188,21 +154,16 @@ class EpisodeReplay:
         target, stopping early where the target is reached, a collision happens or the stored
         episode ends; the bootstrap window ends where it stopped. `seen` replaces the stored
         encoded scans (N, k + n, B) and clearances (N, k + n) of the windows (`window_index`),
-        e.g. with re-drawn obstacles (`training.sampling`), and with them the encoded obstacles.
+        e.g. with re-drawn obstacles (`training.sampling`).
         """
         k = self.window
         frame_index = self.window_index(now, n_step)
         if seen is None:
-            seen = Seen(self.scan[frame_index], self.clearance[frame_index], None)
-            if self.obstacle_inputs:
-                seen = seen._replace(obstacles=self.obstacles[frame_index])
+            seen = Seen(self.scan[frame_index], self.clearance[frame_index])
         scans, clearances = seen.scans, seen.clearances
         features = target_features(self.pose[frame_index], target[:, None, :])
         parts = [scans] if self.num_beams else []
         parts.append(encode_target(features, self.max_range_m))
-        if self.obstacle_inputs:
-            assert seen.obstacles is not None
-            parts.append(seen.obstacles)
         frames = np.concatenate(parts, axis=-1)
         radius = self.config.robot_radius_m
         ahead = clearances[:, k:]  # frames t+1 .. t+n

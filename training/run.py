@@ -165,7 +165,7 @@ def _resume(
         dqn.load_state_dict(saved)
         state = Progress(**saved["progress"])
     capacity = settings.episodes * (settings.max_episode_steps + 1)
-    replay = EpisodeReplay(world, capacity, settings.window, settings.obstacle_inputs)
+    replay = EpisodeReplay(world, capacity, settings.window)
     logged = folder.rounds()
     for episodes in logged:
         for episode in episodes:
@@ -186,7 +186,6 @@ def _collect(
         world,
         count,
         settings.window,
-        hold_steps=settings.hold_steps,
         seed=settings.seed * 1_000_000 + round_index,
     )
     agent.exploration.epsilon[:] = [settings.epsilon(int(i)) for i in ids]
@@ -218,14 +217,9 @@ def _learn(
             n_step=settings.n_step,
             gamma=settings.gamma,
             obstacle_redraw_probability=settings.obstacle_redraw_probability,
-            priority_exponent=settings.priority_exponent,
-            priority_correction=settings.priority_correction(state.iterations),
         )
         state.iterations += 1
-        update = dqn.update(batch, state.iterations)
-        losses.append(update.loss)
-        if settings.priority_exponent > 0.0 and batch.stored is not None:
-            replay.reprioritise(batch.stored, update.td_error)
+        losses.append(dqn.update(batch, state.iterations).loss)
     return losses
 
 

@@ -49,6 +49,12 @@ REMOVED_SETTINGS: dict[str, object] = {
     "obstacle_risk_head": False,
     "every_action_weight": 0.0,
     "doom_bound_weight": 0.0,
+    "epsilon_min": 0.0,
+    "hold_steps": 5,
+    "loss": "mse",
+    "priority_exponent": 0.0,
+    "priority_correction_start": 0.4,
+    "obstacle_inputs": False,
 }
 """Learner settings removed after `LAST_COMMIT_WITH_EXPERIMENTS` (or the commit `_REMOVED_AFTER`
 names; docs/learner.md has what they measured), with the values that left them off: a run folder
@@ -57,6 +63,10 @@ _REMOVED_AFTER = {
     "obstacle_risk_head": "cbd23ae",
     "every_action_weight": "cbd23ae",
     "doom_bound_weight": "97b3cd2",
+    **dict.fromkeys(
+        ["epsilon_min", "hold_steps", "loss", "priority_exponent", "obstacle_inputs"],
+        "d3e9697",
+    ),
 }
 """The last commit with each setting removed later than `LAST_COMMIT_WITH_EXPERIMENTS`."""
 _SWITCHED_BY = {
@@ -64,6 +74,7 @@ _SWITCHED_BY = {
     "next_scan_sectors": "next_scan_weight",
     "demonstration_margin": "demonstration_episodes",
     "demonstration_loss_weight": "demonstration_episodes",
+    "priority_correction_start": "priority_exponent",
 }
 """Removed settings that did nothing while another removed setting was off."""
 PROGRESS_COLUMNS = (

@@ -21,7 +21,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.motion import move_obstacles
-from qnav.contracts.observation import obstacle_features
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import add_circles_to_scan
 from qnav.sim.layouts import layouts_of
@@ -49,16 +48,12 @@ def sample(
     n_step: int = 1,
     gamma: float = 0.97,
     obstacle_redraw_probability: float = 0.0,
-    priority_exponent: float = 0.0,
-    priority_correction: float = 1.0,
 ) -> Batch:
-    """Random transitions of the replay, each with its own target drawn by `relabel` and, with
-    probability `obstacle_redraw_probability`, fresh obstacles in place of its episode's own.
-
-    Transitions are drawn uniformly, or with `priority_exponent` > 0 in proportion to their
-    priority to that power, with importance weights (N p)^-`priority_correction` scaled to at
-    most 1 in `Batch.weight`."""
-    now, weight = choose_steps(replay, batch_size, rng, priority_exponent, priority_correction)
+    """Random transitions of the replay, drawn uniformly, each with its own target drawn by
+    `relabel` and, with probability `obstacle_redraw_probability`, fresh obstacles in place of
+    its episode's own."""
+    stored = replay.transitions()
+    now = stored[rng.integers(0, stored.size, batch_size)]
     redraw = None
     if obstacle_redraw_probability > 0.0 and replay.has_obstacles:
         redraw = rng.random(batch_size) < obstacle_redraw_probability
@@ -66,27 +61,7 @@ def sample(
     seen = None
     if redraw is not None and redraw.any():
         seen = redraw_obstacles_in_windows(replay, now, n_step, redraw, rng)
-    batch = replay.transitions_at(now, targets, n_step, gamma, seen=seen)
-    return batch._replace(stored=now, weight=weight)
-
-
-def choose_steps(
-    replay: EpisodeReplay,
-    batch_size: int,
-    rng: np.random.Generator,
-    priority_exponent: float = 0.0,
-    priority_correction: float = 1.0,
-) -> tuple[NDArray[np.int64], NDArray[np.float32] | None]:
-    """Stored frames to leave (N,), uniformly or by priority, and the importance weights of a
-    prioritized choice (None for a uniform one)."""
-    stored = replay.transitions()
-    if priority_exponent <= 0.0:
-        return stored[rng.integers(0, stored.size, batch_size)], None
-    chance = replay.priority[stored] ** priority_exponent
-    chance /= chance.sum()
-    picked = rng.choice(stored.size, batch_size, p=chance)
-    raw = (stored.size * chance[picked]) ** -priority_correction
-    return stored[picked], (raw / raw.max()).astype(np.float32)
+    return replay.transitions_at(now, targets, n_step, gamma, seen=seen)
 
 
 def draw_targets(
@@ -122,10 +97,9 @@ def redraw_obstacles_in_windows(
     is true and the stored ones elsewhere."""
     frame_index = replay.window_index(now, n_step)
     scans, clearances = replay.scan[frame_index], replay.clearance[frame_index]
-    obstacles = replay.obstacles[frame_index] if replay.obstacle_inputs else None
     rows = np.flatnonzero(redraw)
     pose = replay.pose[frame_index[rows]]
-    centres, velocities = draw_obstacle_paths(
+    centres, _ = draw_obstacle_paths(
         replay.config,
         pose,
         np.diff(frame_index[rows], axis=1) > 0,
@@ -139,9 +113,7 @@ def redraw_obstacles_in_windows(
         replay.walls_scan[frame_index[rows]],
         replay.walls_clearance[frame_index[rows]],
     )
-    if obstacles is not None:
-        obstacles[rows] = obstacle_features(pose, centres, velocities)
-    return Seen(scans, clearances, obstacles)
+    return Seen(scans, clearances)
 
 
 def draw_obstacle_paths(

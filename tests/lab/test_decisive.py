@@ -60,7 +60,6 @@ def test_a_blind_choice_scores_one_half_balanced_whatever_the_mix_of_patterns() 
     world = reset(scenario("obstacles-increment"), np.zeros(count, np.int64), np.arange(count))
     states = DecisiveStates(
         windows=np.zeros((count, 1, 4), dtype=np.float32),
-        obstacle_windows=np.zeros((count, 1, 25), dtype=np.float32),
         collide_share=doomed.astype(np.float32),
         world=world,
         driver=np.zeros(len(doomed), dtype=np.int8),

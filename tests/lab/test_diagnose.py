@@ -98,7 +98,7 @@ def test_one_step_targets_are_the_simulators_reward_plus_the_discounted_next_val
     with torch.no_grad():  # the same value, 0.25, everywhere
         last.weight.zero_()
         last.bias.fill_(0.25)
-    targets = one_step_targets(network, world, states, states.policy_windows(False), gamma=0.5)
+    targets = one_step_targets(network, world, states, states.policy_windows(), gamma=0.5)
     for action in range(3):
         _, _, transition = step(world, states.world, np.full(len(states.doomed), action))
         expected = transition.reward + 0.5 * 0.25 * ~transition.terminated

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # `make same-results REF=COMMIT`: do the code at COMMIT and the working tree train and evaluate
-# bit for bit alike? Short seeded runs of both presets, a walls and an obstacle world, prioritized
-# replay, n-step and hindsight targets, from each tree's own code (`python -m` puts the working
-# folder, the tree's view below, first on sys.path, ahead of the editable install), digested without timings
-# (digest.py) and compared. A refactor must print IDENTICAL; a change of behaviour prints where
+# bit for bit alike? Short seeded runs of both presets, a walls and an obstacle world, n-step
+# and hindsight targets, from each tree's own code (`python -m` puts the working folder, the
+# tree's view below, first on sys.path, ahead of the editable install), digested without
+# timings (digest.py) and compared. A refactor must print IDENTICAL; a change of behaviour prints where
 # the digests differ. About 5 minutes on 2 cores.
 set -euo pipefail
 ref=${1:?usage: run.sh COMMIT}
@@ -44,11 +44,11 @@ runs() {  # runs SOURCE_TREE OUT_DIR
     "$py" -m qnav train --scenario obstacles-increment --preset fast --seed 2 --episodes 12 \
       --run-dir "$out/obstacles-fast" "${common[@]}" --train-set train.parallel_worlds=4
     "$py" -m qnav train --scenario obstacles-increment --preset paper --seed 0 --episodes 6 \
-      --model feedforward --relabel hindsight --run-dir "$out/obstacles-paper-hindsight-prio" \
-      "${common[@]}" --train-set train.priority_exponent=0.6 --train-set train.target_update_period=4
+      --model feedforward --relabel hindsight --run-dir "$out/obstacles-paper-hindsight" \
+      "${common[@]}" --train-set train.target_update_period=4
     "$py" -m qnav train --scenario obstacles-increment --preset fast --seed 4 --episodes 8 \
-      --run-dir "$out/obstacles-fast-prio" "${common[@]}" --train-set train.parallel_worlds=4 \
-      --train-set train.priority_exponent=0.6 --train-set train.n_step=3
+      --run-dir "$out/obstacles-fast-nstep3" "${common[@]}" --train-set train.parallel_worlds=4 \
+      --train-set train.n_step=3
     "$py" -m qnav eval --policy "$out/obstacles-fast" --episodes 5 --json > "$out/eval-obstacles-fast.json"
     "$py" -m qnav eval --policy "$out/walls-paper" --episodes 5 --json > "$out/eval-walls-paper.json"
   )

@@ -24,7 +24,6 @@ from qnav.contracts.policy_file import (
 )
 from qnav.controller.onnx_file import read_onnx
 from qnav.controller.policy import BACKENDS, PolicyRuntime, State
-from qnav.sim.config import scenario
 from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
 from qnav.sim.world import observe, reset, step
 from qnav.training.agent import TorchAgent
@@ -35,7 +34,6 @@ from qnav.training.export import (
     reexport_file,
     torch_q_values,
 )
-from qnav.training.networks import QNetwork
 from tests.conftest import PolicyFactory, policy_network
 from tests.near_ties import assert_actions_match_but_near_ties
 
@@ -214,7 +212,6 @@ def test_the_reader_returns_every_weight_as_onnx_does(make_policy: PolicyFactory
 def test_weights_in_a_separate_file_are_refused_by_the_numpy_reader(
     make_policy: PolicyFactory, tmp_path: Path
 ) -> None:
-    from qnav.contracts.errors import PolicyFileError
 
     model = onnx.load(str(make_policy("walls-inertia", "recurrent", 64)))
     split = tmp_path / "split.onnx"
@@ -274,9 +271,3 @@ def test_qnav_export_of_a_policy_file_reexports_it_in_place(
     assert qnav(["export", str(old), "-o", str(old), "--quiet"]) == 0
     contract = PolicyRuntime(old).contract
     assert contract.format == "qnav-policy/2" and contract.training_run == "tests"
-
-
-def test_a_network_given_obstacle_inputs_is_refused_by_name_not_exported_wrong() -> None:
-    network = QNetwork("recurrent", 720, hidden_size=8, obstacle_inputs=True)
-    with pytest.raises(PolicyFileError, match=r"train\.obstacle_inputs"):
-        policy_contract(network, scenario("obstacles-inertia"), 5, "runs/x", "abc")

@@ -5,9 +5,6 @@ import numpy as np
 import pytest
 
 from qnav.contracts.observation import (
-    OBSTACLE_FEATURES,
-    OBSTACLE_POSITION_SCALE_M,
-    OBSTACLE_SLOTS,
     encode_scan,
 )
 from qnav.sim.config import scenario
@@ -246,43 +243,6 @@ def test_sampling_with_redrawn_obstacles_recomputes_collisions_from_the_fresh_ob
     assert not np.array_equal(plain.frames[..., :720], redrawn.frames[..., :720])
     # Targets and actions are those of the same transitions; only the obstacles changed.
     np.testing.assert_array_equal(plain.frames[..., 720:], redrawn.frames[..., 720:])
-
-
-def _replay_with_obstacle_inputs() -> EpisodeReplay:
-    config = replace(OBSTACLES, max_episode_steps=60)
-    agent = RandomAgent(6, seed=0)
-    replay = EpisodeReplay(config, 10_000, window=5, obstacle_inputs=True)
-    for episode in collect_round(config, agent, 0, np.arange(6)):
-        replay.add(episode)
-    return replay
-
-
-def test_obstacle_inputs_follow_each_frame_and_are_those_of_the_obstacles_it_saw() -> None:
-    replay = _replay_with_obstacle_inputs()
-    beams, radius = 720, OBSTACLES.obstacles.radius_m
-    assert OBSTACLES.lidar is not None
-    max_range_m = OBSTACLES.lidar.max_range_m
-    for redraw in (0.0, 1.0):
-        batch = sample(
-            replay,
-            256,
-            np.random.default_rng(1),
-            "none",
-            n_step=3,
-            obstacle_redraw_probability=redraw,
-        )
-        assert batch.frames.shape[-1] == beams + 3 + OBSTACLE_FEATURES
-        slots = batch.frames[..., beams + 3 :].reshape(*batch.frames.shape[:2], OBSTACLE_SLOTS, -1)
-        # The nearest obstacle's surface is as far as the scan's nearest return, unless a wall
-        # is nearer: the obstacle inputs and the scan saw the same obstacles.
-        nearest_m = np.hypot(slots[..., 0, 1], slots[..., 0, 2]) * OBSTACLE_POSITION_SCALE_M
-        surface_m = nearest_m - radius
-        scan_m = batch.frames[..., :beams].min(axis=-1) * max_range_m
-        apart = surface_m > 0.0  # (a robot inside an obstacle reads 0)
-        assert (scan_m[apart] <= surface_m[apart] + 0.02).all()
-        near = surface_m < 1.0  # near an obstacle a wall is seldom nearer still
-        assert near.sum() > 20
-        assert np.mean(np.abs(scan_m - surface_m)[near] < 0.02) > 0.9
 
 
 def test_collected_episodes_keep_their_obstacles_through_the_round_files(tmp_path: Path) -> None:

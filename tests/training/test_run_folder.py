@@ -41,6 +41,8 @@ def test_a_folder_from_before_the_removal_reads_while_the_removed_experiments_we
         "mirror_probability = 0.0\nnext_scan_weight = 0.0\nnext_scan_sectors = 36\n"
         'demonstration_episodes = 0\ndemonstration_margin = 0.2\nencoder_init = "default"\n'
         "obstacle_risk_head = false\nevery_action_weight = 0.0\n"
+        'epsilon_min = 0.0\nhold_steps = 5\nloss = "mse"\npriority_exponent = 0.0\n'
+        "priority_correction_start = 0.7\nobstacle_inputs = false\n"
     )
     assert read_settings(_started_with(tmp_path, older)) == SETTINGS
 
@@ -67,6 +69,11 @@ def test_a_folder_that_used_a_removed_experiment_is_refused_by_name(
         ("obstacle_risk_head = true\n", "cbd23ae"),
         ("every_action_weight = 1.0\n", "cbd23ae"),
         ("doom_bound_weight = 1.0\n", "97b3cd2"),
+        ("epsilon_min = 0.1\n", "d3e9697"),
+        ("hold_steps = 1\n", "d3e9697"),
+        ('loss = "huber"\n', "d3e9697"),
+        ("priority_exponent = 0.6\npriority_correction_start = 0.4\n", "d3e9697"),
+        ("obstacle_inputs = true\n", "d3e9697"),
     ],
 )
 def test_a_folder_of_a_later_removed_experiment_names_the_last_commit_that_has_it(
