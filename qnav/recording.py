@@ -21,7 +21,8 @@ from qnav.controller.recording import (
     read_recordings,
     record,
 )
-from qnav.verbs.parser import Verbs, flag, repeated, verb, zenoh_options
+from qnav.options import settings_from_args
+from qnav.verbs.parser import Verbs, flag, repeated, settings_options, verb, zenoh_options
 
 
 def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -35,9 +36,9 @@ def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return overrides
 
 
-def record_verb(args: argparse.Namespace) -> int:
-    """Record the project's topics to MCAP until SIGINT/SIGTERM (or --duration-s)."""
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+def recorder_settings(args: argparse.Namespace) -> RecorderSettings:
+    """What `qnav record` runs with: its --config file, then --connect, --listen and
+    --namespace, --out, and the options of the settings' other fields."""
     values = load_toml(args.config) if args.config else {}
     settings = from_dict(RecorderSettings, values)
     settings = dataclasses.replace(
@@ -45,6 +46,13 @@ def record_verb(args: argparse.Namespace) -> int:
     )
     if args.out is not None:
         settings = dataclasses.replace(settings, output_dir=str(args.out))
+    return settings_from_args(settings, args)
+
+
+def record_verb(args: argparse.Namespace) -> int:
+    """Record the project's topics to MCAP until SIGINT/SIGTERM (or --duration-s)."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    settings = recorder_settings(args)
     with stop_on_signals() as stop:
         if args.duration_s:
             threading.Timer(args.duration_s, stop.set).start()
@@ -218,6 +226,12 @@ def _add_record(verbs: Verbs) -> None:
         help="record the project's zenoh topics to MCAP (ROS 2 profile, CDR)",
     )
     parser.add_argument("--config", type=Path, metavar="FILE", help="recorder TOML file")
+    settings_options(
+        parser,
+        "qnav.controller.recording:RecorderSettings",
+        "recorder settings (each over the --config file)",
+        skip=("zenoh", "output_dir"),
+    )
     parser.add_argument("--out", type=Path, help="output folder (default recordings/)")
     parser.add_argument(
         "--folder", type=Path, help="write into exactly this folder (no timestamped subfolder)"

@@ -118,3 +118,19 @@ def test_playback_still_reads_a_cut_recording(tmp_path: Path) -> None:
     result = run_qnav("playback", str(path), "--into-controller", "--policy", str(POLICY))
     assert result.returncode == 0, result.stderr
     assert f"{kept} messages" in result.stdout
+
+
+def test_record_takes_each_recorder_setting_as_an_option_over_its_file(tmp_path: Path) -> None:
+    from qnav.cli import build_parser
+    from qnav.contracts.errors import ConfigError
+    from qnav.controller.recording import Rotation
+    from qnav.recording import recorder_settings
+
+    config = tmp_path / "recorder.toml"
+    config.write_text("[rotation]\nmax_duration_s = 60.0\n")
+    argv = ["record", "--config", str(config), "--rotation-max-bytes", "1000", "--topics", "scan"]
+    settings = recorder_settings(build_parser().parse_args([*argv, "--out", str(tmp_path)]))
+    assert settings.rotation == Rotation(max_bytes=1000, max_duration_s=60.0)
+    assert settings.topics == ("scan",) and settings.output_dir == str(tmp_path)
+    with pytest.raises(ConfigError, match="topics"):
+        recorder_settings(build_parser().parse_args(["record", "--topics", "nothing"]))
