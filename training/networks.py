@@ -53,7 +53,7 @@ class LidarEncoder(nn.Module):
 
 def conv_layers(channels: int) -> nn.Sequential:
     """The encoder's three convolutions (kernel 6, stride 3), each followed by a ReLU, with
-    `channels` outputs each (policy files fix 8; a lab probe may widen them)."""
+    `channels` outputs each (policy files fix 8)."""
     layers: list[nn.Module] = []
     previous = 1
     for _ in range(CONV_LAYERS):
