@@ -165,15 +165,15 @@ def step_increment(
 def move_obstacles(
     position: F64,
     velocity: F64,
-    radius_m: float,
+    radius_m: float | F64,
     size_m: float | F64,
     period_s: float | F64,
     *,
     origin_m: float | F64 = 0.0,
 ) -> tuple[F64, F64]:
     """Straight-line motion, reflecting specularly off the walls of the box from `origin_m` to
-    `origin_m + size_m` (the room: [0, size]^2; exact for one bounce per axis); the box's corners
-    and `period_s` may be arrays that broadcast against the positions."""
+    `origin_m + size_m` (the room: [0, size]^2; exact for one bounce per axis); the radii, the
+    box's corners and `period_s` may be arrays that broadcast against the positions."""
     low, high = origin_m + radius_m, origin_m + size_m - radius_m
     moved = position + velocity * period_s
     below, above = moved < low, moved > high

@@ -88,10 +88,47 @@ class ObstacleConfig:
     """Lower truncation of the speed (paper: 0.5 m/s)."""
     speed_max_mps: float = 1.5
     """Upper truncation of the speed (paper: 1.5 m/s)."""
+    radius_max_m: float = 0.0
+    """Each obstacle's radius drawn uniformly from [radius_m, radius_max_m] (a box's half sides
+    each so drawn); 0: every obstacle of radius_m (the paper's)."""
+    box_share: float = 0.0
+    """Share of the obstacles that are boxes (rectangles turned to their heading), not
+    cylinders (`sim.room`; 0: none, the paper's)."""
+    legs_share: float = 0.0
+    """Share of the obstacles that are a walking person's two legs (two 6 cm circles side by
+    side, swinging as they walk: `sim.room.LEG_RADIUS_M`), not cylinders (0: none)."""
+    heading_walk_rad: float = 0.0
+    """Standard deviation of the random change of each obstacle's heading every control period
+    (0: straight lines, the paper's)."""
+    speed_walk_mps: float = 0.0
+    """Standard deviation of the random change of each obstacle's walking speed every control
+    period, kept within [speed_min_mps, speed_max_mps] (0: constant speed, the paper's)."""
+    stop_probability: float = 0.0
+    """Chance each control period that a walking obstacle stops (0: none stops, the paper's)."""
+    start_probability: float = 0.2
+    """Chance each control period that a stopped obstacle walks on (used only where
+    stop_probability is set)."""
 
     def __post_init__(self) -> None:
         check_range(self, "count", self.count, 0, 1000)
         check_range(self, "radius_m", self.radius_m, 0.0, 100.0, exclusive_low=True)
+        if self.radius_max_m:
+            check_range(
+                self,
+                "radius_max_m",
+                self.radius_max_m,
+                self.radius_m,
+                100.0,
+                why="must be at least radius_m, or 0",
+            )
+        check_range(self, "box_share", self.box_share, 0.0, 1.0)
+        check_range(
+            self, "legs_share", self.legs_share, 0.0, 1.0 - self.box_share, why="with box_share"
+        )
+        check_range(self, "heading_walk_rad", self.heading_walk_rad, 0.0, 10.0)
+        check_range(self, "speed_walk_mps", self.speed_walk_mps, 0.0, 100.0)
+        check_range(self, "stop_probability", self.stop_probability, 0.0, 1.0)
+        check_range(self, "start_probability", self.start_probability, 0.0, 1.0)
         check_range(self, "speed_std_mps", self.speed_std_mps, 0.0, 100.0)
         check_range(self, "speed_min_mps", self.speed_min_mps, 0.0, 100.0)
         check_range(
@@ -109,6 +146,118 @@ class ObstacleConfig:
             self.speed_min_mps,
             self.speed_max_mps,
             why="the mean must lie between the truncation limits",
+        )
+
+    @property
+    def walks(self) -> bool:
+        """Whether the obstacles turn, change speed or stop (a random walk each period)."""
+        return bool(self.heading_walk_rad or self.speed_walk_mps or self.stop_probability)
+
+    @property
+    def shaped(self) -> bool:
+        """Whether the obstacles are other than cylinders of one radius."""
+        return bool(self.radius_max_m or self.box_share or self.legs_share)
+
+    @property
+    def largest_radius_m(self) -> float:
+        """The largest radius an obstacle may be drawn with."""
+        return max(self.radius_m, self.radius_max_m)
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """What a real lidar and motion capture add to the exact world's readings: all off (the
+    paper's exact sensors) unless set (`sim.sensor`)."""
+
+    SECTION = "sensor"
+
+    lidar_readings: int = 0
+    """Readings of the physical lidar per turn, resampled to the policy's `lidar.num_beams` by
+    the controller's rule (each beam the nearest reading its sector overlaps:
+    docs/controller.md, "Scan resampling"); 0: one reading per beam (the paper's)."""
+    range_noise_m: float = 0.0
+    """Standard deviation of the Gaussian noise on every reading that returns (0: exact)."""
+    dropout: float = 0.0
+    """Chance that a reading returns nothing (+inf, as drivers report a missed echo)."""
+    blocked_width_rad: float = 0.0
+    """Width of a sector of the lidar blocked (by the car's own mast or load): its readings
+    return nothing (+inf, as the controller reads a sector no reading covers); 0: none."""
+    blocked_centre_rad: float = math.pi
+    """Direction of the blocked sector's centre from the car's heading, counter-clockwise
+    (pi: behind)."""
+    pose_noise_m: float = 0.0
+    """Standard deviation of the Gaussian noise on each coordinate of the motion-capture
+    position the car reads (0: exact)."""
+    pose_noise_rad: float = 0.0
+    """Standard deviation of the Gaussian noise on the motion-capture heading."""
+    pose_latency_s: float = 0.0
+    """Age of the motion-capture pose the car reads with each scan: where the car was this long
+    before (at most one control period; 0: the pose at the scan's instant)."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "lidar_readings", self.lidar_readings, 0, 100_000)
+        check_range(self, "range_noise_m", self.range_noise_m, 0.0, 10.0)
+        check_range(self, "dropout", self.dropout, 0.0, 1.0)
+        check_range(self, "blocked_width_rad", self.blocked_width_rad, 0.0, 2 * math.pi)
+        check_range(self, "blocked_centre_rad", self.blocked_centre_rad, -10.0, 10.0)
+        check_range(self, "pose_noise_m", self.pose_noise_m, 0.0, 10.0)
+        check_range(self, "pose_noise_rad", self.pose_noise_rad, 0.0, math.pi)
+        check_range(self, "pose_latency_s", self.pose_latency_s, 0.0, 60.0)
+
+    @property
+    def scan_effects(self) -> bool:
+        """Whether the scans differ from the exact lidar's."""
+        return bool(
+            self.lidar_readings or self.range_noise_m or self.dropout or self.blocked_width_rad
+        )
+
+    @property
+    def pose_effects(self) -> bool:
+        """Whether the pose the car reads differs from its true pose."""
+        return bool(self.pose_noise_m or self.pose_noise_rad or self.pose_latency_s)
+
+
+@dataclass(frozen=True)
+class RoomConfig:
+    """A room that is not the paper's square: walls along a closed polygon (`sim.room`)."""
+
+    SECTION = "room"
+
+    corners: tuple[tuple[float, float], ...] = ()
+    """The walls' corners in order, in metres, the last joined to the first (all inside
+    [0, arena.size_m]^2); (): the paper's square arena with its openings (`arena`)."""
+
+    def __post_init__(self) -> None:
+        if self.corners and len(self.corners) < 3:
+            raise ConfigError(f"room.corners = {self.corners!r}: a room needs 3 corners or more")
+        for corner in self.corners:
+            if len(corner) != 2:
+                raise ConfigError(f"room.corners: {corner!r} is not a point (x, y)")
+
+
+@dataclass(frozen=True)
+class ClutterConfig:
+    """Static boxes on the floor that are not on the controller's map (`sim.room`)."""
+
+    SECTION = "clutter"
+
+    boxes: int = 0
+    """Boxes per episode, each placed and turned at random inside the room (0: none)."""
+    size_min_m: float = 0.3
+    """Shortest side of a box."""
+    size_max_m: float = 0.8
+    """Longest side of a box."""
+
+    def __post_init__(self) -> None:
+        check_range(self, "boxes", self.boxes, 0, 100)
+        check_range(self, "size_min_m", self.size_min_m, 0.0, 10.0, exclusive_low=True)
+        check_range(
+            self,
+            "size_max_m",
+            self.size_max_m,
+            self.size_min_m,
+            10.0,
+            why="must be at least size_min_m",
         )
 
 
@@ -230,6 +379,18 @@ class WorldConfig:
     """Steps before an episode is truncated (paper: 200 in training, 500 in tests)."""
     layout: LayoutConfig = field(default_factory=LayoutConfig)
     """Static layouts in place of the room (BARN's kind of world); none in the paper's."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """What a real lidar and motion capture add (none in the paper's)."""
+    room: RoomConfig = field(default_factory=RoomConfig)
+    """A room of another shape than the arena's square (none in the paper's)."""
+    clutter: ClutterConfig = field(default_factory=ClutterConfig)
+    """Static boxes the controller's map does not hold (none in the paper's)."""
+
+    @property
+    def realistic(self) -> bool:
+        """Whether the world's geometry needs the room's ray caster (`sim.room`): a polygon
+        room, clutter, or obstacles other than cylinders of one radius."""
+        return bool(self.room.corners or self.clutter.boxes or self.obstacles.shaped)
 
     @property
     def reach_m(self) -> float:
@@ -256,8 +417,44 @@ class WorldConfig:
                 "lidar_turn_s is set with layout.source: a rotating lidar is cast in the "
                 "paper's room only"
             )
-        if not self.layout.source:
+        check_range(
+            self.sensor,
+            "pose_latency_s",
+            self.sensor.pose_latency_s,
+            0.0,
+            self.control_period_s,
+            why="at most one control period",
+        )
+        self._check_sensor()
+        if self.layout.source and (self.realistic or self.obstacles.walks):
+            raise ConfigError(
+                "room, clutter and obstacles other than straight-moving cylinders of one radius "
+                "are for the paper's kind of room, not with layout.source"
+            )
+        if self.room.corners:
+            self._check_polygon()
+        elif not self.layout.source:
             self._check_room()
+
+    def _check_sensor(self) -> None:
+        """The physical lidar's readings must divide into the policy's beams."""
+        readings = self.sensor.lidar_readings
+        if (self.sensor.scan_effects or self.sensor.pose_effects) and self.lidar is None:
+            raise ConfigError(f"sensor settings are set but {self.name} has no lidar")
+        if readings and self.lidar is not None and self.lidar.num_beams % readings:
+            raise ConfigError(
+                f"sensor.lidar_readings = {readings} is out of range: it must divide "
+                f"lidar.num_beams = {self.lidar.num_beams}"
+            )
+
+    def _check_polygon(self) -> None:
+        """A polygon room must lie in the arena's square, which bounds it."""
+        size = self.arena.size_m
+        for x, y in self.room.corners:
+            if not (0.0 <= x <= size and 0.0 <= y <= size):
+                raise ConfigError(
+                    f"room.corners: ({x}, {y}) lies outside [0, arena.size_m = {size}]^2"
+                )
 
     def _check_room(self) -> None:
         """The paper's room must hold the spawn square, the obstacles and the openings."""
@@ -371,6 +568,43 @@ LAYOUT_SCENARIOS: dict[str, WorldConfig] = {
 BARN's protocol (success within 1 m of the goal, 500 steps of 0.2 s = BARN's 100 s)."""
 
 SCENARIOS.update(LAYOUT_SCENARIOS)
+
+REALISTIC_ROOM = WorldConfig(
+    name="realistic-room",
+    # An L-shaped room (10 x 8 m less a 2.5 x 2.5 m corner), its walls as a user measures them.
+    room=RoomConfig(
+        corners=((0.0, 0.0), (10.0, 0.0), (10.0, 5.5), (7.5, 5.5), (7.5, 8.0), (0.0, 8.0))
+    ),
+    arena=ArenaConfig(openings=()),
+    lidar_turn_s=0.1,
+    sensor=SensorConfig(
+        lidar_readings=360,
+        range_noise_m=0.02,
+        dropout=0.02,
+        blocked_width_rad=math.pi / 4,
+        pose_noise_m=0.005,
+        pose_noise_rad=0.005,
+        pose_latency_s=0.03,
+    ),
+    obstacles=ObstacleConfig(
+        count=5,
+        radius_m=0.15,
+        radius_max_m=0.3,
+        box_share=1 / 3,
+        legs_share=1 / 3,
+        heading_walk_rad=0.15,
+        speed_walk_mps=0.1,
+        stop_probability=0.03,
+    ),
+    clutter=ClutterConfig(boxes=4),
+)
+"""A room that is not the simulator's, every setting of a real one on (docs/simulator.md, "A
+realistic room"): an L-shaped room with boxes on the floor that no map holds; a 10 Hz lidar of
+360 readings with 2 cm range noise, 2 % dropouts and its rear 45 degrees blocked; motion capture
+5 mm and 0.3 degrees off and 30 ms late; five obstacles of 0.15-0.3 m, cylinders, boxes and
+people's legs, that turn, change speed, stop and start."""
+
+SCENARIOS[REALISTIC_ROOM.name] = REALISTIC_ROOM
 
 
 def scenario(name: str, **changes: object) -> WorldConfig:

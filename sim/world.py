@@ -21,13 +21,20 @@ from qnav.contracts.motion import (
     move_obstacles,
     outcome,
     step_robot,
+    wrap_angle,
 )
-from qnav.contracts.observation import encode_frame, obstacle_features, target_features
-from qnav.sim import rng
+from qnav.contracts.observation import (
+    LidarSpec,
+    encode_frame,
+    obstacle_features,
+    target_features,
+)
+from qnav.sim import rng, room, sensor
 from qnav.sim.config import WorldConfig
 from qnav.sim.geometry import cast_lidar, cast_rotating_lidar, clearance
 from qnav.sim.layouts import Layouts, layout_indices, layouts_of
 from qnav.sim.raycast import cast_circles
+from qnav.sim.room import first_valid
 from qnav.sim.task import reward
 
 F64 = NDArray[np.float64]
@@ -62,6 +69,9 @@ class WorldState(NamedTuple):
     """(N,) each world's episode counter, which with the seed fixes the episode's layout."""
     layout: NDArray[np.int64] | None = None
     """(N,) each world's static layout (`sim.layouts`; None: the paper's room, no layouts)."""
+    obstacle_motion: F64 | None = None
+    """(N, M, 3) each obstacle's heading, walking speed and 1 while it walks, 0 while it stands
+    (`sim.room.walk`); None where obstacles move in straight lines (the paper's)."""
 
 
 class Observation(NamedTuple):
@@ -124,7 +134,10 @@ def reset(
     size, margin = config.arena.size_m, config.spawn.wall_margin_m
     layouts = layouts_of(config.layout)
     layout = None
-    if layouts is not None:
+    m = config.obstacles.count
+    if config.realistic:
+        robot_xy, heading, target_xy, obstacle_xy = room.spawn(config, keys)
+    elif layouts is not None:
         layout = layout_indices(config.layout, len(layouts), keys, episodes)
         robot_xy, heading = layouts.start_pose[layout, :2], layouts.start_pose[layout, 2]
         target_xy = layouts.goal_xy[layout]
@@ -133,21 +146,20 @@ def reset(
         robot_xy = margin + (size - 2 * margin) * robot[:, :2]
         heading = 2 * math.pi * robot[:, 2] - math.pi
         target_xy = targets_around(config, robot_xy, rng.uniform(keys, _TARGET, (_CANDIDATES, 2)))
-
-    m = config.obstacles.count
-    radius = config.obstacles.radius_m
-    low, high = obstacle_box(config, layout)
-    obstacle_candidates = (
-        low[:, None]
-        + radius
-        + ((high - low)[:, None] - 2 * radius)
-        * rng.uniform(keys, _OBSTACLE_XY, (m, _CANDIDATES, 2))
-    )
-    gap = np.linalg.norm(obstacle_candidates - robot_xy[:, None, None, :], axis=-1) - radius
-    obstacle_xy = _first_valid(
-        obstacle_candidates.reshape(n * m, _CANDIDATES, 2),
-        (gap >= config.spawn.obstacle_clearance_m).reshape(n * m, _CANDIDATES),
-    ).reshape(n, m, 2)
+    if not config.realistic:
+        radius = config.obstacles.radius_m
+        low, high = obstacle_box(config, layout)
+        obstacle_candidates = (
+            low[:, None]
+            + radius
+            + ((high - low)[:, None] - 2 * radius)
+            * rng.uniform(keys, _OBSTACLE_XY, (m, _CANDIDATES, 2))
+        )
+        gap = np.linalg.norm(obstacle_candidates - robot_xy[:, None, None, :], axis=-1) - radius
+        obstacle_xy = first_valid(
+            obstacle_candidates.reshape(n * m, _CANDIDATES, 2),
+            (gap >= config.spawn.obstacle_clearance_m).reshape(n * m, _CANDIDATES),
+        ).reshape(n, m, 2)
     direction = 2 * math.pi * rng.uniform(keys, _OBSTACLE_HEADING, (m,))
     speed = obstacle_speeds(config, rng.uniform(keys, _OBSTACLE_SPEED, (m, _CANDIDATES, 2)))
     obstacle_velocity = np.stack([np.cos(direction), np.sin(direction)], axis=-1) * speed[..., None]
@@ -161,6 +173,7 @@ def reset(
         seed=seeds,
         episode=episodes,
         layout=layout,
+        obstacle_motion=room.motion_of(obstacle_velocity) if config.obstacles.walks else None,
     )
 
 
@@ -188,13 +201,7 @@ def targets_around(config: WorldConfig, robot_xy: F64, draw: F64) -> F64:
         [np.cos(angle), np.sin(angle)], axis=-1
     )
     inside = ((candidates >= margin) & (candidates <= size - margin)).all(-1)
-    return np.clip(_first_valid(candidates, inside), margin, size - margin)
-
-
-def _first_valid(candidates: F64, valid: NDArray[np.bool_]) -> F64:
-    """candidates (N, K, D), valid (N, K) -> (N, D): the first valid candidate (else the first)."""
-    choice = np.argmax(valid, axis=1)
-    return np.take_along_axis(candidates, choice[:, None, None], axis=1)[:, 0, :]
+    return np.clip(first_valid(candidates, inside), margin, size - margin)
 
 
 def obstacle_speeds(config: WorldConfig, u: F64) -> F64:
@@ -230,13 +237,17 @@ def robot_path(config: WorldConfig, state: WorldState, action: NDArray[np.intege
 
 
 def rotating_scans(
-    config: WorldConfig, state: WorldState, path: RobotPath | None = None
+    config: WorldConfig,
+    state: WorldState,
+    path: RobotPath | None = None,
+    lidar: LidarSpec | None = None,
 ) -> NDArray[np.float32]:
-    """(N, B) the scans of a lidar whose turn of `config.lidar_turn_s` ends at `state`: beam j
-    leaves j / B of the turn after its start, from the robot's pose then (interpolated along
-    `path`, the period's; None: the robot stood still) and among the obstacles where they were
-    then (moved back from `state`: their bounces off the walls are reversible)."""
-    lidar, turn_s = config.lidar, config.lidar_turn_s
+    """(N, B) the scans of a lidar (`lidar`, else the world's) whose turn of
+    `config.lidar_turn_s` ends at `state`: beam j leaves j / B of the turn after its start, from
+    the robot's pose then (interpolated along `path`, the period's; None: the robot stood still)
+    and among the obstacles where they were then (moved back from `state`: their bounces off the
+    walls are reversible)."""
+    lidar, turn_s = lidar or config.lidar, config.lidar_turn_s
     assert lidar is not None
     before_s: F64 = turn_s - turn_s / lidar.num_beams * np.arange(lidar.num_beams, dtype=float)
     times_s, poses = path if path is not None else (np.zeros(1), state.pose[:, None])
@@ -269,20 +280,56 @@ def static_cylinders(config: WorldConfig, state: WorldState) -> tuple[Layouts, F
 
 def observe(config: WorldConfig, state: WorldState, path: RobotPath | None = None) -> Observation:
     """The observation in each world (with a rotating lidar, `config.lidar_turn_s`, its scans
-    taken along `path`, the period's: `rotating_scans`)."""
-    radius = config.obstacles.radius_m
+    taken along `path`, the period's: `rotating_scans`; with a motion-capture latency, the pose
+    read from along it), as the car's sensors give it (`config.sensor`: `sim.sensor`)."""
     statics = static_cylinders(config, state)
     if statics is not None:
         return _observe_layouts(config, state, *statics)
+    if config.realistic:
+        scan = None
+        if config.lidar is not None:
+            scan = room.room_scan(config, state, sensor.readings_of(config), path)
+        gap = np.minimum(*room.room_clearance(config, state))
+    else:
+        scan, gap = _square_room(config, state, path)
+    pose = state.pose
+    effects = config.sensor
+    if effects.scan_effects or effects.pose_effects:
+        keys = sensor.step_keys(state.seed, state.episode, state.steps)
+        if effects.scan_effects and scan is not None and config.lidar is not None:
+            scan = sensor.sensed_scans(effects, config.lidar.num_beams, scan, keys)
+        if effects.pose_effects:
+            pose = sensor.measured_poses(effects, _pose_measured(config, state, path), keys)
+    return Observation(pose, state.target_xy, scan, gap, state.obstacle_xy, state.obstacle_velocity)
+
+
+def _square_room(
+    config: WorldConfig, state: WorldState, path: RobotPath | None
+) -> tuple[NDArray[np.float32] | None, F64]:
+    """The scans (N, R) of the paper's room (R: the lidar's readings, `sensor.lidar_readings`,
+    else its beams) and the clearances (N,)."""
+    radius = config.obstacles.radius_m
+    lidar = config.lidar
+    if lidar is not None and config.sensor.lidar_readings:
+        lidar = LidarSpec(num_beams=config.sensor.lidar_readings, max_range_m=lidar.max_range_m)
     scan = None
-    if config.lidar is not None and config.lidar_turn_s:
-        scan = rotating_scans(config, state, path)
-    elif config.lidar is not None:
-        scan = cast_lidar(state.pose, config.lidar, config.arena, state.obstacle_xy, radius)
+    if lidar is not None and config.lidar_turn_s:
+        scan = rotating_scans(config, state, path, lidar)
+    elif lidar is not None:
+        scan = cast_lidar(state.pose, lidar, config.arena, state.obstacle_xy, radius)
     gap = clearance(state.pose[:, :2], config.arena, state.obstacle_xy, radius)
-    return Observation(
-        state.pose, state.target_xy, scan, gap, state.obstacle_xy, state.obstacle_velocity
-    )
+    return scan, gap
+
+
+def _pose_measured(config: WorldConfig, state: WorldState, path: RobotPath | None) -> F64:
+    """(N, 3) where the robots were when the motion capture measured the pose the car reads
+    with this observation: `sensor.pose_latency_s` before it, along `path` (None: they stood)."""
+    latency_s = config.sensor.pose_latency_s
+    if not latency_s or path is None:
+        return state.pose
+    then = room.poses_at(path[0], path[1], np.array([-latency_s]))[:, 0]
+    then[:, 2] = wrap_angle(then[:, 2])
+    return then
 
 
 def _observe_layouts(
@@ -318,23 +365,17 @@ def step(
     pose, velocity = step_robot(
         state.pose, state.velocity, action, config.dynamics, config.control_period_s
     )
-    low, high = obstacle_box(config, state.layout)
-    obstacle_xy, obstacle_velocity = move_obstacles(
-        state.obstacle_xy,
-        state.obstacle_velocity,
-        config.obstacles.radius_m,
-        high - low,
-        config.control_period_s,
-        origin_m=low,
-    )
+    obstacle_xy, obstacle_velocity, motion = _moved_obstacles(config, state)
     new_state = state._replace(
         pose=pose,
         velocity=velocity,
         obstacle_xy=obstacle_xy,
         obstacle_velocity=obstacle_velocity,
         steps=state.steps + 1,
+        obstacle_motion=motion,
     )
-    path = robot_path(config, state, action) if config.lidar_turn_s else None
+    timed = config.lidar_turn_s or config.sensor.pose_latency_s
+    path = robot_path(config, state, action) if timed else None
     observation = observe(config, new_state, path)
     distance = np.linalg.norm(state.target_xy - pose[:, :2], axis=1)
     result = outcome(distance, observation.clearance_m, config.robot_radius_m, config.reach_m)
@@ -349,6 +390,45 @@ def step(
         truncated=truncated,
     )
     return new_state, observation, transition
+
+
+def _moved_obstacles(config: WorldConfig, state: WorldState) -> tuple[F64, F64, F64 | None]:
+    """The obstacles' centres, velocities and walking state after one control period: a random
+    walk of their motion first (`ObstacleConfig.walks`: `sim.room.walk`), then straight on,
+    bouncing off the room's walls (the paper's `move_obstacles` in its square; off every static
+    segment, clutter too, in a polygon room or among clutter: `sim.room.bounce`)."""
+    velocity, motion = state.obstacle_velocity, state.obstacle_motion
+    keys = (
+        rng.episode_keys(state.seed, state.episode)
+        if config.realistic or motion is not None
+        else None
+    )
+    if motion is not None:
+        assert keys is not None
+        motion, velocity = room.walk(config, motion, keys, state.steps)
+    period_s = config.control_period_s
+    if config.room.corners or config.clutter.boxes:
+        assert keys is not None
+        reach = room.bodies(config, keys).bounding_m()
+        statics = room.static_segments(config, room.clutter_boxes(config, keys), bounce=True)
+        moved = state.obstacle_xy + velocity * period_s
+        xy, velocity = room.bounce(state.obstacle_xy, moved, velocity, reach, statics)
+    else:
+        radius: float | F64 = config.obstacles.radius_m
+        if config.obstacles.shaped:
+            assert keys is not None
+            radius = room.bodies(config, keys).bounding_m()[..., None]
+        low, high = obstacle_box(config, state.layout)
+        xy, velocity = move_obstacles(
+            state.obstacle_xy, velocity, radius, high - low, period_s, origin_m=low
+        )
+    if motion is not None:
+        walking = motion[..., 2:] > 0
+        heading = np.arctan2(velocity[..., 1], velocity[..., 0])
+        motion = np.concatenate(
+            [np.where(walking, heading[..., None], motion[..., :1]), motion[..., 1:]], axis=-1
+        )
+    return xy, velocity, motion
 
 
 class StepResult(NamedTuple):
