@@ -15,6 +15,7 @@ None of this runs in the paper's scenarios: `sim.world` calls it where a setting
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from functools import cache
 from typing import NamedTuple, Protocol
 
@@ -345,34 +346,45 @@ def bounce(xy: F64, moved: F64, velocity: F64, reach_m: F64, statics: F64) -> tu
 
 
 def cast_rays(
-    origin: F64, direction: F64, circles: F64, segments: F64, max_range_m: float
+    origin: F64,
+    direction: F64,
+    circles: F64,
+    segments: Sequence[F64],
+    max_range_m: float,
 ) -> NDArray[np.float32]:
     """(N, R) the range along each ray, from `origin` (N, R, 2) along the unit `direction`
     (N, R, 2), to the nearest circle (x, y, radius) of `circles` (N, R or 1, C, 3) or segment
-    (x0, y0, x1, y1) of `segments` (N, R or 1, S, 4); +inf for none within `max_range_m`. A ray
-    from inside a circle reads 0."""
-    ox, oy = origin[..., 0, None], origin[..., 1, None]
-    dx, dy = direction[..., 0, None], direction[..., 1, None]
-    best = np.full(origin.shape[:-1], np.inf)
+    (x0, y0, x1, y1) of each of `segments` (N, R or 1, S, 4); +inf for none within
+    `max_range_m`. A ray from inside a circle reads 0. In float32, as `sim.geometry`'s lidar."""
+    f32 = np.float32
+    ox, oy = origin[..., 0, None].astype(f32), origin[..., 1, None].astype(f32)
+    dx, dy = direction[..., 0, None].astype(f32), direction[..., 1, None].astype(f32)
+    best = np.full(origin.shape[:-1], np.inf, dtype=f32)
     if circles.shape[-2]:
-        cx, cy, r = circles[..., 0] - ox, circles[..., 1] - oy, circles[..., 2]
+        round_ = circles.astype(f32)
+        cx, cy, r = round_[..., 0] - ox, round_[..., 1] - oy, round_[..., 2]
         along = cx * dx + cy * dy
         inside = cx * cx + cy * cy - r * r
         disc = along * along - inside
-        near = along - np.sqrt(np.maximum(disc, 0.0))
-        near = np.where(inside <= 0, 0.0, np.where((disc >= 0) & (near >= 0), near, np.inf))
-        best = np.minimum(best, near.min(-1))
-    if segments.shape[-2]:
-        wx, wy = segments[..., 0] - ox, segments[..., 1] - oy
-        ex, ey = segments[..., 2] - segments[..., 0], segments[..., 3] - segments[..., 1]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inverse = 1.0 / (dx * ey - dy * ex)
+        near = along - np.sqrt(np.maximum(disc, f32(0.0)))
+        near = np.where(
+            inside <= 0, f32(0.0), np.where((disc >= 0) & (near >= 0), near, f32(np.inf))
+        )
+        np.minimum(best, near.min(-1), out=best)
+    for group in segments:
+        if not group.shape[-2]:
+            continue
+        side = group.astype(f32)
+        wx, wy = side[..., 0] - ox, side[..., 1] - oy
+        ex, ey = side[..., 2] - side[..., 0], side[..., 3] - side[..., 1]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            inverse = f32(1.0) / (dx * ey - dy * ex)
             t = (wx * ey - wy * ex) * inverse
             u = (wx * dy - wy * dx) * inverse
         hit = np.isfinite(inverse) & (t >= 0) & (u >= 0) & (u <= 1)
-        best = np.minimum(best, np.where(hit, t, np.inf).min(-1))
+        np.minimum(best, np.where(hit, t, f32(np.inf)).min(-1), out=best)
     best[best > max_range_m] = np.inf
-    return best.astype(np.float32)
+    return best
 
 
 def obstacle_heading(state_motion: F64 | None, velocity: F64) -> tuple[F64, NDArray[np.bool_]]:
@@ -421,26 +433,36 @@ def poses_at(times_s: F64, poses: F64, at_s: F64) -> F64:
     return np.asarray(track[:, upper - 1] * (1 - weight) + track[:, upper] * weight)
 
 
-def surfaces_at(config: WorldConfig, state: RoomState, before_s: F64) -> tuple[F64, F64]:
-    """Every world's circles (N, T, C, 3) and segments (N, T, S, 4) `before_s` (T,) seconds
-    before `state`: the obstacles' shapes as they are at `state` (a box's heading, the legs'
-    swing), moved back along their velocities; the walls and the clutter."""
+class Surfaces(NamedTuple):
+    """Everything the lidar can meet in N worlds at T instants."""
+
+    circles: F64
+    """(N, T, C, 3) the obstacles' circles: cylinders and legs (unused slots parked)."""
+    sides: F64
+    """(N, T, 4M, 4) the moving boxes' sides (unused slots parked)."""
+    statics: F64
+    """(N, 1, S, 4) the walls and the clutter's sides."""
+
+
+def surfaces_at(config: WorldConfig, state: RoomState, before_s: F64) -> Surfaces:
+    """Every world's surfaces `before_s` (T,) seconds before `state`: the obstacles' shapes as
+    they are at `state` (a box's heading, the legs' swing), moved back along their velocities;
+    the walls and the clutter."""
     keys = rng.episode_keys(state.seed, state.episode)
     shapes = bodies(config, keys)
     statics = static_segments(config, clutter_boxes(config, keys))
     heading, walking = obstacle_heading(state.obstacle_motion, state.obstacle_velocity)
     time_s = np.asarray(state.steps[:, None] * config.control_period_s, dtype=np.float64)
     circles, sides = moving_shapes(shapes, state.obstacle_xy[:, None], heading, walking, time_s)
-    m, t = state.obstacle_xy.shape[1], before_s.shape[0]
+    n, m = state.obstacle_xy.shape[:2]
     if before_s.any():
         back = -state.obstacle_velocity[:, None] * before_s[:, None, None]  # (N, T, M, 2)
-        circles = circles + np.concatenate(
-            [np.tile(back, (1, 1, 2, 1)), np.zeros((*back.shape[:2], 2 * m, 1))], -1
-        )
-        sides = sides + np.tile(np.repeat(back, 4, axis=2), (1, 1, 1, 2))
-    statics = np.broadcast_to(statics[:, None], (statics.shape[0], t, *statics.shape[1:]))
-    sides = np.broadcast_to(sides, (sides.shape[0], t, *sides.shape[2:]))
-    return circles, np.concatenate([sides, statics], axis=2)
+        t = before_s.shape[0]
+        shift = np.concatenate([back, np.zeros((n, t, m, 1))], -1)[:, :, None]  # (N,T,1,M,3)
+        circles = (circles.reshape(n, 1, 2, m, 3) + shift).reshape(n, t, 2 * m, 3)
+        moved = sides.reshape(n, 1, m, 4, 4) + np.tile(back, 2)[:, :, :, None]
+        sides = moved.reshape(n, t, 4 * m, 4)
+    return Surfaces(circles, sides, statics[:, None])
 
 
 RobotPath = tuple[F64, F64]
@@ -463,21 +485,21 @@ def room_scan(
         before_s = np.asarray(turn_s - turn_s / readings * np.arange(readings), np.float64)
         if path is not None:
             poses = poses_at(path[0], path[1], -before_s)
-    circles, segments = surfaces_at(config, state, before_s)
+    surfaces = surfaces_at(config, state, before_s)
     angle = poses[..., 2] + angles
     origin = np.broadcast_to(poses[..., :2], (*angle.shape, 2))
     direction = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
-    return cast_rays(origin, direction, circles, segments, config.lidar.max_range_m)
+    segments = (surfaces.sides, surfaces.statics)
+    return cast_rays(origin, direction, surfaces.circles, segments, config.lidar.max_range_m)
 
 
 def room_clearance(config: WorldConfig, state: RoomState) -> tuple[F64, F64]:
     """(N,) each robot's distance to the nearest static surface (walls and clutter) and to the
     nearest moving obstacle's."""
-    circles, segments = surfaces_at(config, state, np.zeros(1))
-    sides_count = 4 * config.obstacles.count  # the moving boxes' sides come first
+    circles, sides, statics = surfaces_at(config, state, np.zeros(1))
     xy = state.pose[:, None, :2]  # (N, 1, 2) against (N, 1, C, ...)
-    statics = segment_distance(xy, segments[:, :, sides_count:]).min(-1)[:, 0]
-    sides = segment_distance(xy, segments[:, :, :sides_count]).min(-1, initial=np.inf)[:, 0]
+    static = segment_distance(xy, statics).min(-1)[:, 0]
+    moving = segment_distance(xy, sides).min(-1, initial=np.inf)[:, 0]
     rounds = np.hypot(circles[..., 0] - xy[..., 0, None], circles[..., 1] - xy[..., 1, None])
     rounds = (rounds - circles[..., 2]).min(-1, initial=np.inf)[:, 0]
-    return np.asarray(statics), np.minimum(sides, rounds)
+    return np.asarray(static), np.minimum(moving, rounds)

@@ -70,7 +70,7 @@ def test_the_room_caster_reads_what_a_ray_by_ray_reference_reads() -> None:
         np.broadcast_to(origin, (1, 240, 2)),
         direction,
         circles[None, None],
-        segments[None, None],
+        [segments[None, None]],
         max_range_m=20.0,
     )[0]
     reference = np.array([_reference_range(origin, a, circles, segments) for a in angles])
@@ -81,12 +81,8 @@ def test_the_room_caster_reads_what_a_ray_by_ray_reference_reads() -> None:
 def test_a_ray_from_inside_a_circle_reads_zero_and_nothing_in_range_reads_inf() -> None:
     origin = np.zeros((1, 2, 2))
     direction = np.array([[[1.0, 0.0], [-1.0, 0.0]]])
-    inside = cast_rays(
-        origin, direction, np.array([[[[0.1, 0.0, 0.5]]]]), np.zeros((1, 1, 0, 4)), 20.0
-    )
-    far = cast_rays(
-        origin, direction, np.array([[[[30.0, 0.0, 1.0]]]]), np.zeros((1, 1, 0, 4)), 20.0
-    )
+    inside = cast_rays(origin, direction, np.array([[[[0.1, 0.0, 0.5]]]]), [], 20.0)
+    far = cast_rays(origin, direction, np.array([[[[30.0, 0.0, 1.0]]]]), [], 20.0)
     assert inside.tolist() == [[0.0, 0.0]]
     assert np.isinf(far).all()
 
@@ -216,8 +212,8 @@ def test_the_lidar_sees_the_clutter_and_a_collision_with_it_ends_the_episode() -
     assert observation.clearance_m[0] < world.robot_radius_m
     _, _, transition = step(world, placed, np.array([1]))
     assert transition.outcome[0] == Outcome.COLLISION
-    _, segments = surfaces_at(world, state, np.zeros(1))
-    assert segments.shape[2] == 6 + 4 * 4  # the walls and the clutter's sides
+    surfaces = surfaces_at(world, state, np.zeros(1))
+    assert surfaces.statics.shape[2] == 6 + 4 * 4  # the walls and the clutter's sides
 
 
 @pytest.mark.parametrize("name", ["obstacles-inertia", "walls-increment", "obstacles-increment"])
