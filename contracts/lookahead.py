@@ -85,6 +85,17 @@ class Situation(Protocol):
         """(N, M, 2) obstacle velocities."""
 
 
+class ObstacleFutures(NamedTuple):
+    """Where the obstacles go in each of several futures (a forecast's motion hypotheses), in
+    place of straight lines from a `Situation`'s obstacles."""
+
+    xy: F64
+    """(H, N, K, M, 2) each obstacle's centre after each of H steps in each of K futures; a
+    candidate sequence c of a world meets future c mod K."""
+    radius_m: F64
+    """(N, M) each obstacle's radius."""
+
+
 class Rollouts(NamedTuple):
     """How each candidate sequence of each world played out."""
 
@@ -129,9 +140,16 @@ def random_blocks_needed(horizon: int) -> int:
     return -(-horizon // RANDOM_HOLD_STEPS)
 
 
-def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int64]) -> Rollouts:
+def simulate(
+    model: LookaheadModel,
+    state: Situation,
+    sequences: NDArray[np.int64],
+    futures: ObstacleFutures | None = None,
+) -> Rollouts:
     """Play every candidate sequence, (S, H) shared by all worlds or (N, S, H) per world, from
-    each world of `state`, the obstacles moving straight on and bouncing off the room's walls.
+    each world of `state`, the obstacles moving straight on and bouncing off the room's walls
+    (or along `futures`, candidate c of a world in its future c mod K: S must be a multiple
+    of K).
 
     A few things keep it cheap without changing a bit of the result. The obstacles' motion does
     not depend on the robot's, so it is computed once per world, not once per candidate. A wall
@@ -166,16 +184,21 @@ def simulate(model: LookaheadModel, state: Situation, sequences: NDArray[np.int6
     for h, (next_x, next_y) in enumerate(paths):
         driven_m = driven_m + np.hypot(next_x - x, next_y - y)
         x, y = next_x, next_y
-        obstacles, obstacle_velocity = move_obstacles(
-            obstacles,
-            obstacle_velocity,
-            model.obstacle_radius_m,
-            model.room_size_m,
-            model.control_period_s,
-        )
         dx, dy = target_x - x, target_y - y
         distance = np.sqrt(dx * dx + dy * dy)  # np.linalg.norm's sum of squares, bit for bit
-        gap = _clearance(model, x, y, obstacles, start_wall_m - driven_m)
+        if futures is None:
+            obstacles, obstacle_velocity = move_obstacles(
+                obstacles,
+                obstacle_velocity,
+                model.obstacle_radius_m,
+                model.room_size_m,
+                model.control_period_s,
+            )
+            gap = _clearance(model, x, y, obstacles, start_wall_m - driven_m)
+        else:
+            gap = _clearance_among(
+                model, x, y, futures, step=h, wall_bound_m=start_wall_m - driven_m
+            )
         success = distance < radius  # `motion.outcome`: reaching the target comes first
         won, lost = alive & success, alive & (gap < radius) & ~success
         result[won], result[lost] = _SUCCESS, _COLLISION
@@ -256,24 +279,56 @@ def _clearance(model: LookaheadModel, x: F64, y: F64, obstacles: F64, wall_bound
     return gap
 
 
+def _clearance_among(
+    model: LookaheadModel, x: F64, y: F64, futures: ObstacleFutures, *, step: int, wall_bound_m: F64
+) -> F64:
+    """`_clearance` among the obstacles of `futures` after `step`: each candidate (C = N * S)
+    against its own future's obstacles, each of its own radius."""
+    centres = futures.xy[step]  # (N, K, M, 2)
+    worlds, futures_count = centres.shape[:2]
+    gap = np.full(x.shape[0], np.inf)
+    if centres.shape[2]:
+        # Obstacles first (M, N, 1, K) against candidates (N, S / K, K): the minimum over the
+        # obstacles runs along whole rows of candidates.
+        ordered = centres.transpose(2, 0, 1, 3)[:, :, None]
+        ox = ordered[..., 0] - x.reshape(worlds, -1, futures_count)
+        oy = ordered[..., 1] - y.reshape(worlds, -1, futures_count)
+        radius = futures.radius_m.T[:, :, None, None]
+        gap = (np.sqrt(ox * ox + oy * oy) - radius).min(axis=0).reshape(-1)
+    reach_m = max(SCORED_CLEARANCE_M, model.robot_radius_m) + _WALL_MARGIN_M
+    near = np.flatnonzero(wall_bound_m < reach_m)
+    if near.size:
+        points = np.stack([x[near], y[near]], axis=1)
+        walls = distance_to_segments(points, model.wall_start, model.wall_end)
+        gap[near] = np.minimum(walls, gap[near])
+    return gap
+
+
 def best_first_actions(
-    model: LookaheadModel, state: Situation, sequences: NDArray[np.int64]
+    model: LookaheadModel,
+    state: Situation,
+    sequences: NDArray[np.int64],
+    futures: ObstacleFutures | None = None,
 ) -> NDArray[np.int64]:
     """(N,) the first action of the best-scoring candidate sequence, (S, H) shared or (N, S, H)
-    per world, for each world in `state`."""
+    per world, for each world in `state` (among `futures`' obstacles where given)."""
     worlds = state.pose.shape[0]
     if sequences.ndim == 2:
         sequences = np.broadcast_to(sequences, (worlds, *sequences.shape))
-    best = np.argmax(simulate(model, state, sequences).score, axis=1)
+    best = np.argmax(simulate(model, state, sequences, futures).score, axis=1)
     return np.asarray(sequences[np.arange(worlds), best, 0], dtype=np.int64)
 
 
 def collision_shares(
-    model: LookaheadModel, state: Situation, tails: NDArray[np.int64]
+    model: LookaheadModel,
+    state: Situation,
+    tails: NDArray[np.int64],
+    futures: ObstacleFutures | None = None,
 ) -> NDArray[np.float64]:
     """(N, A): the share of the continuations `tails` (N, T, H-1) that collide within H steps
     after taking each action first (1 where the action is doomed). The same continuations follow
-    every first action, so actions are judged alike."""
+    every first action, so actions are judged alike; with `futures` (K dividing T), continuation
+    t meets the obstacles of future t mod K after every first action."""
     worlds, tail_count = tails.shape[:2]
     first = np.repeat(np.arange(NUM_ACTIONS), tail_count)
     sequences = np.concatenate(
@@ -283,7 +338,7 @@ def collision_shares(
         ],
         axis=2,
     )
-    collided = simulate(model, state, sequences).outcome == Outcome.COLLISION
+    collided = simulate(model, state, sequences, futures).outcome == Outcome.COLLISION
     return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
 
 

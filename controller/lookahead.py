@@ -38,6 +38,7 @@ from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.lookahead import (
     LookaheadModel,
+    ObstacleFutures,
     best_first_actions,
     candidate_sequences,
     collision_shares,
@@ -45,6 +46,7 @@ from qnav.contracts.lookahead import (
 )
 from qnav.contracts.motion import Dynamics, InertiaDynamics
 from qnav.contracts.settings import check_range
+from qnav.controller.futures import walk_draws, walked_futures
 from qnav.controller.perception import (
     ObstacleTracker,
     TrackerSettings,
@@ -71,7 +73,12 @@ class LookaheadSettings:
     room_size_m: float = 0.0
     """Side of the square room [0, size]^2 in the motion-capture frame: its walls are known (a
     lidar return on them is not an obstacle, and obstacles bounce off them). 0: not set, and a
-    look ahead refuses to start: measure the room (the simulator's is 10 m)."""
+    look ahead refuses to start unless `walls` are given: measure the room (the simulator's is
+    10 m)."""
+    walls: tuple[tuple[float, float, float, float], ...] = ()
+    """The room's walls as segments [x0, y0, x1, y1] in metres in the motion-capture frame, as
+    measured, for a room that is not that square (they replace it; obstacles bounce inside the
+    box that bounds them)."""
     shield_horizon_s: float = 6.0
     """How far ahead the shield forecasts each action's risk (6 s against the gauge's 4 s doom
     horizon, with `overrule_share` 0.3: 0.900 against 0.882 success in obstacles-inertia, 0.885
@@ -90,15 +97,28 @@ class LookaheadSettings:
     seed: int = 0
     """Seed of the random continuations (the generator restarts with the tracking: a new episode,
     or the scans broke off)."""
+    turn_std_rad: float = 0.0
+    """How much a moving obstacle may turn in the shield's forecast: the standard deviation of
+    its heading's change over one second (a random walk: over t seconds, this times the square
+    root of t), each continuation meeting its own future (`controller.futures`); 0: every
+    obstacle forecast in a straight line."""
+    speed_std_mps: float = 0.0
+    """How much a moving obstacle's speed may change in the shield's forecast: the standard
+    deviation of its change over one second, as `turn_std_rad`."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("off", "shield", "plan"):
             raise ConfigError(f"lookahead.mode = {self.mode!r}: choose off, shield or plan")
         check_range(self, "room_size_m", self.room_size_m, 0.0, 1000.0)
+        for wall in self.walls:
+            if len(wall) != 4:
+                raise ConfigError(f"lookahead.walls: {wall!r} is not a segment [x0, y0, x1, y1]")
         check_range(self, "shield_horizon_s", self.shield_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "plan_horizon_s", self.plan_horizon_s, 0.0, 60.0, exclusive_low=True)
         check_range(self, "random_sequences", self.random_sequences, 0, 100_000)
         check_range(self, "overrule_share", self.overrule_share, 0.0, 1.0)
+        check_range(self, "turn_std_rad", self.turn_std_rad, 0.0, 100.0)
+        check_range(self, "speed_std_mps", self.speed_std_mps, 0.0, 100.0)
 
 
 FAR_AWAY_M = 1e4
@@ -118,7 +138,9 @@ class Belief(NamedTuple):
     obstacle_xy: F64
     """(1, M, 2) the tracked obstacles' centres."""
     obstacle_velocity: F64
-    """(1, M, 2) their velocities."""
+    """(1, M, 2) their velocities (zero for those that stand)."""
+    obstacle_radius: F64
+    """(1, M) their radii, from their points."""
 
 
 class Lookahead:
@@ -140,21 +162,24 @@ class Lookahead:
         """A scan taken longer than this after the last tracked one (or before it) restarts the
         tracking (the controller's scan timeout: the span after which it stops the car)."""
         self.tracker_settings = tracker
-        if settings.room_size_m <= 0:
+        if settings.room_size_m <= 0 and not settings.walls:
             raise ConfigError(
                 f"lookahead.room_size_m is not set: lookahead.mode = {settings.mode!r} needs the "
                 "room's walls (the side of the square room [0, size]^2 in the motion-capture "
-                'frame, e.g. --set lookahead.room_size_m=10); or set lookahead.mode = "off" to '
-                "drive on the policy alone"
+                "frame, e.g. --set lookahead.room_size_m=10, or its walls as segments, "
+                'lookahead.walls); or set lookahead.mode = "off" to drive on the policy alone'
             )
-        walls = box_walls(settings.room_size_m)
+        walls = room_walls(settings)
         self.walls = walls
+        corners = walls.reshape(-1, 2)
+        self.box = (corners.min(axis=0), corners.max(axis=0))
+        """The box that bounds the walls, inside which the forecast's obstacles bounce."""
         self.model = LookaheadModel(
             dynamics=dynamics,
             control_period_s=control_period_s,
             robot_radius_m=robot_radius_m,
-            obstacle_radius_m=tracker.obstacle_radius_m,
-            room_size_m=settings.room_size_m,
+            obstacle_radius_m=0.0,  # each track has its own (`Belief.obstacle_radius`)
+            room_size_m=float(walls.max()),
             wall_start=walls[:, :2],
             wall_end=walls[:, 2:],
         )
@@ -218,6 +243,24 @@ class Lookahead:
             target_xy=np.asarray(target_xy, dtype=np.float64).reshape(1, 2),
             obstacle_xy=tracks.xy_m[None],
             obstacle_velocity=tracks.velocity_mps[None],
+            obstacle_radius=tracks.radius_m[None],
+        )
+
+    def walks(self, obstacles: int, count: int) -> F64 | None:
+        """(2, K, M, H) this decision's random walks of `obstacles` obstacles in `count`
+        futures (`controller.futures.walk_draws`), drawn after the continuations; None where
+        the forecast has no spread or one future is asked for (the straight line)."""
+        s = self.settings
+        if count < 2 or not (s.turn_std_rad or s.speed_std_mps):
+            return None
+        spread = (s.turn_std_rad, s.speed_std_mps)
+        return walk_draws(
+            self._random,
+            futures=count,
+            obstacles=obstacles,
+            steps=self.horizon,
+            spread=spread,
+            period_s=self.model.control_period_s,
         )
 
     def candidates(self) -> NDArray[np.int64]:
@@ -242,19 +285,46 @@ class Lookahead:
 
 def risks_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> F64:
     """(N, A) `Lookahead.risks` of several cars at once (one forecast over all of them; their
-    models must be alike): each draws its own continuations, as it would alone."""
+    models must be alike): each draws its own continuations, then one future of its obstacles
+    per continuation (`Lookahead.walks`), as it would alone."""
     if not lookaheads:
         return np.zeros((0, NUM_ACTIONS))
     tails = np.concatenate([car.continuations() for car in lookaheads])
-    return collision_shares(lookaheads[0].model, beliefs_of(lookaheads, targets_xy), tails)
+    belief = beliefs_of(lookaheads, targets_xy)
+    futures = futures_of(lookaheads, belief, tails.shape[1])
+    return collision_shares(lookaheads[0].model, belief, tails, futures)
 
 
 def plans_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> NDArray[np.int64]:
-    """(N,) `Lookahead.plan` of several cars at once (their models must be alike)."""
+    """(N,) `Lookahead.plan` of several cars at once (their models must be alike): the
+    obstacles on their straight lines."""
     if not lookaheads:
         return np.zeros(0, dtype=np.int64)
     sequences = np.concatenate([car.candidates() for car in lookaheads])
-    return best_first_actions(lookaheads[0].model, beliefs_of(lookaheads, targets_xy), sequences)
+    belief = beliefs_of(lookaheads, targets_xy)
+    futures = futures_of(lookaheads, belief, 1)
+    return best_first_actions(lookaheads[0].model, belief, sequences, futures)
+
+
+def futures_of(lookaheads: list[Lookahead], belief: Belief, count: int) -> ObstacleFutures:
+    """The futures of the cars' stacked `belief`: `count` per car, each car's walks from its
+    own generator (`Lookahead.walks`); the straight line alone where they have none."""
+    most = belief.obstacle_xy.shape[1]
+    car = lookaheads[0]
+    tracked = [len(car.tracker.tracks().xy_m) for car in lookaheads]
+    walks = [car.walks(m, count) for car, m in zip(lookaheads, tracked, strict=True)]
+    if any(w is None for w in walks):
+        draws = np.zeros((2, len(lookaheads), 1, most, car.horizon))
+    else:
+        draws = np.stack([_padded(w, most, 0.0, 2) for w in walks if w is not None], axis=1)
+    return walked_futures(
+        belief.obstacle_xy,
+        belief.obstacle_velocity,
+        belief.obstacle_radius,
+        draws,
+        period_s=car.model.control_period_s,
+        box=car.box,
+    )
 
 
 def beliefs_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> Belief:
@@ -262,21 +332,33 @@ def beliefs_of(lookaheads: list[Lookahead], targets_xy: list[F64]) -> Belief:
     return stacked([car.belief(t) for car, t in zip(lookaheads, targets_xy, strict=True)])
 
 
+def _padded(values: F64, most: int, fill: float, axis: int) -> F64:
+    """`values` with `fill` appended along `axis` up to `most` entries."""
+    shape = list(values.shape)
+    shape[axis] = most - values.shape[axis]
+    return np.concatenate([values, np.full(shape, fill)], axis=axis)
+
+
 def stacked(beliefs: list[Belief]) -> Belief:
     """Several cars' beliefs as one state of N worlds, the obstacles padded far away."""
     most = max(b.obstacle_xy.shape[1] for b in beliefs)
-
-    def padded(values: F64, fill: float) -> F64:
-        pad = np.full((1, most - values.shape[1], 2), fill)
-        return np.concatenate([values, pad], axis=1)
-
     return Belief(
         pose=np.concatenate([b.pose for b in beliefs]),
         velocity=np.concatenate([b.velocity for b in beliefs]),
         target_xy=np.concatenate([b.target_xy for b in beliefs]),
-        obstacle_xy=np.concatenate([padded(b.obstacle_xy, FAR_AWAY_M) for b in beliefs]),
-        obstacle_velocity=np.concatenate([padded(b.obstacle_velocity, 0.0) for b in beliefs]),
+        obstacle_xy=np.concatenate([_padded(b.obstacle_xy, most, FAR_AWAY_M, 1) for b in beliefs]),
+        obstacle_velocity=np.concatenate(
+            [_padded(b.obstacle_velocity, most, 0.0, 1) for b in beliefs]
+        ),
+        obstacle_radius=np.concatenate([_padded(b.obstacle_radius, most, 0.0, 1) for b in beliefs]),
     )
+
+
+def room_walls(settings: LookaheadSettings) -> F64:
+    """(W, 4) the room's walls: `settings.walls`, else the square of `room_size_m`."""
+    if settings.walls:
+        return np.array(settings.walls, dtype=np.float64).reshape(-1, 4)
+    return box_walls(settings.room_size_m)
 
 
 def beam_angles(num_beams: int) -> F64:

@@ -6,13 +6,18 @@ knows its pose (motion capture) and the room's walls, which makes the job classi
 
 1. every return becomes a point in the room's frame (`scan_points`), placed from the car's pose
    when it was taken (`beam_poses`: a rotating lidar's beams leave over its turn);
-2. returns on a known wall are the wall (`off_the_walls`); the rest is grouped into runs of
-   neighbouring beams (`clusters`);
-3. each cluster is the near side of a cylinder of known radius, whose centre a least-squares
-   fit finds (`fit_circle`);
+2. returns on a known wall are the wall (`off_the_walls`, within a band that widens with the
+   range noise the walls' own returns show: `wall_noise`); the rest is grouped into runs of
+   neighbouring beams (`clusters`), and runs that together are as narrow as a person's two legs
+   are joined (`shapes.merge_close`);
+3. each cluster is an object of unknown size and shape, its centre and radius from its points
+   alone (`controller.shapes`: an arc of any radius, arcs side by side, an object's extent, or
+   pieces of something wide on a grid fixed in the room);
 4. detections join tracks by nearest prediction within a gate; a track's velocity is the slope
    of a straight-line fit to its recent centres, over the longest recent stretch that is
-   straight (an obstacle that bounced off a wall starts a new stretch) (`fit_velocity`).
+   straight within the noise (an obstacle that bounced off a wall starts a new stretch)
+   (`fit_velocity`); a track slower than `moving_speed_mps` stands (static things told from
+   moving ones).
 
 `ObstacleTracker` holds one world's tracks; the functions are pure. The car's own velocity
 comes from its last two poses (`ego_velocity`).
@@ -30,6 +35,13 @@ from numpy.typing import NDArray
 
 from qnav.contracts.motion import distance_to_segments
 from qnav.contracts.settings import check_range
+from qnav.controller.shapes import (
+    MIN_ARC_POINTS,
+    Shape,
+    fit_known_radius,
+    merge_close,
+    shapes_of,
+)
 
 F64 = NDArray[np.float64]
 
@@ -40,13 +52,25 @@ class TrackerSettings:
 
     SECTION = "tracker"
 
-    obstacle_radius_m: float = 0.2
-    """Radius of the (cylindrical) obstacles the circle fit assumes."""
+    max_radius_m: float = 0.6
+    """Largest radius of an arc the tracker fits to a cluster (a round obstacle); a cluster no
+    arc fits is taken by its extent."""
+    piece_m: float = 1.0
+    """A cluster wider than this that no arcs explain (a wall or furniture the map lacks) is
+    cut into pieces of this size on a grid fixed in the room, so that it stands still."""
+    legs_m: float = 0.5
+    """Neighbouring clusters that together are no wider than this are one object (a person's
+    two legs, the background between them)."""
+    moving_speed_mps: float = 0.2
+    """A track slower than this is forecast standing where it is (static things, and people
+    who stopped)."""
     wall_band_m: float = 0.1
-    """Returns within this distance of a known wall belong to the wall (keep it above three
-    times the lidar's range noise, or the walls' noisy returns become obstacles)."""
-    min_returns: int = 3
-    """Fewest neighbouring returns that make an obstacle (a lone stray return does not)."""
+    """Returns within this distance of a known wall belong to the wall; the band widens to
+    3.5 times the range noise the walls' own returns show (`wall_noise`)."""
+    min_returns: int = 1
+    """Fewest neighbouring returns that make an obstacle; one found by a single return counts
+    once it is found again in the next scans (a lone stray return does not; a thin pole far
+    away, a few centimetres wide, returns one)."""
     cluster_gap_m: float = 0.3
     """Neighbouring returns farther apart than this belong to different objects."""
     gate_m: float = 0.3
@@ -57,15 +81,17 @@ class TrackerSettings:
     """Most recent centres a velocity is fitted to, one per scan tracked (5: 0.8 s of a 5 Hz
     lidar; with a faster lidar raise it in proportion to keep the span)."""
     straight_tolerance_m: float = 0.03
-    """Largest residual of a centre from the fitted line for a stretch to count as straight."""
+    """Largest residual of a centre from the fitted line for a stretch to count as straight
+    (at least the range noise the walls show)."""
     coast_frames: int = 3
     """Scans a track is kept (moved by its velocity) without a detection (3: 0.6 s at 5 Hz;
     scale it with the lidar's rate as `velocity_frames`)."""
 
     def __post_init__(self) -> None:
-        check_range(
-            self, "obstacle_radius_m", self.obstacle_radius_m, 0.0, 100.0, exclusive_low=True
-        )
+        check_range(self, "max_radius_m", self.max_radius_m, 0.0, 100.0, exclusive_low=True)
+        check_range(self, "piece_m", self.piece_m, 0.0, 100.0, exclusive_low=True)
+        check_range(self, "legs_m", self.legs_m, 0.0, 10.0)
+        check_range(self, "moving_speed_mps", self.moving_speed_mps, 0.0, 100.0)
         check_range(self, "wall_band_m", self.wall_band_m, 0.0, 10.0)
         check_range(self, "min_returns", self.min_returns, 1, 100_000)
         check_range(self, "cluster_gap_m", self.cluster_gap_m, 0.0, 10.0, exclusive_low=True)
@@ -135,88 +161,27 @@ def clusters(points: F64, keep: NDArray[np.bool_], gap_m: float) -> list[NDArray
     return runs
 
 
-WIDEST_ARC = 2.4
-"""A run of returns wider (first to last point) than this many obstacle radii is not one
-cylinder, whose near side spans at most two radii (the rest allows for range noise): it is
-obstacles side by side, merged in the scan."""
+PARTLY_SEEN = 0.7
+"""A detection of fewer points than an arc needs and narrower than this share of its track's
+radius is a part of the object its track knows (`ObstacleTracker.update`)."""
+MIN_KNOWN_POINTS = 3
+"""Fewest points that place a partly seen object by its track's radius."""
+NOISE_NEAR_WALL_M = 0.3
+"""Returns within this of a known wall tell the range noise (`wall_noise`)."""
+NOISE_MEMORY = 0.2
+"""Weight of each scan's noise estimate in the running one."""
 
 
-CLUTTER_ARC = 8.0
-"""A run wider than this many obstacle radii (four obstacles side by side) is not a few merged
-obstacles but something long the room's walls do not explain (furniture, a wall placed from the
-wrong pose): it is cut into pieces one obstacle wide, in one pass, where searching for the best
-cuts would cost time quadratic in its length (up to 0.2 s a scan, docs/controller.md)."""
-
-
-def split_wide(
-    run: NDArray[np.int64], points: F64, sensor_xy: F64, radius_m: float
-) -> list[NDArray[np.int64]]:
-    """`run` (beam indices, in scan order) as the runs of single obstacles: one too wide to be
-    one is cut where the circle fits of the two sides leave the least residual, and each side
-    again if need be; one wider than `CLUTTER_ARC` radii is cut into pieces one obstacle wide
-    (`one_wide_pieces`)."""
-    ends = points[run[-1]] - points[run[0]]
-    width_m = float(np.hypot(*ends))
-    if len(run) < 6 or width_m <= WIDEST_ARC * radius_m:
-        return [run]
-    if width_m > CLUTTER_ARC * radius_m:
-        return one_wide_pieces(run, points, 2 * radius_m)
-    best, cut = np.inf, 0
-    for k in range(3, len(run) - 2):
-        residual = sum(
-            _fit_residual(points[side], sensor_xy, radius_m) for side in (run[:k], run[k:])
-        )
-        if residual < best:
-            best, cut = residual, k
-    return [
-        *split_wide(run[:cut], points, sensor_xy, radius_m),
-        *split_wide(run[cut:], points, sensor_xy, radius_m),
-    ]
-
-
-def one_wide_pieces(run: NDArray[np.int64], points: F64, width_m: float) -> list[NDArray[np.int64]]:
-    """`run` cut into consecutive pieces whose points lie within `width_m` of the piece's first."""
-    pieces, start = [], 0
-    first = points[run[0]]
-    for k in range(1, len(run)):
-        if float(np.hypot(*(points[run[k]] - first))) > width_m:
-            pieces.append(run[start:k])
-            start, first = k, points[run[k]]
-    pieces.append(run[start:])
-    return pieces
-
-
-def _fit_residual(points: F64, sensor_xy: F64, radius_m: float) -> float:
-    centre = fit_circle(points, sensor_xy, radius_m)
-    return float(np.sum((np.linalg.norm(points - centre, axis=1) - radius_m) ** 2))
-
-
-def fit_circle(points: F64, sensor_xy: F64, radius_m: float, iterations: int = 5) -> F64:
-    """(2,) centre of the circle of `radius_m` whose near side best fits `points` (P, 2) seen
-    from `sensor_xy`: Gauss-Newton on the radial residuals, from the points' centroid pushed
-    back by the radius along the line of sight."""
-    centroid = points.mean(axis=0)
-    sight = centroid - sensor_xy
-    centre = centroid + radius_m * sight / max(float(np.linalg.norm(sight)), 1e-9)
-    if len(points) < 3:
-        return np.asarray(centre)
-    for _ in range(iterations):
-        offset = points - centre
-        distance = np.maximum(np.sqrt(np.einsum("ij,ij->i", offset, offset)), 1e-9)
-        jacobian = -offset / distance[:, None]
-        normal = jacobian.T @ jacobian  # 2 x 2: solved by hand, it is the hot loop
-        gradient = jacobian.T @ (distance - radius_m)
-        determinant = normal[0, 0] * normal[1, 1] - normal[0, 1] * normal[1, 0]
-        if abs(determinant) < 1e-12:
-            break
-        step = np.array(
-            [
-                normal[1, 1] * gradient[0] - normal[0, 1] * gradient[1],
-                normal[0, 0] * gradient[1] - normal[1, 0] * gradient[0],
-            ]
-        )
-        centre = centre - step / determinant
-    return np.asarray(centre)
+def wall_noise(points: F64, walls: F64) -> float | None:
+    """The range noise the walls' returns show: a robust standard deviation (1.4826 times the
+    median absolute distance) of the returns within `NOISE_NEAR_WALL_M` of a known wall; None
+    with fewer than 20 such returns."""
+    valid = np.all(np.isfinite(points), axis=1)
+    distance = distance_to_walls(points[valid], walls)
+    near = distance[distance < NOISE_NEAR_WALL_M]
+    if near.size < 20:
+        return None
+    return float(1.4826 * np.median(near))
 
 
 def bounce_mirrors(walls: F64, radius_m: float) -> F64:
@@ -292,16 +257,20 @@ def own_velocity(poses: F64, intervals_s: F64) -> F64:
     return velocity
 
 
-def seen_once(centres: F64, seen_s: F64, diameter_m: float, span_s: float) -> NDArray[np.int64]:
+def seen_once(
+    centres: F64, seen_s: F64, radii_m: F64, span_s: float, speed_mps: float
+) -> NDArray[np.int64]:
     """Indices of the detections (D, 2) to keep from a rotating lidar's scan, whose beams at the
-    seam (its first and last) may see one obstacle twice, a turn apart: of two detections less
-    than a diameter apart and seen more than half the scan's span (`span_s`) apart in time, the
+    seam (its first and last) may see one obstacle twice, a turn apart: of two detections that
+    may be one obstacle (closer than their radii (D,) together and what `speed_mps` covers in
+    the time between them) and were seen more than half the scan's span (`span_s`) apart, the
     later (obstacles that overlap are seen at once, and both are kept)."""
     kept: list[int] = []
     for index in np.argsort(-seen_s, kind="stable"):
         twice = any(
-            np.linalg.norm(centres[index] - centres[other]) < diameter_m
-            and seen_s[other] - seen_s[index] > span_s / 2
+            seen_s[other] - seen_s[index] > span_s / 2
+            and np.linalg.norm(centres[index] - centres[other])
+            < radii_m[index] + radii_m[other] + speed_mps * (seen_s[other] - seen_s[index])
             for other in kept
         )
         if not twice:
@@ -320,15 +289,29 @@ class Tracks(NamedTuple):
     xy_m: F64
     """(K, 2) obstacle centres."""
     velocity_mps: F64
-    """(K, 2) obstacle velocities."""
+    """(K, 2) obstacle velocities (zero for those that stand)."""
+    radius_m: F64
+    """(K,) each obstacle's radius, from its points."""
 
 
 @dataclass
 class _Track:
     times_s: deque[float]
     centres: deque[F64]
+    radii: deque[float]
     velocity: F64 = field(default_factory=lambda: np.zeros(2))
     missed: int = 0
+    hits: int = 1
+    single: bool = False
+    """Found by one return each time so far (a stray return, or a thin pole far away)."""
+    wide: bool = False
+    """Found as a piece of something wide (`shapes.grid_pieces`) at least once: it stands."""
+
+    @property
+    def radius_m(self) -> float:
+        """The median of its recent radii."""
+        ordered = sorted(self.radii)
+        return ordered[len(ordered) // 2]
 
     def predicted(self, time_s: float) -> F64:
         return np.asarray(self.centres[-1] + self.velocity * (time_s - self.times_s[-1]))
@@ -340,33 +323,41 @@ class ObstacleTracker:
     def __init__(self, settings: TrackerSettings, walls: F64, beam_angles_rad: F64) -> None:
         self.settings = settings
         self.walls = walls
-        self.mirrors = bounce_mirrors(walls, settings.obstacle_radius_m)
         self.beam_angles_rad = beam_angles_rad
+        self.noise_m = 0.0
+        """The range noise the walls' returns have shown so far (`wall_noise`, averaged)."""
         self._tracks: list[_Track] = []
         self._time_s = 0.0
+        self._mirror_cache: dict[float, F64] = {}
 
-    def detect(self, scan_m: NDArray[np.floating], pose: F64) -> F64:
-        """(D, 2) obstacle centres found in one scan seen from `pose` (as `scan_points`)."""
-        return self._detect(scan_m, pose)[0]
+    def detect(self, scan_m: NDArray[np.floating], pose: F64) -> list[Shape]:
+        """The objects found in one scan seen from `pose` (as `scan_points`)."""
+        return self._detect(scan_points(scan_m, pose, self.beam_angles_rad), pose)
 
-    def _detect(
-        self, scan_m: NDArray[np.floating], pose: F64
-    ) -> tuple[F64, list[NDArray[np.int64]]]:
-        """`detect`'s centres, and the beams each was found in."""
+    def _detect(self, points: F64, pose: F64) -> list[Shape]:
+        """`detect` on the scan's points in the room's frame (B, 2)."""
         s = self.settings
-        points = scan_points(scan_m, pose, self.beam_angles_rad)
-        runs = clusters(points, off_the_walls(points, self.walls, s.wall_band_m), s.cluster_gap_m)
-        pieces = [
-            piece
-            for run in runs
-            for piece in split_wide(run, points, _sensor_xy(pose, run), s.obstacle_radius_m)
-            if len(piece) >= s.min_returns
-        ]
-        centres = [
-            fit_circle(points[piece], _sensor_xy(pose, piece), s.obstacle_radius_m)
-            for piece in pieces
-        ]
-        return np.array(centres, dtype=np.float64).reshape(-1, 2), pieces
+        measured = wall_noise(points, self.walls)
+        if measured is not None:
+            weight = NOISE_MEMORY if self.noise_m else 1.0
+            self.noise_m += weight * (measured - self.noise_m)
+        band = max(s.wall_band_m, 3.5 * self.noise_m)
+        gap = max(s.cluster_gap_m, 4.0 * self.noise_m)
+        runs = clusters(points, off_the_walls(points, self.walls, band), gap)
+        found = []
+        for index, run in enumerate(runs):
+            shapes = shapes_of(
+                run,
+                points,
+                _sensor_xy(pose, run),
+                noise_m=self.noise_m,
+                max_radius_m=s.max_radius_m,
+                piece_m=s.piece_m,
+            )
+            found += [shape._replace(run=index) for shape in shapes]
+        found = merge_close(found, points, _sensor_xy(pose, np.arange(len(points))), s.legs_m)
+        found = [shape for shape in found if len(shape.beams) >= s.min_returns]
+        return found
 
     def update(
         self,
@@ -377,74 +368,139 @@ class ObstacleTracker:
     ) -> Tracks:
         """Take in a scan taken at `time_s` from `pose`, or beam by beam at `beam_times_s` (B,)
         from each beam's pose (B, 3) (`beam_poses`); the tracks as they are at its last beam."""
-        s = self.settings
-        detections, pieces = self._detect(scan_m, pose)
+        points = scan_points(scan_m, pose, self.beam_angles_rad)
+        shapes = self._detect(points, pose)
+        centres = np.array([shape.centre for shape in shapes]).reshape(-1, 2)
+        radii = np.array([shape.radius_m for shape in shapes])
         if beam_times_s is None:
-            seen_s = np.full(len(detections), time_s)
+            seen_s = np.full(len(shapes), time_s)
         else:  # each obstacle where it was when the beams that found it were taken
-            seen_s = np.array([beam_times_s[piece].mean() for piece in pieces])
+            seen_s = np.array([beam_times_s[shape.beams].mean() for shape in shapes])
             time_s = float(beam_times_s.max())
-            span_s = float(np.ptp(beam_times_s))
-            latest = seen_once(detections, seen_s, 2 * s.obstacle_radius_m, span_s)
-            detections, seen_s = detections[latest], seen_s[latest]
-        last = np.array([t.centres[-1] for t in self._tracks]).reshape(-1, 2)
-        velocity = np.array([t.velocity for t in self._tracks]).reshape(-1, 2)
-        elapsed_s = seen_s[None] - np.array([t.times_s[-1] for t in self._tracks])[:, None]
-        predicted = last[:, None] + velocity[:, None] * elapsed_s[..., None]  # (tracks, found, 2)
-        taken_tracks: set[int] = set()
-        taken_detections: set[int] = set()
-        if len(predicted) and len(detections):
-            distance = np.linalg.norm(predicted - detections[None], axis=2)
-            gate = np.array([self._gate_m(track, time_s) for track in self._tracks])
-            distance[distance > gate[:, None]] = np.inf
-            for flat in np.argsort(distance, axis=None):
-                row, detection = divmod(int(flat), len(detections))
-                if not np.isfinite(distance[row, detection]):
-                    break
-                if row in taken_tracks or detection in taken_detections:
-                    continue
-                taken_tracks.add(row)
-                taken_detections.add(detection)
-                self._extend(self._tracks[row], float(seen_s[detection]), detections[detection])
+            span_s, speed = float(np.ptp(beam_times_s)), self.settings.max_obstacle_speed_mps
+            latest = seen_once(centres, seen_s, radii, span_s, speed)
+            shapes = [shapes[i] for i in latest]
+            centres, radii, seen_s = centres[latest], radii[latest], seen_s[latest]
+        taken = self._associate(centres, seen_s, time_s)
         kept = []
         for index, track in enumerate(self._tracks):
-            if index not in taken_tracks:
+            if index in taken:
+                detection = taken[index]
+                shape = shapes[detection]
+                centre, radius = centres[detection], float(radii[detection])
+                known = track.radius_m
+                if radius < PARTLY_SEEN * known and len(shape.beams) < MIN_ARC_POINTS:
+                    # Partly seen (a few returns past another's edge): too few to place it by
+                    # the radius its track knows, it coasts; else placed by that radius.
+                    if len(shape.beams) < MIN_KNOWN_POINTS:
+                        track.missed += 1
+                        kept += [track] if track.missed <= self.settings.coast_frames else []
+                        continue
+                    beams = points[shape.beams]
+                    centre = fit_known_radius(beams, _sensor_xy(pose, shape.beams), known)
+                    radius = known
+                track.wide = track.wide or shape.wide
+                single = len(shape.beams) == 1
+                self._extend(track, float(seen_s[detection]), centre, radius, single)
+            else:
                 track.missed += 1
-            if track.missed <= s.coast_frames:
+            if track.missed <= self.settings.coast_frames:
                 kept.append(track)
-        for index, centre in enumerate(detections):
-            if index not in taken_detections:
-                kept.append(
-                    _Track(
-                        deque([float(seen_s[index])], maxlen=s.velocity_frames),
-                        deque([centre], maxlen=s.velocity_frames),
-                    )
+        frames = self.settings.velocity_frames
+        for index in sorted(set(range(len(shapes))) - set(taken.values())):
+            kept.append(
+                _Track(
+                    deque([float(seen_s[index])], maxlen=frames),
+                    deque([centres[index]], maxlen=frames),
+                    deque([float(radii[index])], maxlen=frames),
+                    single=len(shapes[index].beams) == 1,
+                    wide=shapes[index].wide,
                 )
+            )
         self._tracks = kept
         self._time_s = time_s
         return self.tracks()
 
+    def _associate(self, centres: F64, seen_s: F64, time_s: float) -> dict[int, int]:
+        """Track index -> detection index: nearest predictions first, each within its gate."""
+        if not self._tracks or not len(centres):
+            return {}
+        last = np.array([t.centres[-1] for t in self._tracks]).reshape(-1, 2)
+        velocity = np.array([t.velocity for t in self._tracks]).reshape(-1, 2)
+        elapsed_s = seen_s[None] - np.array([t.times_s[-1] for t in self._tracks])[:, None]
+        predicted = last[:, None] + velocity[:, None] * elapsed_s[..., None]  # (tracks, found, 2)
+        distance = np.linalg.norm(predicted - centres[None], axis=2)
+        gate = np.array([self._gate_m(track, time_s) for track in self._tracks])
+        distance[distance > gate[:, None]] = np.inf
+        taken: dict[int, int] = {}
+        for flat in np.argsort(distance, axis=None):
+            row, detection = divmod(int(flat), len(centres))
+            if not np.isfinite(distance[row, detection]):
+                break
+            if row not in taken and detection not in taken.values():
+                taken[row] = detection
+        return taken
+
     def _gate_m(self, track: _Track, time_s: float) -> float:
         """How far from its prediction a track's next detection may be: a track seen once has
-        no velocity yet, so it may have gone as far as the fastest obstacle goes."""
-        if len(track.centres) > 1:
-            return self.settings.gate_m
+        no velocity yet, so it may have gone as far as the fastest obstacle goes; one seen
+        twice has a velocity from two centres only, which may be off by half that."""
         elapsed = time_s - track.times_s[-1]
-        return self.settings.gate_m + self.settings.max_obstacle_speed_mps * elapsed
+        reach = self.settings.max_obstacle_speed_mps * elapsed
+        if len(track.centres) > 2:
+            return self.settings.gate_m
+        return self.settings.gate_m + (reach if len(track.centres) == 1 else reach / 2)
 
-    def _extend(self, track: _Track, time_s: float, centre: F64) -> None:
+    def _extend(
+        self, track: _Track, time_s: float, centre: F64, radius_m: float, single: bool
+    ) -> None:
         track.times_s.append(time_s)
         track.centres.append(centre)
+        track.radii.append(radius_m)
         track.missed = 0
+        track.hits += 1
+        track.single = track.single and single
         track.velocity = fit_velocity(
             np.array(track.times_s),
             np.array(track.centres),
-            self.settings.straight_tolerance_m,
-            self.mirrors,
+            max(self.settings.straight_tolerance_m, self.noise_m),
+            self._mirrors(track.radius_m),
         )
 
+    def _moving_threshold(self, track: _Track) -> float:
+        """The speed below which `track` stands: `moving_speed_mps`, or three standard errors of
+        the slope of a line through its centres (as many as it has, over the time they span),
+        each centre off by half the range noise, whichever is larger."""
+        count = len(track.times_s)
+        span_s = track.times_s[-1] - track.times_s[0]
+        if count < 2 or span_s <= 0:
+            return math.inf
+        spacing_s = span_s / (count - 1)
+        error = (self.noise_m / 2) / (spacing_s * math.sqrt(count * (count * count - 1) / 12))
+        return max(self.settings.moving_speed_mps, 3 * error)
+
+    def _mirrors(self, radius_m: float) -> F64:
+        """`bounce_mirrors` of the walls for an obstacle of about `radius_m` (to the millimetre,
+        kept)."""
+        key = round(radius_m, 3)
+        if key not in self._mirror_cache:
+            self._mirror_cache[key] = bounce_mirrors(self.walls, key)
+        return self._mirror_cache[key]
+
     def tracks(self) -> Tracks:
-        """Every kept track's centre (coasting ones moved on by their velocity) and velocity."""
-        xy = np.array([t.predicted(self._time_s) for t in self._tracks]).reshape(-1, 2)
-        velocity = np.array([t.velocity for t in self._tracks]).reshape(-1, 2)
-        return Tracks(xy, velocity)
+        """Every kept track's centre (coasting ones moved on by their velocity; one that stands
+        at its recent centres' mean), velocity (zero
+        where it stands: a piece of something wide, or slower than `moving_speed_mps` or than
+        three standard errors of a velocity fitted under the range noise, `_moving_threshold`) and
+        radius (the median of its recent ones); a track found by single returns only once is
+        left out (a stray return)."""
+        shown = [t for t in self._tracks if not (t.single and t.hits < 2)]
+        xy = np.array([t.predicted(self._time_s) for t in shown]).reshape(-1, 2)
+        velocity = np.array([t.velocity for t in shown]).reshape(-1, 2)
+        threshold = np.array([math.inf if t.wide else self._moving_threshold(t) for t in shown])
+        standing = np.linalg.norm(velocity, axis=1) < threshold
+        velocity[standing] = 0.0
+        for index in np.flatnonzero(standing):  # where it stands: its recent centres' mean
+            xy[index] = np.mean(shown[index].centres, axis=0)
+        radius = np.array([t.radius_m for t in shown])
+        return Tracks(xy, velocity, radius)

@@ -118,7 +118,7 @@ class WorldTrackers:
 
 def _nearest_first(tracks: Tracks, robot_xy: F64, count: int) -> Tracks:
     order = np.argsort(np.linalg.norm(tracks.xy_m - robot_xy, axis=1))[:count]
-    return Tracks(tracks.xy_m[order], tracks.velocity_mps[order])
+    return Tracks(tracks.xy_m[order], tracks.velocity_mps[order], tracks.radius_m[order])
 
 
 def run_perceiving_oracle(

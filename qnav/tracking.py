@@ -30,6 +30,7 @@ from qnav.controller.proximity import (
 )
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import WanderingGoToTarget
+from qnav.sim.room import room_walls
 from qnav.sim.world import BatchedWorld, Observation
 
 
@@ -40,13 +41,22 @@ def lidar_of(world: WorldConfig) -> LidarSpec:
     return world.lidar
 
 
+def room_of(world: WorldConfig, settings: LookaheadSettings) -> LookaheadSettings:
+    """`settings` with `world`'s room as a user measures it: the square's side, or the walls of
+    a polygon room as segments (`sim.room.room_walls`)."""
+    if world.room.corners:
+        walls = tuple(tuple(float(v) for v in wall) for wall in room_walls(world))
+        return replace(settings, walls=walls)  # type: ignore[arg-type]
+    return replace(settings, room_size_m=world.arena.size_m)
+
+
 def world_lookahead(
     world: WorldConfig, settings: LookaheadSettings, tracker: TrackerSettings
 ) -> Lookahead:
     """The controller's look ahead as a car in `world` runs it: its room, motion model and
     lidar (what the policy file and the car's settings give the daemon)."""
     return Lookahead(
-        replace(settings, room_size_m=world.arena.size_m),
+        room_of(world, settings),
         tracker,
         dynamics=world.dynamics,
         robot_radius_m=world.robot_radius_m,
@@ -106,7 +116,7 @@ class LookaheadAgent:
     ) -> None:
         self.inner = inner
         self.world = world
-        self.settings = replace(lookahead, room_size_m=world.arena.size_m)
+        self.settings = room_of(world, lookahead)
         if self.settings.mode == "off":
             raise ConfigError("lookahead.mode = 'off': nothing to run beside the policy")
         self.cars = [world_lookahead(world, lookahead, tracker) for _ in range(num_worlds)]
@@ -124,6 +134,8 @@ class LookaheadAgent:
         """Decisions the proximity stop changed to another action."""
         self.proximity_stops = 0
         """Decisions where it forbade every action (the daemon would stop; here they stand)."""
+        self.last_risks: NDArray[np.float64] | None = None
+        """(N, A) the shield's risks of the last decision (None in plan mode)."""
 
     @property
     def overruled_share(self) -> float:
@@ -154,6 +166,7 @@ class LookaheadAgent:
         else:
             shares = risks_of(self.cars, targets)
             action = shielded_actions(self.inner.last_q, shares, self.settings.overrule_share)
+        self.last_risks = shares
         self.overruled += int(np.sum(action != chosen))
         self.decisions += action.size
         self.steps += 1
@@ -190,6 +203,22 @@ class LookaheadAgent:
         return guarded
 
 
+def shipped_agent(
+    inner: QAgent, world: WorldConfig, num_worlds: int, mode: str = "shield", seed: int = 0
+) -> LookaheadAgent:
+    """The policy as the shipped controller runs it (`config/controller.toml`): the look ahead
+    in `mode` with the default tracker and forecast, and the proximity stop below it."""
+    return LookaheadAgent(
+        inner,
+        world,
+        num_worlds,
+        tracker=TrackerSettings(),
+        lookahead=lookahead_settings(mode),
+        seed=seed,
+        proximity=ProximitySettings(),
+    )
+
+
 def time_lookahead(
     world: WorldConfig,
     decisions: int = 2000,
@@ -201,7 +230,7 @@ def time_lookahead(
     with held random actions by `worlds` cars; median and 99th percentile, milliseconds. Also
     the shield's forecast of all the cars at once, per car ("shield_batched"): what the lab's
     evaluations and labels pay per state."""
-    tracker = TrackerSettings(obstacle_radius_m=world.obstacles.radius_m)
+    tracker = TrackerSettings()
 
     def car(mode: Literal["shield", "plan"]) -> Lookahead:
         return world_lookahead(world, LookaheadSettings(mode=mode), tracker)

@@ -1,4 +1,4 @@
-"""Handlers of `qnav lab`: the research tools of lab/ (calibrate, diagnose, gauge)."""
+"""Handlers of `qnav lab`: the research tools of lab/ (calibrate, diagnose, gauge, robustness)."""
 
 from __future__ import annotations
 
@@ -132,11 +132,110 @@ def _run_row(run: Path, episodes: int) -> dict[str, object]:
     }
 
 
+def robustness(args: argparse.Namespace) -> int:
+    """The issue-53 table: each row's world for each column's controller (and, with --forward,
+    the always-forward driver under the proximity stop in the realistic room)."""
+    from qnav.lab.robustness import COLUMNS, ROWS, forward_collisions, measure, table
+    from qnav.sim.config import scenario
+    from qnav.sim.evaluate import EvalSettings
+
+    settings = EvalSettings(episodes=args.episodes, seed=args.seed)
+    rows = [ROWS[int(i)] for i in args.rows.split(",")] if args.rows else list(ROWS)
+    columns = args.columns.split(",") if args.columns else list(COLUMNS)
+    if unknown := set(columns) - set(COLUMNS):
+        raise ConfigError(f"--columns {sorted(unknown)}: choose from {', '.join(COLUMNS)}")
+    results = measure(
+        rows, columns, args.policy, settings, room_policy=args.room_policy, progress=True
+    )
+    print(
+        f"{args.episodes} test episodes per cell (seed {args.seed}); policy {args.policy}", end=""
+    )
+    print(f", in the realistic room {args.room_policy}" if args.room_policy else "")
+    print(table(rows, columns, results))
+    if args.forward:
+        count = forward_collisions(scenario("realistic-room"), settings)
+        print(f"always forward under the proximity stop, realistic room: {count}")
+    return 0
+
+
+def forecast(args: argparse.Namespace) -> int:
+    """The shield's forecast against the truth over one row of the robustness table."""
+    from qnav.lab.forecast_gauge import changed
+    from qnav.lab.forecast_gauge import gauge as measure
+    from qnav.sim.evaluate import EvalSettings
+
+    world, lookahead, tracker = changed(args.row, args.assignments or [])
+    settings = EvalSettings(episodes=args.episodes, seed=args.seed)
+    report = measure(world, str(args.policy), settings, lookahead, tracker)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(", ".join(f"{key} {value:.3f}" for key, value in report.items()))
+    return 0
+
+
 def add_tools(tools: Verbs) -> None:
-    """`qnav lab calibrate|diagnose|gauge`: their options."""
+    """`qnav lab calibrate|diagnose|gauge|robustness|forecast`: their options."""
     _add_calibrate(tools)
     _add_diagnose(tools)
     _add_gauge(tools)
+    _add_robustness(tools)
+    _add_forecast(tools)
+
+
+def _add_forecast(tools: Verbs) -> None:
+    """`qnav lab forecast`."""
+    parser = verb(
+        tools,
+        forecast,
+        "forecast",
+        help="the shield's forecast against the truth (error over the horizon, coverage, "
+        "misses) over a row of the robustness table, in minutes",
+    )
+    parser.add_argument("--row", type=int, default=0, help="row of `qnav lab robustness` (0)")
+    parser.add_argument("--episodes", type=int, default=150, help="test episodes (150)")
+    parser.add_argument("--seed", type=int, default=12345, help="seed of the test layouts")
+    parser.add_argument(
+        "--policy",
+        type=Path,
+        default=Path("tests/data/stack/obstacles-inertia.onnx"),
+        help="policy file (default: the committed obstacles-inertia policy)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="assignments",
+        action="append",
+        metavar="SECTION.FIELD=VALUE",
+        help="a lookahead., tracker. or world setting over the row's (repeatable)",
+    )
+    flag(parser, "--json", "print one JSON object")
+
+
+def _add_robustness(tools: Verbs) -> None:
+    """`qnav lab robustness`."""
+    parser = verb(
+        tools,
+        robustness,
+        "robustness",
+        help="the controller in rooms that are not the simulator's: blind go-to-target, the "
+        "policy alone and as shipped, one change at a time (docs/controller.md)",
+    )
+    parser.add_argument(
+        "--policy",
+        type=Path,
+        default=Path("tests/data/stack/obstacles-inertia.onnx"),
+        help="policy file (default: the committed obstacles-inertia policy)",
+    )
+    parser.add_argument(
+        "--room-policy",
+        type=Path,
+        help="policy file for the realistic room's row (default --policy)",
+    )
+    parser.add_argument("--episodes", type=int, default=1000, help="test episodes per cell (1000)")
+    parser.add_argument("--seed", type=int, default=12345, help="seed of the test layouts")
+    parser.add_argument("--rows", help="comma-separated row numbers (default: all)")
+    parser.add_argument("--columns", help="comma-separated: blind, alone, shipped (default: all)")
+    flag(parser, "--forward", "also count an always-forward driver's collisions in the room")
 
 
 def _add_calibrate(tools: Verbs) -> None:

@@ -89,7 +89,7 @@ def evaluate(args: argparse.Namespace) -> int:
     shield = None
     if args.lookahead != "off":
         shield = agent = _looking_ahead(args, agent, world, worlds, eval_settings.seed)
-        label += f", the controller's look ahead in {args.lookahead} mode"
+        label += f", the controller's look ahead in {args.lookahead} mode and proximity stop"
     if args.random_action_prob:
         label += f" with {args.random_action_prob:.0%} random actions"
     if args.policy is None and args.agent == "oracle":
@@ -194,8 +194,10 @@ def _check_views(args: argparse.Namespace) -> None:
 def _looking_ahead(
     args: argparse.Namespace, agent: Agent, world: WorldConfig, worlds: int, seed: int
 ) -> LookaheadAgent:
-    """The policy's agent with the controller's look ahead in --lookahead's mode."""
+    """The policy's agent with the controller's look ahead in --lookahead's mode and the
+    proximity stop below it, as the shipped controller runs them."""
     from qnav.controller.perception import TrackerSettings
+    from qnav.controller.proximity import ProximitySettings
     from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
 
     return LookaheadAgent(
@@ -206,6 +208,7 @@ def _looking_ahead(
         lookahead=lookahead_settings(args.lookahead),
         range_noise_m=args.range_noise_m,
         seed=seed,
+        proximity=ProximitySettings(),
     )
 
 

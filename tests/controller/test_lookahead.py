@@ -15,7 +15,7 @@ from qnav.contracts.errors import PolicyFileError
 from qnav.contracts.lookahead import collision_shares
 from qnav.contracts.motion import move_obstacles
 from qnav.controller.decision import Controller, Input, Reason
-from qnav.controller.lookahead import Lookahead, LookaheadSettings
+from qnav.controller.lookahead import Lookahead, LookaheadSettings, futures_of
 from qnav.controller.perception import TrackerSettings
 from qnav.controller.policy import PolicyRuntime
 from qnav.lab.oracle import lookahead_model
@@ -36,7 +36,7 @@ def _car(world_name: str) -> Lookahead:
     return world_lookahead(
         world,
         LookaheadSettings(mode="shield"),
-        TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
+        TrackerSettings(),
     )
 
 
@@ -71,7 +71,9 @@ def test_with_an_exact_lidar_the_belief_is_the_truth_and_so_are_the_risks(world_
                 tails = rng.integers(0, 3, size=(1, 40, 7))
                 model = lookahead_model(world)
                 truth = collision_shares(model, state, tails)
-                np.testing.assert_array_equal(collision_shares(car.model, belief, tails), truth)
+                straight = futures_of([car], belief, 1)
+                forecast = collision_shares(car.model, belief, tails, straight)
+                np.testing.assert_array_equal(forecast, truth)
         state, _, _ = step(world, state, np.array([frame // 4 % 2]))  # forward, then left
 
 
@@ -143,7 +145,7 @@ def _shielding_controller(world: WorldConfig) -> Controller:
     return Controller(
         PolicyRuntime(OBSTACLES_POLICY),
         lookahead=settings,
-        tracker=TrackerSettings(obstacle_radius_m=world.obstacles.radius_m),
+        tracker=TrackerSettings(),
     )
 
 
