@@ -23,7 +23,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from qnav.contracts.actions import Action
-from qnav.contracts.motion import InertiaDynamics
 from qnav.sim.config import WorldConfig
 from qnav.sim.layouts import Layouts, layouts_of
 from qnav.sim.world import Observation
@@ -54,6 +53,12 @@ class MapPlanSettings:
     """How far ahead the planner compares the cost-to-go to choose its heading."""
     aligned_rad: float = 0.25
     """Drive forward when the heading is within this of the chosen one, else turn."""
+    open_aligned_rad: float = 0.5
+    """... within this, where every cylinder is more than `open_m` beyond the robot's disc (in
+    the open a rougher heading costs nothing, and a learner imitating the planner turns less
+    often, and dithers less, between its turns)."""
+    open_m: float = 0.7
+    """Clearance beyond the robot's disc above which the robot counts as in the open."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -233,9 +238,6 @@ class MapPlanner:
         self._grids: dict[int, CostToGo] = {}
         angles = np.linspace(0.0, 2 * math.pi, DIRECTIONS, endpoint=False)
         self._offsets = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
-        self._lag_s = 0.0
-        if isinstance(config.dynamics, InertiaDynamics):
-            self._lag_s = config.dynamics.angular_time_constant_s
 
     def grid(self, layout: int) -> CostToGo:
         """The cost-to-go of a layout: computed at its first use, or read from the cache."""
@@ -255,6 +257,10 @@ class MapPlanner:
     def act_at(self, pose: F64, layout: NDArray[np.int64]) -> NDArray[np.int64]:
         """The action in each world from its pose (N, 3) in its layout (N,)."""
         actions = np.empty(pose.shape[0], dtype=np.int64)
+        centres = self.layouts.cylinders_of(layout)
+        gap = np.sqrt(((centres - pose[:, None, :2]) ** 2).sum(-1).min(axis=1))
+        room = gap - self.layouts.cylinder_radius_m - self.config.robot_radius_m
+        open_ = room > self.settings.open_m
         for row in range(pose.shape[0]):
             grid = self.grid(int(layout[row]))
             ahead = pose[row, :2] + self.settings.lookahead_m * self._offsets
@@ -264,12 +270,13 @@ class MapPlanner:
                 actions[row] = Action.LEFT
                 continue
             wanted = math.atan2(self._offsets[best, 1], self._offsets[best, 0])
-            actions[row] = self.choose(pose[row, 2], wanted)
+            actions[row] = self.choose(pose[row, 2], wanted, bool(open_[row]))
         return actions
 
-    def choose(self, heading_rad: float, wanted_rad: float) -> int:
+    def choose(self, heading_rad: float, wanted_rad: float, in_open: bool = False) -> int:
         """Forward when facing the wanted heading, else a turn towards it."""
         error = (wanted_rad - heading_rad + math.pi) % (2 * math.pi) - math.pi
-        if abs(error) < self.settings.aligned_rad:
+        aligned = self.settings.open_aligned_rad if in_open else self.settings.aligned_rad
+        if abs(error) < aligned:
             return int(Action.FORWARD)
         return int(Action.LEFT if error > 0 else Action.RIGHT)
