@@ -318,6 +318,46 @@ def write_result(results_root: Path, spec: RunSpec, result: dict[str, Any]) -> P
     return path
 
 
+def skipped_lines(
+    specs: list[RunSpec], run_root: Path, results_root: Path, *, trained: bool = True
+) -> list[str]:
+    """What `qnav reproduce` took as it was instead of making it again, and how to make it again:
+    a run with a result is not trained (its network, in `run_root`, is not committed: a fresh
+    clone has none), a run without one is not trained with `trained` False (`--tables-only`),
+    and the rows beyond the paper are read from their results, never re-evaluated."""
+    kept = [s for s in specs if result_path(results_root, s).exists()]
+    lines = []
+    if kept:
+        lines.append(
+            f"skipping {len(kept)} of {len(specs)} runs: each has its result in {results_root}/, "
+            "so it is not trained again"
+        )
+        if not any((run_root / s.name / "model.pt").exists() for s in kept):
+            lines.append(
+                f"  none of their networks is in {run_root}/ (run folders are not committed; a "
+                f"fresh clone has none): the tables come from {results_root}/ as it is"
+            )
+        lines.append(
+            f"  to train a run again: delete its {results_root}/NAME.json and run `qnav "
+            f"reproduce` again (it trains in {run_root}/NAME); --results-dir EMPTY_FOLDER "
+            "trains them all"
+        )
+    missing = len(specs) - len(kept)
+    if missing and not trained:
+        lines.append(
+            f"skipping {missing} runs without a result (--tables-only): `qnav reproduce` "
+            "without it trains them"
+        )
+    for method in BEYOND_THE_PAPER:
+        count = len(list((results_root / method.folder).glob("*.json")))
+        if count:
+            lines.append(
+                f"not re-evaluating the {count} {method.folder} results in "
+                f"{results_root / method.folder}/; each is made by `{method.command}`"
+            )
+    return lines
+
+
 def run_progress(run_dir: Path) -> tuple[int, int] | None:
     """(episodes done, episodes planned) of a run folder, or None before its first round."""
     try:

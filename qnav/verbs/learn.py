@@ -104,19 +104,28 @@ def reproduce(args: argparse.Namespace) -> int:
     """Run the study's missing runs, then write docs/results.md."""
     from qnav.sim import paper
     from qnav.sim.config import scenario
-    from qnav.training.study import ablation_plan, parse_seeds, plan, results_markdown
+    from qnav.training.study import (
+        ablation_plan,
+        parse_seeds,
+        plan,
+        results_markdown,
+        skipped_lines,
+    )
 
     scenarios, models, seeds = _study_axes(args)
     specs = plan(scenarios, models, seeds)
     if args.ablation:
         ablation_seeds = parse_seeds(args.ablation_seeds, "--ablation-seeds")
         specs += [s for s in ablation_plan(ablation_seeds) if s.scenario in scenarios]
+    for line in skipped_lines(specs, args.runs_dir, args.results_dir, trained=not args.tables_only):
+        print(line, flush=True)
     if not args.tables_only:
         _run_study(args, specs)
+    print("testing the reference agents (Random, go-to-target, the oracle planner) ...", flush=True)
     references = {name: _references(scenario(name)) for name in paper.RANDOM}
     args.docs.parent.mkdir(parents=True, exist_ok=True)
     args.docs.write_text(results_markdown(args.results_dir, references))
-    print(f"wrote {args.docs}")
+    print(f"wrote {args.docs}: the tables from {args.results_dir}/")
     return 0
 
 

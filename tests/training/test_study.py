@@ -14,6 +14,7 @@ from qnav.training.study import (
     plan,
     results_markdown,
     run_study,
+    skipped_lines,
 )
 
 
@@ -197,3 +198,49 @@ def test_each_method_beyond_the_paper_gets_its_own_row_and_goal_beside_the_paper
         path.unlink()
     alone = results_markdown(tmp_path, {"obstacles-inertia": bounds})
     assert "recurrent shielded beats" not in alone  # nothing to compare with
+
+
+def _fresh_clone(tmp_path: Path) -> tuple[Path, Path, RunSpec]:
+    """A results folder as committed (one run and one shielded result) and no run folders."""
+    results = tmp_path / "results"
+    (results / "shielded").mkdir(parents=True)
+    spec = RunSpec("walls-inertia", "recurrent", 0)
+    (results / f"{spec.name}.json").write_text(json.dumps(_result(spec, 1.0)))
+    (results / "shielded" / f"{spec.name}.json").write_text(json.dumps(_result(spec, 1.0)["test"]))
+    return results, tmp_path / "runs", spec
+
+
+def test_a_study_without_networks_says_what_it_skips_and_how_to_train_again(
+    tmp_path: Path,
+) -> None:
+    results, runs, spec = _fresh_clone(tmp_path)
+    other = RunSpec("walls-inertia", "feedforward", 0)
+    text = "\n".join(skipped_lines([spec, other], runs, results, trained=False))
+    assert f"skipping 1 of 2 runs: each has its result in {results}/" in text
+    assert f"none of their networks is in {runs}/" in text
+    assert f"delete its {results}/NAME.json" in text
+    assert "skipping 1 runs without a result (--tables-only)" in text
+    assert f"not re-evaluating the 1 shielded results in {results / 'shielded'}/" in text
+    assert "qnav eval --policy RUN --lookahead shield" in text
+    (runs / spec.name).mkdir(parents=True)
+    (runs / spec.name / "model.pt").write_bytes(b"")
+    assert "none of their networks" not in "\n".join(skipped_lines([spec], runs, results))
+
+
+def test_reproduce_in_a_fresh_clone_names_what_it_skipped_before_writing_the_tables(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from qnav.cli import main
+
+    results, runs, _ = _fresh_clone(tmp_path)
+    random = {"success": 0.1, "collision": 0.9, "unfinished": 0.0, "episodes": 1000}
+    monkeypatch.setattr("qnav.verbs.learn._references", lambda world: References(random))
+    docs = tmp_path / "results.md"
+    argv = ["reproduce", "--scenarios", "walls-inertia", "--models", "recurrent", "--seeds", "0"]
+    argv += ["--results-dir", str(results), "--runs-dir", str(runs), "--docs", str(docs)]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "skipping 1 of 1 runs" in out
+    assert "none of their networks" in out
+    assert "not re-evaluating the 1 shielded results" in out
+    assert docs.exists() and not runs.exists()
