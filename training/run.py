@@ -116,9 +116,16 @@ def train(
         folder.write_progress(state.history, title)
         bar.update(len(episodes))
         bar.set_postfix(eps=f"{row['epsilon']:.3f}", loss=f"{row['loss']:.4f}",
-                        val=f"{row.get('eval_success', math.nan):.2f}")  # fmt: skip
+                        val=last_validation(state.history))  # fmt: skip
     bar.close()
     return folder.results() or _finish(world, settings, dqn, folder, state)
+
+
+def last_validation(history: list[dict[str, float]]) -> str:
+    """The progress bar's `val`: the last validation success so far, '-' before the first (a
+    round without a validation showed nan)."""
+    checked = [row["eval_success"] for row in history if "eval_success" in row]
+    return f"{checked[-1]:.2f}" if checked else "-"
 
 
 def _imitate(

@@ -17,7 +17,7 @@ from qnav.controller.onnx_file import read_onnx
 from qnav.sim.config import scenario
 from qnav.training.config import FAST
 from qnav.training.episode_log import read_rounds
-from qnav.training.run import shipped_gauge, train
+from qnav.training.run import last_validation, shipped_gauge, train
 from qnav.training.run_folder import read_settings
 
 TINY = [
@@ -151,3 +151,9 @@ def test_the_gauge_reported_is_the_shipped_networks_the_best_validation_with_kee
     walls = [{"episodes": 50, "eval_success": 1.0}]
     assert shipped_gauge(walls, keep_best=True) is None
     assert shipped_gauge([{"episodes": 8}], keep_best=False) is None
+
+
+def test_the_progress_bar_shows_the_last_validation_not_nan_between_them() -> None:
+    assert last_validation([]) == "-"
+    rows = [{"loss": 1.0}, {"loss": 0.5, "eval_success": 0.75}, {"loss": 0.4}]
+    assert last_validation(rows) == "0.75"
