@@ -1,22 +1,33 @@
 # Two commands do everything on a fresh machine with Python 3.11 and make:
-#   make demo   set up .venv and run the main job
-#   make test   set up .venv, lint, type-check and run the tests
+#   make demo   set up .venv with what the demo needs ([train]) and run it (qnav/demo.py)
+#   make test   set up .venv with the [dev] extra, lint, type-check and run the tests
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
+# One stamp per install: [dev] (torch, the linters, mypy, SB3) for the tests and the tools below,
+# the lighter [train] (torch, onnx, matplotlib) for the demo.
 STAMP := $(VENV)/.installed
+DEMO_STAMP := $(VENV)/.installed-demo
 
 .PHONY: install demo test test-slow same-results test-stack test-sitl stack-sitl test-cluster bench-cluster fuzz playback-refs lint typecheck pytest docker-lint bench-sim bench-controller bench-bridge calibrate docs figures clean
 
 # constraints.txt pins the versions a test's outcome depends on (every clone gets the same).
 $(STAMP): pyproject.toml constraints.txt sim/_raycast.c
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	@echo "installing qnav[dev] into $(VENV) (torch, onnx, ruff, mypy, SB3; minutes the first time)"
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev]'
 	@touch $(STAMP)
 
+$(DEMO_STAMP): pyproject.toml constraints.txt sim/_raycast.c
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	@echo "installing qnav[train] into $(VENV) (torch, onnx, matplotlib; minutes the first time)"
+	$(BIN)/python -m pip install --disable-pip-version-check --progress-bar on \
+		-c constraints.txt -e '.[train]'
+	@touch $(DEMO_STAMP)
+
 install: $(STAMP)
 
-demo: $(STAMP)
+demo: $(DEMO_STAMP)
 	$(BIN)/python -m qnav.demo
 
 test: lint typecheck docker-lint pytest

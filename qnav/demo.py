@@ -1,30 +1,46 @@
-"""`make demo`: train a policy, export it, and drive the simulated car with the whole stack.
+"""`make demo`: learn a policy, drive the simulated car with the whole stack, then watch the
+shipped controller dodge moving obstacles.
 
-1. Train the paper's recurrent Q-network on walls-increment (64 episodes; a couple of minutes).
-2. Export it to one ONNX file, which is then tested under the paper's protocol by the onboard
-   runtime.
-3. Start the full stack as separate processes on loopback: the simulator playing the car
-   (`qnav sim-car`), the controller daemon, the MAVLink bridge and the recorder; run episodes.
-4. Print the stack's results beside the same episodes run in process and the paper's row, and
-   write a trajectory picture (PNG, GIF) and the MCAP recording.
+1. Train the paper's recurrent Q-network on walls-increment (64 episodes; a couple of minutes)
+   and export it to one ONNX file, tested under the paper's protocol by the onboard runtime.
+2. Start the full stack as separate processes on loopback, the simulator playing the car
+   (`qnav sim-car`, the controller daemon, the MAVLink bridge, the recorder), and drive a few
+   episodes with the new file.
+3. Among five moving obstacles: the committed obstacles-inertia policy
+   (`tests/data/stack/obstacles-inertia.onnx`) alone, then under the shield with the proximity
+   stop, as `config/controller.toml` ships the controller (`qnav eval --lookahead shield`).
+4. Pictures: the training curve, the stack's first episode, and one obstacle episode the policy
+   alone loses and the shielded controller wins.
 
-Everything goes to out/demo/. A second run reuses the trained run and starts from step 2.
+Everything goes to out/demo/. A second run reuses the trained run.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 from qnav.sim import paper
-from qnav.sim.config import scenario
+from qnav.sim.config import WorldConfig, scenario
+
+if TYPE_CHECKING:
+    from qnav.sim.evaluate import Agent
+    from qnav.sim.render import EpisodeRecord
 
 OUT = Path("out/demo")
 SCENARIO = "walls-increment"
 TRAIN_EPISODES = 64
-STACK_EPISODES = 20
+STACK_EPISODES = 10
+OBSTACLES_POLICY = Path("tests/data/stack/obstacles-inertia.onnx")
+OBSTACLE_EPISODES = 50
+"""The first 50 test episodes, those of docs/deploy.md's stack figures (0.500 alone, 0.880
+shielded with the proximity stop, through the full stack)."""
+PICTURE_TRIES = 20
+"""Episodes tried for a picture that the policy alone loses and the shielded controller wins."""
 
 
 def _step(number: int, text: str) -> None:
@@ -33,51 +49,61 @@ def _step(number: int, text: str) -> None:
 
 def main() -> int:
     """Run the demo."""
-    from qnav.controller.policy import PolicyRuntime
-    from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
-    from qnav.simcar.car import EpisodeLog, episode_record
-    from qnav.stack import run_stack
+    started = time.perf_counter()
+    print("qnav demo: learn walls-increment, drive the car through the full stack, then dodge")
+    _step(1, f"Training the recurrent Q-network, {TRAIN_EPISODES} episodes of {SCENARIO}")
+    policy, tested = _train_and_export()
+    _step(2, f"Full stack: sim-car, controller, bridge, recorder; {STACK_EPISODES} episodes")
+    pictures = _drive_the_stack(policy, tested)
+    _step(3, f"Moving obstacles: {OBSTACLES_POLICY} alone, then shielded (as shipped)")
+    _obstacles()
+    _step(4, "Pictures")
+    pictures += _dodge_pictures()
+    for label, path in pictures:
+        print(f"  {label:<42} {path}")
+    print(f"\ndone in {time.perf_counter() - started:.0f} s")
+    return 0
+
+
+def _train_and_export() -> tuple[Path, Mapping[str, float]]:
+    """The walls policy trained (or the run found) and exported; its file and test figures."""
     from qnav.training.config import preset
     from qnav.training.export import export_run
     from qnav.training.run import train
 
-    started = time.perf_counter()
     world = scenario(SCENARIO)
-    print(f"qnav demo: learn {SCENARIO}, export the policy, drive the car through the full stack")
-
-    _step(1, f"Training the recurrent Q-network, {TRAIN_EPISODES} episodes of {SCENARIO}")
     settings = replace(
-        preset("fast", world),
-        episodes=TRAIN_EPISODES,
-        eval_every_episodes=32,
-        eval_episodes=50,
+        preset("fast", world), episodes=TRAIN_EPISODES, eval_every_episodes=32, eval_episodes=50
     )
-    run_dir = OUT / "run"
-    results = train(world, settings, run_dir, progress=True)
+    results = train(world, settings, OUT / "run", progress=True)
     test = results["test"]
     print(
         f"  torch network, test protocol (200 episodes): success {test['success']:.3f}, "
         f"collision {test['collision']:.3f}, unfinished {test['unfinished']:.3f}"
     )
-
-    _step(2, "Exporting to ONNX and testing the file with the onboard runtime")
+    print("  exporting to ONNX and testing the file with the onboard runtime")
     policy = OUT / "policy.onnx"
-    contract = export_run(run_dir, policy, progress=True)
-    tested = contract.evaluation
+    tested = export_run(OUT / "run", policy, progress=True).evaluation
     print(
         f"  wrote {policy}: success {tested['success']:.3f}, collision "
         f"{tested['collision']:.3f} over {int(tested['episodes'])} episodes"
     )
+    return policy, tested
 
-    _step(3, f"Full stack: sim-car, controller, bridge, recorder; {STACK_EPISODES} episodes")
+
+def _drive_the_stack(policy: Path, tested: Mapping[str, float]) -> list[tuple[str, Path]]:
+    """The new file through the full stack beside the same episodes in process; the pictures
+    this step leaves."""
+    from qnav.controller.policy import PolicyRuntime
+    from qnav.sim.evaluate import EvalSettings, StreamPolicyAgent, evaluate
+    from qnav.stack import run_stack
+
     stack = run_stack(policy, OUT / "stack", episodes=STACK_EPISODES, progress=True)
     same = evaluate(
-        world,
+        scenario(SCENARIO),
         StreamPolicyAgent(PolicyRuntime(policy, num_streams=STACK_EPISODES), STACK_EPISODES),
         EvalSettings(episodes=STACK_EPISODES, num_worlds=STACK_EPISODES),
     )
-
-    _step(4, "Results and pictures")
     theirs, _ = paper.RECURRENT[SCENARIO]
     rows = [
         ("full stack (separate processes)", stack["success"], stack["collision"],
@@ -91,23 +117,94 @@ def main() -> int:
     print(f"  {'':<34} {'success':>8} {'collision':>10} {'unfinished':>11} {'episodes':>9}")
     for label, success, collision, unfinished, count in rows:
         print(f"  {label:<34} {success:>8.3f} {collision:>10.3f} {unfinished:>11.3f} {count:>9}")
+    pictures = [("training curve", OUT / "run" / "success.png")]
+    pictures += _stack_pictures()
+    pictures += [
+        (f"MCAP recording (Foxglove) {i}", Path(p)) for i, p in enumerate(stack["recording"])
+    ]
+    return [*pictures, ("daemon configurations and logs", OUT / "stack")]
 
-    logs = [json.loads(line) for line in (OUT / "stack" / "episodes.jsonl").read_text().split("\n")
-            if line]  # fmt: skip
+
+def _stack_pictures() -> list[tuple[str, Path]]:
+    """The stack's first episode as PNG and GIF (none without matplotlib)."""
+    from qnav.simcar.car import EpisodeLog, episode_record
+
+    lines = (OUT / "stack" / "episodes.jsonl").read_text().splitlines()
+    record = episode_record(scenario(SCENARIO), EpisodeLog(**json.loads(lines[0])))
+    return _drawn(record, OUT / "stack-episode-0", "the stack's first episode")
+
+
+def _obstacles() -> None:
+    """The committed obstacles policy alone and shielded, as `qnav eval` prints them."""
+    from qnav.cli import main
+
+    for mode in ("off", "shield"):
+        argv = ["eval", "--policy", str(OBSTACLES_POLICY), "--episodes", str(OBSTACLE_EPISODES)]
+        argv += ["--lookahead", mode]
+        print(f"\n  $ qnav {' '.join(argv)}", flush=True)
+        main(argv)
+    print(
+        "\n  the same through the full stack (docs/deploy.md; about 6 minutes each):"
+        f"\n  $ qnav stack --policy {OBSTACLES_POLICY} --episodes 50 --lookahead off|shield"
+    )
+
+
+def _dodge_pictures() -> list[tuple[str, Path]]:
+    """The first test episode the policy alone loses and the shielded controller wins, drawn
+    both ways."""
+    from qnav.sim.evaluate import EvalSettings
+    from qnav.sim.render import record_episode
+
+    world = scenario("obstacles-inertia")
+    seed = EvalSettings().seed
+    for episode in range(PICTURE_TRIES):
+        alone = record_episode(world, _obstacles_agent(world, "off"), seed, episode)
+        if alone.outcome_label != "collision":
+            continue
+        shielded = record_episode(world, _obstacles_agent(world, "shield"), seed, episode)
+        if shielded.outcome_label == "success":
+            stem = OUT / f"obstacles-episode-{episode}"
+            return [
+                *_drawn(alone, stem.with_name(stem.name + "-alone"), f"episode {episode}, alone"),
+                *_drawn(shielded, stem.with_name(stem.name + "-shielded"), "the same, shielded"),
+            ]
+    print(f"  no episode among the first {PICTURE_TRIES} lost alone and won shielded")
+    return []
+
+
+def _obstacles_agent(world: WorldConfig, mode: str) -> Agent:
+    """The committed obstacles policy on one world, alone ("off") or under the look ahead in
+    `mode` with the proximity stop, as `qnav eval --lookahead` runs it."""
+    from qnav.controller.perception import TrackerSettings
+    from qnav.controller.policy import PolicyRuntime
+    from qnav.controller.proximity import ProximitySettings
+    from qnav.sim.evaluate import StreamPolicyAgent
+    from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
+
+    agent = StreamPolicyAgent(PolicyRuntime(OBSTACLES_POLICY, num_streams=1), 1)
+    if mode == "off":
+        return agent
+    return LookaheadAgent(
+        cast(QAgent, agent),
+        world,
+        1,
+        tracker=TrackerSettings(),
+        lookahead=lookahead_settings(mode),
+        proximity=ProximitySettings(),
+    )
+
+
+def _drawn(record: EpisodeRecord, stem: Path, label: str) -> list[tuple[str, Path]]:
+    """The episode as `stem`.png and `stem`.gif, labelled; none without matplotlib."""
+    from qnav.sim.render import draw_gif, draw_png
+
     try:
-        from qnav.sim.render import draw_gif, draw_png
-
-        record = episode_record(world, EpisodeLog(**logs[0]))
-        png = draw_png(record, OUT / "stack-episode-0.png")
-        gif = draw_gif(record, OUT / "stack-episode-0.gif")
-        print(f"  trajectory of the stack's first episode: {png} and {gif}")
+        png = draw_png(record, stem.with_suffix(".png"))
+        gif = draw_gif(record, stem.with_suffix(".gif"))
     except RuntimeError as error:
-        print(f"  pictures skipped: {error}")
-    for path in stack["recording"]:
-        print(f"  MCAP recording (open it in Foxglove): {path}")
-    print(f"  daemon configurations and logs: {OUT / 'stack'}/")
-    print(f"\ndone in {time.perf_counter() - started:.0f} s")
-    return 0
+        print(f"  {label}: pictures skipped ({error})")
+        return []
+    return [(f"{label} (PNG)", png), (f"{label} (GIF)", gif)]
 
 
 if __name__ == "__main__":
