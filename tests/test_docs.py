@@ -96,3 +96,23 @@ def test_the_checks_see_a_broken_link_a_missing_file_and_an_undefined_name(tmp_p
     assert _missing_in_layout_row("`controller/decision.py`: `Controller._stop_reason`") == []
     rows = _table_rows("x\n| a | b |\n|---|---|\n| `p\\|q` | r |\n\ny", "| a | b |")
     assert rows == [["`p\\|q`", "r"]]
+
+
+STATUS_HEADER = "| part | state and headline figure (command) | docs |"
+MAX_STATUS_WORDS = 25
+
+
+def test_each_cell_of_the_readmes_status_table_is_short() -> None:
+    rows = _table_rows((ROOT / "README.md").read_text(), STATUS_HEADER)
+    assert len(rows) >= 10
+    long = {
+        row[0]: n for row in rows for cell in row if (n := len(cell.split())) > MAX_STATUS_WORDS
+    }
+    assert not long, f"status cells over {MAX_STATUS_WORDS} words: {long}"
+
+
+def test_the_readme_names_the_shipped_controller_and_its_figures() -> None:
+    text = (ROOT / "README.md").read_text()
+    assert '`lookahead.mode = "shield"`' in text and "`[proximity]`" in text
+    shipped = (ROOT / "config" / "controller.toml").read_text()
+    assert 'mode = "shield"' in shipped and "enabled = true" in shipped
