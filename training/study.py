@@ -32,6 +32,7 @@ import numpy as np
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.settings import parse_assignments, with_overrides
 from qnav.sim import paper
+from qnav.training.barn_results import barn_lines
 
 SCENARIOS = ("obstacles-inertia", "walls-inertia", "walls-increment", "obstacles-increment")
 MODELS = ("recurrent", "feedforward")
@@ -892,6 +893,7 @@ def results_markdown(results_root: Path, references: dict[str, References]) -> s
     lines += _generalisation_lines(results)
     lines += _ablation_lines(results)
     lines += _compute_lines(results)
+    lines += barn_lines(results_root)
     return "\n".join(lines) + "\n"
 
 

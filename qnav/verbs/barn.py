@@ -4,6 +4,7 @@ default), for a policy or a baseline; and `qnav barn-convert`, which writes the 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -78,10 +79,23 @@ def evaluate_barn(args: argparse.Namespace) -> int:
     agent, label = barn_agent(args, world, batch)
     result = run_benchmark(world, agent, label, num_worlds=batch, progress=not args.json)
     if args.json:
-        print(json.dumps(asdict(result)))
+        saved = asdict(result)
+        if args.policy is not None and args.policy.is_dir():
+            saved["training"] = training_cost(args.policy)
+        print(json.dumps(saved))
         return 0
     print(report(result, world))
     return 0
+
+
+def training_cost(run_dir: Path) -> dict[str, float]:
+    """A run's training episodes and minutes (its progress.csv's last round; the final tests'
+    time not counted)."""
+    with (run_dir / "progress.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    if not rows:
+        raise ConfigError(f"{run_dir}/progress.csv has no round yet")
+    return {"episodes": int(rows[-1]["episodes"]), "minutes": float(rows[-1]["wall_s"]) / 60}
 
 
 def report(result: BenchmarkResult, world: WorldConfig) -> str:

@@ -1,9 +1,9 @@
 """Tune the DWA baseline on generated validation worlds (never on BARN's): a seeded random
 search over its weights, horizon, margin and oscillation suppression, each candidate run once
-in the first WORLDS worlds of the cave+rooms validation split; prints each candidate's success
-and metric, best last.
+in the first WORLDS worlds of the FAMILY validation split (cave: BARN's own family); prints each
+candidate's success and metric, best last.
 
-    .venv/bin/python docs/log/scripts/tune_dwa.py [CANDIDATES=16] [WORLDS=64]
+    .venv/bin/python docs/log/scripts/tune_dwa.py [CANDIDATES=16] [WORLDS=64] [FAMILY=cave]
 
 The defaults of `sim.dwa.DwaSettings` are the winner of the run recorded in docs/barn.md.
 """
@@ -41,8 +41,9 @@ def candidates(count: int, seed: int = 0) -> list[DwaSettings]:
 def main() -> None:
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 16
     worlds = int(sys.argv[2]) if len(sys.argv) > 2 else 64
+    family = sys.argv[3] if len(sys.argv) > 3 else "cave"
     base = scenario("clutter")
-    layout = replace(base.layout, split="validation", worlds=worlds, order="cycle")
+    layout = replace(base.layout, source=family, split="validation", worlds=worlds, order="cycle")
     world = replace(base, layout=layout)
     scored = []
     for settings in candidates(count):

@@ -1,0 +1,42 @@
+"""The BARN table of docs/results.md: one row per baseline file, the seeds of a learner
+averaged, training cost shown, BARN's published DWA as context."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from qnav.training.barn_results import barn_lines, barn_table
+
+
+def _save(folder: Path, name: str, success: float, **extra: object) -> None:
+    result = {
+        "agent": f"agent {name}",
+        "success": success,
+        "collision": 1.0 - success,
+        "timeout": 0.0,
+        "metric": success / 2,
+        "loops": 0.0,
+        **extra,
+    }
+    (folder / f"{name}.json").write_text(json.dumps(result))
+
+
+def test_a_learners_seeds_make_one_row_with_their_mean_and_training_cost(tmp_path: Path) -> None:
+    _save(tmp_path, "dwa", 0.5)
+    for seed, success in enumerate((0.8, 0.9)):
+        training = {"episodes": 640, "minutes": 40.0 + seed}
+        _save(tmp_path, f"dagger-recurrent-seed{seed}", success, training=training)
+    lines = barn_table(tmp_path)
+    rows = {line.split(" | ")[0].strip("| "): line for line in lines[2:]}
+    assert "| 2 | 0.850 +- 0.050 |" in rows["dagger-recurrent"]
+    assert "640 / 41" in rows["dagger-recurrent"]
+    assert "| 1 | 0.500 |" in rows["dwa"]
+    assert "0.880" in lines[-1] and "BARN's move_base + DWA" in lines[-1]
+
+
+def test_no_saved_result_means_no_barn_section(tmp_path: Path) -> None:
+    assert barn_lines(tmp_path) == []
+    (tmp_path / "barn").mkdir()
+    _save(tmp_path / "barn", "goto", 0.06)
+    assert barn_lines(tmp_path)[1].startswith("## BARN")
