@@ -70,7 +70,7 @@ fuzz: $(STAMP)
 test-stack: $(STAMP)
 	$(BIN)/pytest -m stack -s
 
-# The bridge against ArduPilot Rover SITL (docs/bridge.md, "ArduPilot in the loop"): set
+# The bridge against ArduPilot Rover SITL (docs/bridge-testing.md, "ArduPilot in the loop"): set
 # ARDUPILOT_SITL to an ardurover binary (never vendored; the docs say how to build one). It runs
 # in a network namespace of its own where unshare allows (loopback only: the autopilot's ports
 # are reachable from nowhere else); without ARDUPILOT_SITL every test is skipped and says why.
@@ -83,7 +83,7 @@ test-sitl: $(STAMP)
 
 # The full stack on the firmware: policy -> controller -> bridge -> ArduPilot Rover SITL, the
 # pose from the autopilot, walls and lidar simulated around it; beside the same episodes in
-# process (docs/bridge.md, "The full stack on the firmware"). Loopback-only namespace as above.
+# process (docs/bridge-testing.md, "The full stack on the firmware"). Loopback-only namespace as above.
 STACK_POLICY ?= tests/data/stack/policy.onnx
 STACK_EPISODES ?= 20
 stack-sitl: $(STAMP)
@@ -91,7 +91,7 @@ stack-sitl: $(STAMP)
 
 # Regenerate the playback tests' reference decisions on purpose, and show what changed
 # (tests/data/make_playback_data.py --refs, docs/recordings.md; the bridge's:
-# tests/data/make_bridge_playback.py --refs, docs/bridge.md). Commit the new references.
+# tests/data/make_bridge_playback.py --refs, docs/bridge-testing.md). Commit the new references.
 # Does the working tree train and evaluate bit for bit as commit REF does? (refactors: IDENTICAL)
 same-results: $(STAMP)
 	bash tests/same_results/run.sh $(or $(REF),HEAD)

@@ -1,6 +1,6 @@
 """A small car that speaks MAVLink the way ArduPilot Rover does, for tests and sim-in-the-loop.
 
-It follows the Rover behaviour the bridge relies on (docs/bridge.md lists it):
+It follows the Rover behaviour the bridge relies on (docs/bridge-testing.md lists it):
 
 - HEARTBEAT as a ground rover (type 10, autopilot 3) with the mode in custom_mode (MANUAL 0,
   HOLD 4, GUIDED 15), armed in base_mode; LOCAL_POSITION_NED, ATTITUDE and SYS_STATUS.

@@ -293,7 +293,7 @@ def test_guided_silence_and_exit_send_one_and_the_same_zero_velocity_target(
     mocap: MakeRig,
 ) -> None:
     # In SITL guided's silence stop looked twice as slow as its SIGTERM stop; traced, both put
-    # this very message on the wire and brake alike (docs/bridge.md, "Measured stops"): the
+    # this very message on the wire and brake alike (docs/bridge-testing.md, "Measured stops"): the
     # difference was the EKF's. Pinned here, so that a change to one stop is made to both.
     rig = mocap(bridge={"output": {"mode": "guided"}})
     wait_until(lambda: rig.vehicle.mode == "GUIDED" and rig.vehicle.armed, what="armed GUIDED")

@@ -18,7 +18,7 @@ from tests.sitl.harness import (
 )
 
 SKIP_REASON = (
-    f"{SITL_ENV} is not set: build ArduPilot Rover SITL (docs/bridge.md, 'Getting a SITL "
+    f"{SITL_ENV} is not set: build ArduPilot Rover SITL (docs/bridge-testing.md, 'Getting a SITL "
     f"binary') and run `{SITL_ENV}=/path/to/ardurover make test-sitl`"
 )
 

@@ -1,9 +1,9 @@
 """ArduPilot Rover SITL, our real bridge process and a zenoh peer, wired as on the car.
 
 `Sitl` runs the `ardurover` binary named by the ARDUPILOT_SITL environment variable (never
-vendored; docs/bridge.md, "Getting a SITL binary"), wiped (`-w`), with our parameter files. Its
-SERIAL0 (TCP base port + 0, the "USB" port ArduPilot trusts unsigned) carries the `Observer`:
-the test's own ground-truth reader of LOCAL_POSITION_NED, GLOBAL_POSITION_INT, ATTITUDE,
+vendored; docs/bridge-testing.md, "Getting a SITL binary"), wiped (`-w`), with our parameter
+files. Its SERIAL0 (TCP base port + 0, the "USB" port ArduPilot trusts unsigned) carries the
+`Observer`: the test's own ground-truth reader of LOCAL_POSITION_NED, GLOBAL_POSITION_INT, ATTITUDE,
 HEARTBEAT and STATUSTEXT, with system id 250 so the autopilot never takes it for its ground
 station. The bridge drives SERIAL1 (TCP base port + 2), as a companion computer on a telemetry
 port would. `make test-sitl` runs all of it inside a network namespace of its own (loopback

@@ -3,7 +3,7 @@
 Real parts only: the `ardurover` binary (ARDUPILOT_SITL), `qnav bridge` as a process, a zenoh
 peer on loopback. Motion and stops are measured from the autopilot's own LOCAL_POSITION_NED
 (and GLOBAL_POSITION_INT), read by an observer on SERIAL0. `pytest -s` prints each stop's
-figures (docs/bridge.md's table comes from them).
+figures (docs/bridge-testing.md, "Measured stops", comes from them).
 
 Each bridge is started while the autopilot still boots (its EKF waits for GPS and a settled
 IMU, tens of seconds): that is the cold start, and arming must wait for it.
@@ -135,7 +135,7 @@ def test_drive_and_every_stop(
     # by the car's true velocity (SITL's SIM_STATE), and by the EKF's estimate of it too except
     # guided's silence stop, the first stop after boot: there the EKF's velocity is still off by
     # 0.05-0.08 m/s after braking (its yaw is 1.5-2 degrees off), about the rest speed, and it
-    # reports rest some 0.7 s after the car is at rest (docs/bridge.md, "Measured stops").
+    # reports rest some 0.7 s after the car is at rest (docs/bridge-testing.md, "Measured stops").
     goal = case.endswith("brake")
     exit_goal = case != "manual-neutral"
     if exit_goal:  # braking in GUIDED needs the EKF's position: GPS, some 20 s after boot
@@ -464,5 +464,5 @@ def test_the_autopilots_own_failsafe_stops_the_car_after_sigkill_and_link_loss(
         # The EKF's own figure is printed, not held: after the first hard stop after boot its
         # yaw is 1.5-2 degrees off and its velocity 0.05-0.08 m/s wrong, right at the rest
         # threshold, so it reads "moving" for up to 0.8 s after the car stopped (tests/sitl/
-        # trace_stops.py; docs/bridge.md, "Measured stops").
+        # trace_stops.py; docs/bridge-testing.md, "Measured stops").
         assert all(t <= FAILSAFE_GOAL_S for t in true_times), f"{case}, {fault}: {true_times}"

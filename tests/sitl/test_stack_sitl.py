@@ -4,7 +4,7 @@
 controller, bridge), two walls-only episodes: the robot's pose is the autopilot's own
 LOCAL_POSITION_NED and ATTITUDE, the walls and lidar are simulated around it. The committed
 stack policy reaches the target of both episodes in process; on the firmware it must too.
-The 20-episode figure: `make stack-sitl` (docs/bridge.md, "The full stack on the firmware").
+The 20-episode figure: `make stack-sitl` (docs/bridge-testing.md, "The full stack on the firmware").
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """A trace of guided output's stops in SITL: what the bridge sends, what the autopilot does.
 
 Not collected with the other SITL tests (the file name does not start with `test_`): run it by
-name, `-s` to see the trace (docs/bridge.md, "Measured stops"):
+name, `-s` to see the trace (docs/bridge-testing.md, "Measured stops"):
 
     ARDUPILOT_SITL=... make test-sitl SITL_TESTS=tests/sitl/trace_stops.py SITL_ARGS=-s
 
