@@ -39,7 +39,7 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class ProximitySettings:
-    """The proximity stop's safety field (docs/controller.md, "The proximity stop")."""
+    """The proximity stop's safety field (docs/safety.md, "The proximity stop")."""
 
     SECTION = "proximity"
 

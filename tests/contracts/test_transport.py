@@ -113,7 +113,7 @@ def _zenoh_rows(table: str) -> list[str]:
     return [row.replace("| `", "| `zenoh.", 1) for row in rows]
 
 
-@pytest.mark.parametrize("doc", ["controller.md", "bridge.md"])
+@pytest.mark.parametrize("doc", ["controller-settings.md", "bridge.md"])
 def test_the_docs_show_the_zenoh_settings_as_they_are(doc: str) -> None:
     rows = _zenoh_rows(to_markdown(ZenohSettings()))
     assert rows and any('`"auto"`' in row for row in rows)

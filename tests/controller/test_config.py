@@ -157,7 +157,7 @@ def test_uncovered_range_must_be_a_range() -> None:
 
 
 def test_the_docs_describe_every_setting() -> None:
-    text = (ROOT / "docs" / "controller.md").read_text()
+    text = (ROOT / "docs" / "controller-settings.md").read_text()
     names = re.findall(r"^\| `([a-z_.]+)` \| (?!\(section\))", to_markdown(DaemonConfig()), re.M)
     assert len(names) > 25
     missing = [name for name in names if f"| `{name}` |" not in text]
