@@ -116,3 +116,12 @@ def test_the_readme_names_the_shipped_controller_and_its_figures() -> None:
     assert '`lookahead.mode = "shield"`' in text and "`[proximity]`" in text
     shipped = (ROOT / "config" / "controller.toml").read_text()
     assert 'mode = "shield"' in shipped and "enabled = true" in shipped
+
+
+MAX_PAGE_LINES = 350
+
+
+def test_no_reference_page_is_longer_than_350_lines() -> None:
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]  # docs/log/ holds records
+    long = {p.name: n for p in pages if (n := len(p.read_text().splitlines())) > MAX_PAGE_LINES}
+    assert not long, f"pages over {MAX_PAGE_LINES} lines (dated records go to docs/log/): {long}"
