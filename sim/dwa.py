@@ -42,15 +42,15 @@ class DwaSettings:
 
     SECTION = "dwa"
 
-    heading_weight: float = 0.8
+    heading_weight: float = 0.91
     """Weight of the heading term (Fox et al.: 2 of 2.4 in all)."""
-    clearance_weight: float = 0.1
+    clearance_weight: float = 0.11
     """Weight of the clearance term."""
-    velocity_weight: float = 0.1
+    velocity_weight: float = 0.31
     """Weight of the velocity term."""
-    horizon_s: float = 2.0
+    horizon_s: float = 1.0
     """How far ahead each rollout runs."""
-    margin_m: float = 0.05
+    margin_m: float = 0.02
     """Clearance beyond the robot's radius that an admissible rollout keeps from every return."""
     clearance_cap_m: float = 1.0
     """Clearance beyond this scores no more."""

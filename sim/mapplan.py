@@ -6,8 +6,9 @@ For each layout, the cost to reach the goal is computed once over a grid of `GRI
 cylinder; a step's cost is its length times 1 + `clearance_weight` x how far inside
 `comfort_m` of a cylinder its cell lies (a costmap's inflation: keep to the middle of a gap
 where there is room). At each decision the planner looks `lookahead_m` ahead in `DIRECTIONS`
-directions and heads for the cheapest point: forward where the heading (corrected by the turn
-still under way, for a robot with inertia) is within `aligned_rad` of it, else a turn towards it.
+directions and heads for the cheapest point: forward where the heading is within `aligned_rad`
+of it (`open_aligned_rad` where no cylinder is within `open_m` of the robot's disc), else a turn
+towards it.
 """
 
 from __future__ import annotations
