@@ -86,6 +86,11 @@ MAX_ANGLE_MIN_RAD = 2 * math.pi
 TARGET_MOVED_M = 1e-3
 """A target this far from the current one is a different target (new episode)."""
 
+POSE_JUMPED_M = 0.5
+"""A pose this far from the last one is a new start (the car was carried or placed, or a new
+episode begins at the same target): the policy's window restarts. A car at 0.5 m/s covers this
+in a second; the newest poses come far more often."""
+
 
 class Input(StrEnum):
     """The inputs the controller listens to."""
@@ -462,6 +467,11 @@ class Controller:
 
     def _take_pose(self, pose: Pose2D, now: float) -> None:
         self._check_frame("pose", pose)
+        last = self._latest[Input.POSE].value
+        if last is not None and math.hypot(pose.x_m - last.x_m, pose.y_m - last.y_m) > (
+            POSE_JUMPED_M
+        ):
+            self._restart_window()
         self._mark(Input.POSE, pose, now)
 
     def _take_target(self, target: Pose2D, now: float) -> None:

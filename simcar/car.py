@@ -7,7 +7,8 @@ the car's drivers would: the lidar as a `sensor_msgs/LaserScan` (the world's bea
 `PoseStamped` on `goal_pose`. The robot moves only as the MAVLink test vehicle
 (`simcar.mavlink_vehicle`) moves, driven by whatever reaches it over MAVLink (the firmware
 bridge); the obstacles move as in the simulator. The episode's outcome is judged by the
-simulator's own rules (`sim.task.outcome`), and the next episode starts at once.
+simulator's own rules (`sim.world.step_outcome`: the world's reach radius), and the next
+episode starts at once.
 
 With `lockstep` (`qnav sim-car --lockstep`, as `qnav stack` runs it), the world waits for the
 controller: each period it steps only once the controller's status names the period's scan and
@@ -49,7 +50,6 @@ from qnav.contracts.motion import (
     Outcome,
     action_velocities,
     move_obstacles,
-    outcome,
     step_velocity_lag,
 )
 from qnav.contracts.settings import check_range
@@ -58,7 +58,7 @@ from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings
 from qnav.sim.render import EpisodeRecord
 from qnav.sim.task import reward
-from qnav.sim.world import RobotPath, WorldState, observe, obstacle_box, reset
+from qnav.sim.world import RobotPath, WorldState, observe, obstacle_box, reset, step_outcome
 from qnav.simcar.firmware_vehicle import FirmwareVehicle, FirmwareVehicleSettings
 from qnav.simcar.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleSettings
 
@@ -490,7 +490,7 @@ class SimCar:
             self._record(state, entry)
             observation = observe(world, state, path)
             distance = np.linalg.norm(state.target_xy - state.pose[:, :2], axis=1)
-            result = int(outcome(distance, observation.clearance_m, world.robot_radius_m)[0])
+            result = int(step_outcome(world, state, observation)[0])
             entry.steps = int(state.steps[0])
             if result != Outcome.RUNNING:
                 entry.outcome = "success" if result == Outcome.SUCCESS else "collision"

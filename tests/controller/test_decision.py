@@ -435,7 +435,7 @@ def test_a_controller_configured_to_start_latched_moves_only_after_a_release(
 def test_after_a_stop_the_policy_starts_a_fresh_window(policy: Path) -> None:
     c = ready(policy)
     first = c.decide(0.01).status.q_values
-    c.receive(Input.POSE, pose_payload(x=2.0, yaw=1.0), 0.02)
+    c.receive(Input.POSE, pose_payload(x=1.3, yaw=1.0), 0.02)
     second = c.decide(0.03).status.q_values
     assert second != first  # the window now holds two different frames
     c.on_estop(True, 0.04)
@@ -444,6 +444,17 @@ def test_after_a_stop_the_policy_starts_a_fresh_window(policy: Path) -> None:
     c.request_release(0.06)
     feed(c, 0.06)
     assert c.decide(0.07).status.q_values == first  # restarted: the same as the first decision
+
+
+def test_a_pose_that_jumps_starts_a_fresh_window_though_the_target_stays(policy: Path) -> None:
+    # A new episode at the same target (BARN's worlds share one goal), or a car carried back to
+    # its start: the frames of where it was are no memory of where it is.
+    c = ready(policy)
+    first = c.decide(0.01).status.q_values
+    c.receive(Input.POSE, pose_payload(x=6.0, y=6.0), 0.02)
+    assert c.decide(0.03).status.q_values != first
+    c.receive(Input.POSE, pose_payload(), 0.04)  # back where it started
+    assert c.decide(0.05).status.q_values == first
 
 
 def test_the_lidarless_policy_decides_on_pose_and_target_alone(make_policy: PolicyFactory) -> None:

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
+from qnav.contracts.motion import Outcome
 from qnav.sim.config import scenario
-from qnav.sim.world import BatchedWorld, reset, step
+from qnav.sim.world import BatchedWorld, observe, reset, step, step_outcome
 
 STEPS = 300
 
@@ -100,3 +101,16 @@ def test_spawns_respect_margins_target_distances_and_obstacle_clearance() -> Non
     assert speed.min() >= 0.5 and speed.max() <= 1.5
     assert abs(speed.mean() - 1.0) < 0.02
     assert np.unique(state.pose[:, 2]).size == n  # headings vary
+
+
+def test_a_robot_within_the_worlds_reach_radius_has_arrived_though_farther_than_its_own() -> None:
+    # BARN counts a run within 1 m of the goal a success; the robot's disc is 0.3 m. The stack's
+    # sim-car judged by the disc and drove on past BARN's finish (issue 52).
+    world = scenario("barn")
+    state = reset(world, np.array([12345]), np.array([0]))
+    goal = state.target_xy[0]
+    for gap_m, expected in ((0.9, Outcome.SUCCESS), (1.1, Outcome.RUNNING)):
+        pose = state.pose.copy()
+        pose[0, :2] = goal - (0.0, gap_m)  # in the open beyond the field, facing the goal
+        there = state._replace(pose=pose)
+        assert step_outcome(world, there, observe(world, there))[0] == expected
