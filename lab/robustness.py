@@ -3,7 +3,7 @@ in the paper's obstacle world with one thing changed at a time, and in the reali
 everything changed, for the blind go-to-target controller, the policy alone and the policy as
 the shipped controller runs it (the shield and the proximity stop: `qnav.tracking.shipped_agent`).
 
-`qnav lab robustness` prints the table of docs/controller.md, "A room that is not the
+`qnav lab robustness` prints the table of docs/lookahead.md, "A room that is not the
 simulator's"; `forward_collisions` counts what the proximity stop lets an always-forward driver
 hit.
 """
