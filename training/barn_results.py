@@ -75,6 +75,30 @@ def barn_table(folder: Path) -> list[str]:
     return lines
 
 
+BARN_GOALS = (
+    ("dagger-recurrent", None, 0.90, "the recurrent policy >= 0.90"),
+    ("dagger-recurrent", "dwa", 0.05, "the recurrent policy >= 0.05 above DWA"),
+    ("dagger-recurrent", "goto", 0.40, "the recurrent policy >= 0.40 above blind go-to-target"),
+    ("dagger-recurrent", "dagger-feedforward", 0.05, "recurrent >= 0.05 above feedforward"),
+)
+"""Issue 52's goals on BARN's success: (row, the row it is compared with or None, the margin or
+level, what it says)."""
+
+
+def barn_goals(rows: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """One line per goal whose rows are saved: met or not, with the numbers (seeds' means)."""
+    mean = {name: float(np.mean([r["success"] for r in results])) for name, results in rows.items()}
+    lines = []
+    for row, other, margin, says in BARN_GOALS:
+        if row not in mean or (other is not None and other not in mean):
+            continue
+        wanted = margin if other is None else mean[other] + margin
+        verdict = "met" if mean[row] >= wanted else "**not met**"
+        against = "" if other is None else f" against {other} {mean[other]:.3f}"
+        lines.append(f"- {says}: {mean[row]:.3f}{against}, {verdict} (goal {wanted:.3f})")
+    return lines
+
+
 def barn_lines(results_root: Path) -> list[str]:
     """docs/results.md's BARN section (nothing where no result is saved)."""
     folder = results_root / BARN_FOLDER
@@ -92,4 +116,6 @@ def barn_lines(results_root: Path) -> list[str]:
         "had left.",
         "",
         *barn_table(folder),
+        "",
+        *barn_goals(barn_rows(folder)),
     ]

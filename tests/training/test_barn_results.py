@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from qnav.training.barn_results import barn_lines, barn_table
+from qnav.training.barn_results import barn_goals, barn_lines, barn_rows, barn_table
 
 
 def _save(folder: Path, name: str, success: float, **extra: object) -> None:
@@ -40,3 +40,15 @@ def test_no_saved_result_means_no_barn_section(tmp_path: Path) -> None:
     (tmp_path / "barn").mkdir()
     _save(tmp_path / "barn", "goto", 0.06)
     assert barn_lines(tmp_path)[1].startswith("## BARN")
+
+
+def test_each_goal_says_met_or_not_met_with_its_numbers(tmp_path: Path) -> None:
+    _save(tmp_path, "dwa", 0.8)
+    _save(tmp_path, "goto", 0.1)
+    for seed, success in enumerate((0.7, 0.74)):
+        _save(tmp_path, f"dagger-recurrent-seed{seed}", success)
+    goals = barn_goals(barn_rows(tmp_path))
+    assert goals[0] == "- the recurrent policy >= 0.90: 0.720, **not met** (goal 0.900)"
+    assert "against dwa 0.800, **not met** (goal 0.850)" in goals[1]
+    assert "against goto 0.100, met (goal 0.500)" in goals[2]
+    assert len(goals) == 3  # no feedforward row saved: its goal is left out
