@@ -563,15 +563,13 @@ LAYOUT_SCENARIOS: dict[str, WorldConfig] = {
         max_episode_steps=500,
         layout=LayoutConfig(source="cave+rooms", split="train"),
     ),
-    # The cave family alone (BARN's own generator): the BARN learner's training worlds.
-    "cave": WorldConfig(
-        name="cave",
-        robot_radius_m=BARN_ROBOT_RADIUS_M,
-        reach_radius_m=1.0,
-        max_episode_steps=500,
-        layout=LayoutConfig(source="cave", split="train"),
-    ),
 }
+# The cave family alone (BARN's own generator): the BARN learner's training worlds.
+LAYOUT_SCENARIOS["cave"] = replace(
+    LAYOUT_SCENARIOS["clutter"],
+    name="cave",
+    layout=replace(LAYOUT_SCENARIOS["clutter"].layout, source="cave"),
+)
 """Worlds of static cylinders (BARN's kind): the paper's robot, lidar and actions, a 0.3 m disc,
 BARN's protocol (success within 1 m of the goal, 500 steps of 0.2 s = BARN's 100 s)."""
 

@@ -123,14 +123,11 @@ class Transition(NamedTuple):
     """(N,) the episode ran out of steps without ending."""
 
 
-def step_outcome(
-    config: WorldConfig, state: WorldState, observation: Observation
-) -> NDArray[np.int8]:
-    """(N,) each world's Outcome where its robot now stands: SUCCESS within the world's reach
-    radius of the target, COLLISION within the robot's radius of a surface, else RUNNING (the
-    simulator's `step` and the sim-car of the stack both judge by this)."""
-    distance = np.linalg.norm(state.target_xy - state.pose[:, :2], axis=1)
-    return outcome(distance, observation.clearance_m, config.robot_radius_m, config.reach_m)
+def step_outcome(config: WorldConfig, distance_m: F64, clearance_m: F64) -> NDArray[np.int8]:
+    """(N,) each world's Outcome at its robot's distance to the target and clearance: SUCCESS
+    within the world's reach radius, COLLISION within the robot's radius of a surface, else
+    RUNNING (the simulator's `step` and the sim-car of the stack both judge by this)."""
+    return outcome(distance_m, clearance_m, config.robot_radius_m, config.reach_m)
 
 
 def reset(
@@ -387,8 +384,8 @@ def step(
     timed = config.lidar_turn_s or config.sensor.pose_latency_s
     path = robot_path(config, state, action) if timed else None
     observation = observe(config, new_state, path)
-    result = step_outcome(config, new_state, observation)
     distance = np.linalg.norm(state.target_xy - pose[:, :2], axis=1)
+    result = step_outcome(config, distance, observation.clearance_m)
     terminated = result != Outcome.RUNNING
     truncated = ~terminated & (new_state.steps >= config.max_episode_steps)
     transition = Transition(

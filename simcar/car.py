@@ -490,7 +490,7 @@ class SimCar:
             self._record(state, entry)
             observation = observe(world, state, path)
             distance = np.linalg.norm(state.target_xy - state.pose[:, :2], axis=1)
-            result = int(step_outcome(world, state, observation)[0])
+            result = int(step_outcome(world, distance, observation.clearance_m)[0])
             entry.steps = int(state.steps[0])
             if result != Outcome.RUNNING:
                 entry.outcome = "success" if result == Outcome.SUCCESS else "collision"

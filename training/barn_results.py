@@ -55,11 +55,12 @@ def _training_cell(results: list[dict[str, Any]]) -> str:
     return f"{episodes} / {minutes:.0f}"
 
 
-def barn_table(folder: Path) -> list[str]:
-    """The table's lines: one row per file or per seeds of a learner, then BARN's own DWA."""
+def barn_table(rows: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """The table's lines: one row per file or per seeds of a learner (`barn_rows`), then BARN's
+    own DWA."""
     header = ["agent", "n", *COLUMNS, "training episodes / minutes", "what drove"]
     lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    for name, results in barn_rows(folder).items():
+    for name, results in rows.items():
         cells = [_cell([float(r[key]) for r in results]) for key in COLUMNS]
         what = str(results[0].get("agent", ""))
         lines.append(
@@ -101,8 +102,8 @@ def barn_goals(rows: dict[str, list[dict[str, Any]]]) -> list[str]:
 
 def barn_lines(results_root: Path) -> list[str]:
     """docs/results.md's BARN section (nothing where no result is saved)."""
-    folder = results_root / BARN_FOLDER
-    if not any(folder.glob("*.json")):
+    rows = barn_rows(results_root / BARN_FOLDER)
+    if not rows:
         return []
     return [
         "",
@@ -115,7 +116,7 @@ def barn_lines(results_root: Path) -> list[str]:
         "here was trained or tuned on BARN's worlds. loops: runs that came back to a place they",
         "had left.",
         "",
-        *barn_table(folder),
+        *barn_table(rows),
         "",
-        *barn_goals(barn_rows(folder)),
+        *barn_goals(rows),
     ]

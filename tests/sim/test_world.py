@@ -113,4 +113,6 @@ def test_a_robot_within_the_worlds_reach_radius_has_arrived_though_farther_than_
         pose = state.pose.copy()
         pose[0, :2] = goal - (0.0, gap_m)  # in the open beyond the field, facing the goal
         there = state._replace(pose=pose)
-        assert step_outcome(world, there, observe(world, there))[0] == expected
+        distance = np.linalg.norm(there.target_xy - there.pose[:, :2], axis=1)
+        clearance = observe(world, there).clearance_m
+        assert step_outcome(world, distance, clearance)[0] == expected

@@ -27,7 +27,7 @@ def test_a_learners_seeds_make_one_row_with_their_mean_and_training_cost(tmp_pat
     for seed, success in enumerate((0.8, 0.9)):
         training = {"episodes": 640, "minutes": 40.0 + seed}
         _save(tmp_path, f"dagger-recurrent-seed{seed}", success, training=training)
-    lines = barn_table(tmp_path)
+    lines = barn_table(barn_rows(tmp_path))
     rows = {line.split(" | ")[0].strip("| "): line for line in lines[2:]}
     assert "| 2 | 0.850 +- 0.050 |" in rows["dagger-recurrent"]
     assert "640 / 41" in rows["dagger-recurrent"]
