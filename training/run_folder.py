@@ -154,6 +154,31 @@ def without_removed_settings(train: dict[str, Any], where: str) -> dict[str, Any
     return kept
 
 
+RESUMABLE_WITH_OTHER_VALUES = ("train.threads",)
+"""Settings a run resumes with other values of: how this machine runs it, not what it learns."""
+
+
+def differing_settings(saved: RunSettings, wanted: RunSettings) -> list[str]:
+    """Dotted names (`train.seed`, `world.obstacles.count`) of the settings whose values
+    differ between two runs' settings."""
+    before, after = _flat(to_dict(saved)), _flat(to_dict(wanted))
+    return sorted(name for name, value in after.items() if before.get(name, _MISSING) != value)
+
+
+_MISSING = object()
+
+
+def _flat(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested dict of settings as {dotted name: value}."""
+    flat: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat |= _flat(value, f"{prefix}{key}.")
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
 class RunFolder:
     """Reads and writes the files of one run folder."""
 
@@ -165,11 +190,14 @@ class RunFolder:
         """Create the folder, or check that the run it holds has these settings."""
         self.path.mkdir(parents=True, exist_ok=True)
         settings_path = self.path / "settings.toml"
-        if settings_path.exists() and read_settings(self.path) != settings:
-            raise ConfigError(
-                f"{self.path} holds a run with other settings ({settings_path}); "
-                "resume it with the same settings or choose another folder"
-            )
+        if settings_path.exists():
+            differ = differing_settings(read_settings(self.path), settings)
+            if [name for name in differ if name not in RESUMABLE_WITH_OTHER_VALUES]:
+                raise ConfigError(
+                    f"{self.path} holds a run with other settings ({settings_path}: "
+                    f"{', '.join(differ)}); resume it with the same settings or choose "
+                    "another folder"
+                )
         settings_path.write_text(to_toml(settings))
 
     def checkpoint(self, device: torch.device) -> dict[str, Any] | None:

@@ -1,5 +1,6 @@
 """A run folder's settings: what it was started with, and folders older than a removal."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -82,3 +83,14 @@ def test_a_folder_of_a_later_removed_experiment_names_the_last_commit_that_has_i
     with pytest.raises(ConfigError, match=line.split(maxsplit=1)[0]) as refused:
         read_settings(_started_with(tmp_path, line))
     assert commit in str(refused.value)
+
+
+def test_a_refused_resume_names_the_settings_that_differ_and_threads_may_differ(
+    tmp_path: Path,
+) -> None:
+    RunFolder(tmp_path).start(SETTINGS)
+    other = RunSettings(SETTINGS.world, replace(SETTINGS.train, seed=5, hidden_size=4))
+    with pytest.raises(ConfigError, match=r"train\.hidden_size, train\.seed\)"):
+        RunFolder(tmp_path).start(other)
+    RunFolder(tmp_path).start(RunSettings(SETTINGS.world, replace(SETTINGS.train, threads=7)))
+    assert read_settings(tmp_path).train.threads == 7
