@@ -20,7 +20,6 @@ which other episodes run beside it.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import replace
 from typing import NamedTuple
 
@@ -202,20 +201,12 @@ class OracleDriver:
     def act(self, state: WorldState) -> NDArray[np.int64]:
         """(N,) the planner's action in each world: planned on the true state, or on a fresh
         estimate of it with `state_error` (a perceive-then-plan controller's view)."""
+        perceived = state
         if self.state_error is not None:
-            return self.act_on(state, with_error(state, self.state_error, self._random))
-        return self.act_on(state, state)
-
-    def act_on(self, state: WorldState, perceived: WorldState) -> NDArray[np.int64]:
-        """(N,) the planner's action in each world of `state`, planned on `perceived` (what a
-        perceiver makes of it); the candidates are drawn from `state`'s keys."""
+            perceived = with_error(state, self.state_error, self._random)
+        # The candidates are drawn from the true state's keys: the same under any estimate.
         sequences = keyed_sequences(state, self.horizon, self.random_sequences, self.seed)
         return plan(self.config, perceived, sequences)
-
-
-Perceive = Callable[[WorldState, Observation], WorldState]
-"""A perceiver: the state a controller would believe in, from the true state's keys and what
-the robot observes (e.g. `qnav.lab.tracking.WorldTrackers.perceive_state`)."""
 
 
 def run_oracle(
@@ -225,15 +216,12 @@ def run_oracle(
     horizon: int = 20,
     random_sequences: int = 128,
     state_error: StateError | None = None,
-    perceive: Perceive | None = None,
     progress: bool = False,
 ) -> EvalResult:
     """The test protocol's episodes (same layouts as `sim.evaluate`) driven by the planner,
     `settings.num_worlds` episodes at a time; with `state_error`, planning on noisy estimates
     of the state (its error drawn afresh each step, and from the whole batch, so results
-    depend on num_worlds); with `perceive`, planning on what that perceiver makes of each step."""
-    if state_error is not None and perceive is not None:
-        raise ValueError("state_error and perceive are two views of the state: give one")
+    depend on num_worlds)."""
     config = replace(config, max_episode_steps=settings.max_episode_steps)
     driver = OracleDriver(
         config,
@@ -244,9 +232,7 @@ def run_oracle(
     )
 
     def act(state: WorldState, observation: Observation) -> NDArray[np.int64]:
-        if perceive is None:
-            return driver.act(state)
-        return driver.act_on(state, perceive(state, observation))
+        return driver.act(state)
 
     batches = np.array_split(
         np.arange(settings.episodes), -(-settings.episodes // settings.num_worlds)

@@ -172,19 +172,13 @@ def _check_views(args: argparse.Namespace) -> None:
     planner = args.policy is None and args.agent == "oracle"
     if args.state_error and not planner:
         raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
-    if args.tracker and not planner:
-        raise ConfigError("--tracker is for --agent oracle (with --policy, use --lookahead)")
-    if args.state_error and args.tracker:
-        raise ConfigError("--state-error and --tracker are two views of the state: choose one")
     looking = args.lookahead != "off"
     if looking and (args.policy is None or args.random_action_prob):
         raise ConfigError(
             "--lookahead runs beside a greedy policy: give --policy, no random actions"
         )
-    if args.range_noise_m and not (args.tracker or looking):
-        raise ConfigError(
-            "--range-noise-m is the noise the tracker reads: give --tracker or --lookahead"
-        )
+    if args.range_noise_m and not looking:
+        raise ConfigError("--range-noise-m is the noise the tracker reads: give --lookahead")
     if args.range_noise_m < 0:
         raise ConfigError(
             f"--range-noise-m = {args.range_noise_m} is out of range: allowed [0, inf)"
@@ -215,20 +209,8 @@ def _looking_ahead(
 def _planned(
     args: argparse.Namespace, world: WorldConfig, eval_settings: EvalSettings
 ) -> tuple[EvalResult, str]:
-    """The oracle planner's episodes, on the truth, a noisy estimate (--state-error) or the
-    onboard tracker's (--tracker), and what the label adds."""
-    if args.tracker:
-        from qnav.controller.perception import TrackerSettings
-        from qnav.lab.tracking import run_perceiving_oracle
-
-        result = run_perceiving_oracle(
-            world,
-            eval_settings,
-            TrackerSettings(),
-            range_noise_m=args.range_noise_m,
-            progress=not args.json,
-        )
-        return result, ", planning on the onboard tracker's estimate"
+    """The oracle planner's episodes, on the truth or a noisy estimate (--state-error), and
+    what the label adds (on the onboard tracker's estimate: a policy with --lookahead plan)."""
     from qnav.lab.oracle import PERCEPTION_LEVELS, run_oracle
 
     error = PERCEPTION_LEVELS[args.state_error] if args.state_error else None
@@ -306,19 +288,13 @@ def _add_eval(verbs: Verbs) -> None:
         help="with --agent oracle: plan on a noisy estimate of the state, as a perceive-then-plan "
         "controller would (errors in lab.oracle.PERCEPTION_LEVELS)",
     )
-    flag(
-        parser,
-        "--tracker",
-        "with --agent oracle: plan on the onboard obstacle tracker's estimate "
-        "(controller.perception: lidar plus pose, the room's walls known) instead of the truth",
-    )
     lookahead_option(parser, "with --policy: ")
     parser.add_argument(
         "--range-noise-m",
         type=float,
         default=0.0,
         metavar="SIGMA",
-        help="with --tracker or --lookahead: Gaussian noise added to the ranges the tracker reads",
+        help="with --lookahead: Gaussian noise added to the ranges the tracker reads",
     )
     parser.add_argument(
         "--policy",
