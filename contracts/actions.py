@@ -28,3 +28,15 @@ def turn_command(action: NDArray[np.integer]) -> NDArray[np.float64]:
     """+1.0 for a left (counter-clockwise) turn, -1.0 for a right turn, else 0.0."""
     left = np.asarray(action == Action.LEFT, dtype=np.float64)
     return left - np.asarray(action == Action.RIGHT, dtype=np.float64)
+
+
+def committed_turns(
+    greedy: NDArray[np.integer], previous: NDArray[np.integer]
+) -> NDArray[np.int64]:
+    """The greedy actions (N,), except that a turn against the previous decision's turn keeps
+    the previous turn: a turn in place is not reversed before a forward decision (a policy
+    file's `turn_commitment`; a learner imitating a planner it cannot see otherwise dithers
+    between the two turns where they are close)."""
+    left, right = int(Action.LEFT), int(Action.RIGHT)
+    reversed_ = ((greedy == left) & (previous == right)) | ((greedy == right) & (previous == left))
+    return np.asarray(np.where(reversed_, previous, greedy), dtype=np.int64)

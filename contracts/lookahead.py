@@ -343,14 +343,18 @@ def collision_shares(
 
 
 def shielded_actions(
-    q: NDArray[np.floating], collision_share: NDArray[np.floating], overrule_share: float
+    q: NDArray[np.floating],
+    collision_share: NDArray[np.floating],
+    overrule_share: float,
+    chosen: NDArray[np.integer] | None = None,
 ) -> NDArray[np.int64]:
-    """(N,) the highest-valued action, unless at least `overrule_share` of the continuations after
-    it collide: then the highest-valued among the least colliding. (0 overrules whenever a
-    safer action exists; a band below which the policy's own action stands does better, as an
-    overruled policy drives where it was not trained: docs/controller.md.)"""
+    """(N,) the policy's action (`chosen`; by default the highest-valued), unless at least
+    `overrule_share` of the continuations after it collide: then the highest-valued among the
+    least colliding. (0 overrules whenever a safer action exists; a band below which the
+    policy's own action stands does better, as an overruled policy drives where it was not
+    trained: docs/controller.md.)"""
     rows = np.arange(len(q))
-    preferred = np.asarray(q).argmax(axis=1)
+    preferred = np.asarray(q).argmax(axis=1) if chosen is None else np.asarray(chosen)
     least = collision_share <= collision_share.min(axis=1, keepdims=True)
     safest = np.where(least, q, -np.inf).argmax(axis=1)
     keep = collision_share[rows, preferred] < overrule_share

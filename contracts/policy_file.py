@@ -64,10 +64,10 @@ TRANSPOSED_SUFFIX = "_Transposed"
 """An initializer named P_Transposed holds the transpose of the training parameter P (the
 products of an int8 file take their weights as (in, out))."""
 
-ENTRIES_ADDED_LATER = ("weight_type", "motion")
+ENTRIES_ADDED_LATER = ("weight_type", "motion", "turn_commitment")
 """Contract fields added after files of this format were written: a file without the entry gets
 the field's default (weight_type: float32, all such files have float32 weights; motion: empty,
-so the onboard look-ahead refuses the file until it is exported again)."""
+so the onboard look-ahead refuses the file until it is exported again; turn_commitment: off)."""
 
 CONV_LAYERS, CONV_CHANNELS, CONV_KERNEL, CONV_STRIDE = 3, 8, 6, 3
 """The paper's lidar encoder (3 x Conv1d, 8 channels, kernel 6, stride 3): the training network
@@ -122,6 +122,10 @@ class PolicyContract:
     """The training world's motion model, which the onboard look-ahead forecasts with:
     `dynamics` (the fields of `contracts.motion.InertiaDynamics` or `IncrementDynamics`) and
     `robot_radius_m` (the paper's l); empty in files exported before it existed."""
+    turn_commitment: bool = False
+    """The runtime never reverses the turn of its previous decision (left then right, or right
+    then left) before a forward decision: a policy imitating a planner it cannot see dithers
+    between turns on the spot where the two are close (`qnav export --turn-commitment`)."""
     beam_convention: str = BEAM_CONVENTION
     """How beam indices map to angles."""
     format: str = POLICY_FORMAT

@@ -562,7 +562,9 @@ class Controller:
             return Action(self.lookahead.plan(target_xy)), None
         shares = self.lookahead.risks(target_xy)
         overrule_share = self.lookahead_settings.overrule_share
-        safest = shielded_actions(q_values[None], shares[None], overrule_share)
+        safest = shielded_actions(
+            q_values[None], shares[None], overrule_share, np.array([int(chosen)])
+        )
         return Action(int(safest[0])), tuple(shares.tolist())
 
     def _guard(

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
-from qnav.contracts.actions import Action
+from qnav.contracts.actions import Action, committed_turns
 from qnav.contracts.errors import PolicyFileError, PolicyInputError
 from qnav.contracts.observation import TARGET_FEATURES, encode_frame
 from qnav.contracts.policy_file import (
@@ -260,6 +260,8 @@ class PolicyRuntime:
         self.state = self.zero_state(num_streams)
         self.fresh = np.ones(num_streams, dtype=bool)
         """Streams whose next frame begins an episode."""
+        self.previous_action = np.full(num_streams, int(Action.FORWARD), dtype=np.int64)
+        """Each stream's last decision (forward at an episode's start), for `turn_commitment`."""
 
     @property
     def num_streams(self) -> int:
@@ -276,6 +278,7 @@ class PolicyRuntime:
     def reset(self, streams: NDArray[np.intp] | None = None) -> None:
         """Start new episodes in `streams` (all by default): their windows restart."""
         self.fresh[slice(None) if streams is None else streams] = True
+        self.previous_action[slice(None) if streams is None else streams] = int(Action.FORWARD)
 
     def step_batch(
         self, scan_m: NDArray[np.floating] | None, target_features: NDArray[np.floating]
@@ -285,7 +288,11 @@ class PolicyRuntime:
         if self.fresh.any():
             self._prime(frames)
         q, self.state = self.step_function(frames, self.state)
-        return q.argmax(axis=1), q
+        actions = q.argmax(axis=1)
+        if self.contract.turn_commitment:
+            actions = committed_turns(actions, self.previous_action)
+        self.previous_action = actions.copy()
+        return actions, q
 
     def step(
         self, scan_m: NDArray[np.floating] | None, target_features: NDArray[np.floating]

@@ -165,7 +165,9 @@ class LookaheadAgent:
             action = plans_of(self.cars, targets)
         else:
             shares = risks_of(self.cars, targets)
-            action = shielded_actions(self.inner.last_q, shares, self.settings.overrule_share)
+            action = shielded_actions(
+                self.inner.last_q, shares, self.settings.overrule_share, chosen
+            )
         self.last_risks = shares
         self.overruled += int(np.sum(action != chosen))
         self.decisions += action.size

@@ -66,15 +66,19 @@ def make_policy(tmp_path_factory: pytest.TempPathFactory) -> PolicyFactory:
 
 
 def with_metadata(source: Path, target: Path, entries: dict[str, object]) -> Path:
-    """A copy of the policy file `source` at `target` with some `qnav.*` entries set (JSON)."""
+    """A copy of the policy file `source` at `target` with some `qnav.*` entries set (JSON),
+    added where the file has none."""
     import json
 
     import onnx
 
     model = onnx.load(str(source))
+    missing = dict(entries)
     for entry in model.metadata_props:
         if entry.key in entries:
-            entry.value = json.dumps(entries[entry.key])
+            entry.value = json.dumps(missing.pop(entry.key))
+    for key, value in missing.items():
+        model.metadata_props.add(key=key, value=json.dumps(value))
     onnx.save(model, str(target))
     return target
 

@@ -87,3 +87,11 @@ def test_eval_rejects_a_shield_without_a_policy_naming_the_option() -> None:
     )
     assert result.returncode != 0
     assert "--lookahead" in result.stderr
+
+
+def test_the_shield_keeps_the_policys_chosen_action_not_only_its_highest_valued() -> None:
+    q = np.array([[3.0, 2.0, 1.0]])
+    shares = np.array([[0.0, 0.0, 0.0]])
+    assert shielded_actions(q, shares, 0.3, np.array([2])).tolist() == [2]
+    risky = np.array([[0.0, 0.0, 0.9]])
+    assert shielded_actions(q, risky, 0.3, np.array([2])).tolist() == [0]

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from qnav.contracts.actions import NUM_ACTIONS
+from qnav.contracts.actions import NUM_ACTIONS, Action, committed_turns
 from qnav.contracts.observation import FrameWindow, distance_scale_m
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import ExplorationHold
@@ -52,8 +52,12 @@ class TorchAgent:
         epsilon: float = 0.0,
         hold_steps: int = 5,
         seed: int = 0,
+        turn_commitment: bool = False,
     ) -> None:
         self.network = network
+        self.turn_commitment = turn_commitment
+        self.previous = np.full(num_worlds, int(Action.FORWARD), dtype=np.int64)
+        """Each world's last greedy decision (`turn_commitment`)."""
         self.max_range_m = max_range_m
         self.window = FrameWindow(num_worlds, network.frame_size, window)
         self.exploration = ExplorationHold(num_worlds, epsilon, hold_steps, seed)
@@ -62,6 +66,7 @@ class TorchAgent:
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
         self.window.restart(worlds)
         self.exploration.start(worlds)
+        self.previous[worlds] = int(Action.FORWARD)
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
         windows = self.window.advance(observation.frames(self.max_range_m))
@@ -70,6 +75,9 @@ class TorchAgent:
             q = self.network(torch.from_numpy(windows).to(device)).cpu().numpy()
         self.last_q = q
         action = q.argmax(axis=1)
+        if self.turn_commitment:
+            action = committed_turns(action, self.previous)
+            self.previous = action
         return self.exploration(action)
 
 
@@ -82,8 +90,10 @@ def policy_agent(
     epsilon: float = 0.0,
     hold_steps: int = 5,
     seed: int = 0,
+    turn_commitment: bool = False,
 ) -> TorchAgent:
-    """A greedy (or epsilon-greedy) agent of the network for this world."""
+    """A greedy (or epsilon-greedy) agent of the network for this world, its turns committed
+    with `turn_commitment` (`contracts.actions.committed_turns`)."""
     return TorchAgent(
         network,
         num_worlds,
@@ -92,4 +102,5 @@ def policy_agent(
         epsilon=epsilon,
         hold_steps=hold_steps,
         seed=seed,
+        turn_commitment=turn_commitment,
     )

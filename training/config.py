@@ -40,6 +40,10 @@ class ImitationSettings:
     iterations_per_round: int = 400
     """Gradient steps (of `train.batch_size` windows, uniformly from every round so far) after
     each round."""
+    turn_commitment: bool = False
+    """The learner never reverses its previous turn before a forward decision, in its rounds,
+    its evaluations and its policy file (`contracts.actions.committed_turns`): without it, a
+    network imitating a planner it cannot see dithers between turns on the spot."""
 
     def __post_init__(self) -> None:
         check_range(self, "rounds", self.rounds, 0, 100_000)
@@ -187,7 +191,9 @@ DAGGER = replace(
     # 256) over its last (0.77 on 256): the shipped network is chosen on 256.
     eval_episodes=256,
     final_eval_episodes=300,
-    imitation=ImitationSettings(rounds=10, episodes_per_round=64, iterations_per_round=800),
+    imitation=ImitationSettings(
+        rounds=10, episodes_per_round=64, iterations_per_round=800, turn_commitment=True
+    ),
 )
 """Imitation of the planner given the map (DAgger), no reinforcement learning after it: for
 worlds of static layouts (the cave and clutter scenarios; docs/barn.md's runs)."""

@@ -100,12 +100,17 @@ def export_onnx(
 ) -> None:
     """Write `network` to `path` as one ONNX file (weights inside) carrying `contract`, its
     streaming form as the graph (`StreamingQNetwork`), with int8 weights if the contract says
-    so (`training.quantize`); `extra_metadata` is written beside the contract's entries."""
+    so (`training.quantize`); `extra_metadata` is written beside the contract's entries, in
+    place of any the new model carries under the same key (the quantiser's `onnx.infer`)."""
     model = streaming_model(network, contract)
     if contract.weight_type == "int8":
         model = quantize_int8(model)
     write_metadata(model, contract)
-    for key, value in (extra_metadata or {}).items():
+    extra = extra_metadata or {}
+    kept = [p for p in model.metadata_props if p.key not in extra]
+    del model.metadata_props[:]
+    model.metadata_props.extend(kept)
+    for key, value in extra.items():
         model.metadata_props.add(key=key, value=value)
     save_checked(model, path)
 
@@ -249,9 +254,11 @@ def export_run(
     weight_type: str = "float32",
     progress: bool = True,
     weights: Path | None = None,
+    turn_commitment: bool | None = None,
 ) -> PolicyContract:
     """Export a training run's network (from `weights`, by default its final one) to `output`
-    (weights in `weight_type`), then test the file itself and record it."""
+    (weights in `weight_type`; the contract's `turn_commitment` as given, by default the
+    run's), then test the file itself and record it."""
     from qnav.training.run_folder import load_network, source_commit
 
     network, run = load_network(run_dir, weights)
@@ -265,6 +272,9 @@ def export_run(
         commit or source_commit(),
         weight_type=weight_type,
     )
+    if turn_commitment is None:
+        turn_commitment = run.train.imitation.turn_commitment
+    contract = replace(contract, turn_commitment=turn_commitment)
     export_onnx(network, contract, output)
     if eval_episodes <= 0:
         return contract
@@ -370,6 +380,7 @@ def reexport_file(
     backend: str = "onnxruntime",
     weight_type: str | None = None,
     progress: bool = True,
+    turn_commitment: bool | None = None,
 ) -> PolicyContract:
     """Export a policy file again, in this version's layout, from its own weights.
 
@@ -378,7 +389,8 @@ def reexport_file(
     as `export_onnx` exports a run's, its weights stored as `weight_type` (None: as in the
     source). Every metadata entry is kept (training run, commit, evaluation...) apart from the
     format and the state's shape, which the new graph defines, and the evaluation when the
-    weight type changes; a `qnav.reexported_from` entry says what the weights came from. With
+    weight type or `turn_commitment` (None: as in the source) changes; a
+    `qnav.reexported_from` entry says what the weights came from. With
     `eval_episodes` > 0 the new file is evaluated under the test protocol in its scenario's
     default world and the results replace the old ones.
     """
@@ -410,6 +422,8 @@ def reexport_file(
     contract = source_contract
     if weight_type is not None and weight_type != source_contract.weight_type:
         contract = replace(source_contract, weight_type=weight_type, evaluation={})
+    if turn_commitment is not None and turn_commitment != contract.turn_commitment:
+        contract = replace(contract, turn_commitment=turn_commitment, evaluation={})
     if not contract.motion:  # a file from before the entry: its scenario's default world
         contract = replace(contract, motion=motion_of(scenario(contract.scenario)))
     note = {

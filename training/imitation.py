@@ -102,7 +102,13 @@ class Imitation:
             return self.logged[round_index]
         imitation = self.settings.imitation
         count = imitation.episodes_per_round
-        learner = policy_agent(self.network, self.world, count, self.settings.window)
+        learner = policy_agent(
+            self.network,
+            self.world,
+            count,
+            self.settings.window,
+            turn_commitment=imitation.turn_commitment,
+        )
         driver = MixedDriver(
             learner,
             self.expert,

@@ -261,7 +261,13 @@ def _finish(
     started = time.perf_counter()
     tests: dict[str, Any] = {}
     if world.layout.source:
-        tests = layout_tests(world, dqn.online, settings.window, settings.final_eval_episodes)
+        tests = layout_tests(
+            world,
+            dqn.online,
+            settings.window,
+            settings.final_eval_episodes,
+            settings.imitation.turn_commitment,
+        )
         barn = tests["barn"]
         test = {
             "success": barn["success"],
@@ -278,6 +284,7 @@ def _finish(
             episodes=settings.final_eval_episodes,
             seed=protocol.seed,
             max_steps=protocol.max_episode_steps,
+            turn_commitment=settings.imitation.turn_commitment,
         ).fractions()
     results = {
         "scenario": world.name,

@@ -28,7 +28,9 @@ def validation_world(world: WorldConfig, episodes: int) -> WorldConfig:
     return replace(world, layout=layout)
 
 
-def layout_tests(world: WorldConfig, network: QNetwork, window: int, worlds: int) -> dict[str, Any]:
+def layout_tests(
+    world: WorldConfig, network: QNetwork, window: int, worlds: int, turn_commitment: bool = False
+) -> dict[str, Any]:
     """A layout run's final tests under BARN's protocol (`sim.benchmark`): the first `worlds`
     of BARN's 300, and as many held-out worlds of BARN's own generator (the cave family's test
     split)."""
@@ -41,7 +43,7 @@ def layout_tests(world: WorldConfig, network: QNetwork, window: int, worlds: int
     for name, layout in sets.items():
         tested = replace(world, layout=layout)
         batch = min(64, len(layouts_of(layout) or ()))
-        agent = policy_agent(network, tested, batch, window)
+        agent = policy_agent(network, tested, batch, window, turn_commitment=turn_commitment)
         results[name] = run_benchmark(tested, agent, "network", num_worlds=batch).summary()
     return results
 
@@ -54,13 +56,17 @@ def evaluate_network(
     episodes: int,
     seed: int,
     max_steps: int,
+    turn_commitment: bool = False,
 ) -> EvalResult:
     """The network's greedy agent over `episodes` episodes of layouts from `seed`."""
     network.eval()
     settings = EvalSettings(
         episodes=episodes, num_worlds=min(episodes, 100), seed=seed, max_episode_steps=max_steps
     )
-    return evaluate(world, policy_agent(network, world, settings.num_worlds, window), settings)
+    agent = policy_agent(
+        network, world, settings.num_worlds, window, turn_commitment=turn_commitment
+    )
+    return evaluate(world, agent, settings)
 
 
 class GaugeScore(NamedTuple):
@@ -102,6 +108,7 @@ class Validation:
             episodes=settings.eval_episodes,
             seed=VALIDATION_SEED,
             max_steps=settings.max_episode_steps,
+            turn_commitment=settings.imitation.turn_commitment,
         )
         row = {
             "eval_success": result.success,

@@ -50,7 +50,13 @@ def barn_agent(args: argparse.Namespace, world: WorldConfig, batch: int) -> tupl
         from qnav.training.run_folder import load_network
 
         network, run = load_network(args.policy)
-        agent = policy_agent(network, world, batch, run.train.window)
+        agent = policy_agent(
+            network,
+            world,
+            batch,
+            run.train.window,
+            turn_commitment=run.train.imitation.turn_commitment,
+        )
         return agent, f"{run.train.model} policy {args.policy}"
     if args.agent == "goto":
         return GoToTargetAgent(), "go-to-target (blind to obstacles)"

@@ -71,6 +71,7 @@ def export(args: argparse.Namespace) -> int:
             eval_episodes=episodes,
             weight_type=args.weights,
             progress=not args.quiet,
+            turn_commitment=args.turn_commitment,
         )
     else:
         output = args.output or args.run / "policy.onnx"
@@ -80,6 +81,7 @@ def export(args: argparse.Namespace) -> int:
             eval_episodes=episodes,
             weight_type=args.weights or "float32",
             progress=not args.quiet,
+            turn_commitment=args.turn_commitment,
         )
     print(
         f"wrote {output} ({output.stat().st_size / 1e6:.1f} MB, {contract.weight_type} weights "
@@ -88,6 +90,7 @@ def export(args: argparse.Namespace) -> int:
     print(
         f"  {contract.model_kind}, {contract.scenario}, window {contract.window_length}, "
         f"{contract.num_beams} beams, period {contract.control_period_s} s"
+        + (", turn commitment" if contract.turn_commitment else "")
     )
     if contract.evaluation:
         e = contract.evaluation
@@ -293,6 +296,15 @@ def _add_export(verbs: Verbs) -> None:
         help="test-protocol episodes run on the exported file and recorded in it (0: none; "
         "default 200 for a run or a change of --weights, else 0 for a policy file, whose "
         "recorded results are kept)",
+    )
+    parser.add_argument(
+        "--turn-commitment",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the runtime never reverses its previous turn before driving forward (for "
+        "policies imitating the planner given the map, which dither between turns without it: "
+        "docs/barn.md); default: as the run trained (imitation.turn_commitment), as in the "
+        "source for a policy file",
     )
     parser.add_argument(
         "--weights",

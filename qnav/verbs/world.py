@@ -162,6 +162,7 @@ def _run_agent(args: argparse.Namespace, worlds: int, seed: int) -> tuple[WorldC
         epsilon=args.random_action_prob,
         hold_steps=1,
         seed=seed,
+        turn_commitment=run.train.imitation.turn_commitment,
     )
     return world, agent, f"{run.train.model} policy {args.policy}"
 

@@ -10,6 +10,7 @@ import numpy as np
 import onnx
 import pytest
 
+from qnav.contracts.actions import committed_turns
 from qnav.contracts.errors import PolicyFileError, PolicyInputError
 from qnav.contracts.observation import FrameWindow
 from qnav.controller.policy import BACKENDS, Expectation, PolicyRuntime
@@ -17,6 +18,7 @@ from tests.conftest import PolicyFactory, policy_network, with_metadata
 from tests.near_ties import assert_actions_match_but_near_ties
 
 BEAMS = 720
+BARN_POLICY = Path(__file__).parents[2] / "results" / "barn" / "barn-recurrent.onnx"
 
 
 @pytest.fixture(params=["onnxruntime", "numpy"])
@@ -215,3 +217,30 @@ def test_the_lidarless_policy_takes_pose_and_target_only(make_policy: PolicyFact
     assert np.isfinite(decision.q_values).all()
     with pytest.raises(PolicyInputError, match="no lidar"):
         runtime.step(np.ones(BEAMS), _features())
+
+
+def test_with_turn_commitment_a_stream_never_reverses_a_turn_until_it_drives_forward(
+    tmp_path: Path,
+) -> None:
+    from qnav.sim.config import scenario
+    from qnav.sim.world import observe, reset, step
+
+    committed = with_metadata(BARN_POLICY, tmp_path / "c.onnx", {"qnav.turn_commitment": True})
+    world, streams = scenario("cave"), 64
+    runtime = PolicyRuntime(committed, num_streams=streams)
+    assert runtime.contract.turn_commitment
+    state = reset(world, np.zeros(streams, dtype=np.int64), np.arange(streams))
+    previous = np.zeros(streams, dtype=np.int64)  # an episode starts as after a forward decision
+    reversals = 0
+    for _ in range(60):
+        observation = observe(world, state)
+        actions, q = runtime.step_batch(observation.scan_m, observation.target_features())
+        expected = committed_turns(q.argmax(axis=1), previous)
+        reversals += int(np.sum(expected != q.argmax(axis=1)))
+        assert actions.tolist() == expected.tolist()
+        state, _, transition = step(world, state, actions)
+        done = np.flatnonzero(transition.terminated | transition.truncated)
+        runtime.reset(done)
+        actions[done] = 0
+        previous = actions
+    assert reversals > 0  # the greedy choices did reverse turns, and the runtime kept them

@@ -46,7 +46,7 @@ def test_each_goal_says_met_or_not_met_with_its_numbers(tmp_path: Path) -> None:
     _save(tmp_path, "dwa", 0.8)
     _save(tmp_path, "goto", 0.1)
     for seed, success in enumerate((0.7, 0.74)):
-        _save(tmp_path, f"dagger-recurrent-seed{seed}", success)
+        _save(tmp_path, f"dagger-recurrent-committed-seed{seed}", success)
     goals = barn_goals(barn_rows(tmp_path))
     assert goals[0] == "- the recurrent policy >= 0.90: 0.720, **not met** (goal 0.900)"
     assert "against dwa 0.800, **not met** (goal 0.850)" in goals[1]

@@ -271,3 +271,20 @@ def test_qnav_export_of_a_policy_file_reexports_it_in_place(
     assert qnav(["export", str(old), "-o", str(old), "--quiet"]) == 0
     contract = PolicyRuntime(old).contract
     assert contract.format == "qnav-policy/2" and contract.training_run == "tests"
+
+
+def test_an_int8_file_reexported_with_another_turn_commitment_carries_it_and_drops_its_results(
+    tmp_path: Path,
+) -> None:
+    from qnav.cli import main as qnav
+
+    source = Path(__file__).parents[2] / "results" / "barn" / "barn-recurrent.onnx"
+    before = PolicyRuntime(source).contract
+    assert before.weight_type == "int8" and before.evaluation and before.turn_commitment
+    new = tmp_path / "uncommitted.onnx"
+    args = ["export", str(source), "-o", str(new), "--no-turn-commitment", "--eval-episodes", "0"]
+    assert qnav([*args, "--quiet"]) == 0
+    after = PolicyRuntime(new).contract
+    assert not after.turn_commitment and after.weight_type == "int8" and after.evaluation == {}
+    assert qnav(["export", str(new), "-o", str(new), "--turn-commitment", "--quiet"]) == 0
+    assert PolicyRuntime(new).contract.turn_commitment
