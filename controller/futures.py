@@ -91,3 +91,31 @@ def random_futures(
     return walked_futures(
         xy[None], velocity[None], radius_m[None], draws[:, None], period_s=period_s, box=box
     )
+
+
+MEDIAN_OF_HALF_NORMAL = 0.6745
+"""The median of |x| for x normal with standard deviation 1."""
+
+
+def turn_from_misses(miss_m: F64, speed_mps: F64, lag_s: float) -> float:
+    """The spread of a heading random walk (rad over one second) that explains straight-line
+    forecasts of walkers at `speed_mps` (S,) missing by `miss_m` (S,) after `lag_s`: such a
+    walk carries a walker about v sigma t^1.5 / sqrt(3) (standard deviation) off its line. From
+    the median miss, so that a few misses against the wrong track (or a tracker's first,
+    rough velocity) do not make straight walkers turn; 0 without misses."""
+    if not miss_m.size:
+        return 0.0
+    spread = float(np.median(miss_m / speed_mps)) / MEDIAN_OF_HALF_NORMAL
+    return math.sqrt(3.0) * spread / math.pow(lag_s, 1.5)
+
+
+def informative_horizon_s(
+    turn_std_rad: float, speed_mps: float, spread_m: float, bounds_s: tuple[float, float]
+) -> float:
+    """How long a walker at `speed_mps` whose heading walks with `turn_std_rad` stays within
+    `spread_m` (root mean square) of its straight line, (sqrt(3) d / (v sigma))^(2/3), within
+    `bounds_s` (the longest where it does not turn)."""
+    if turn_std_rad * speed_mps <= 0:
+        return bounds_s[1]
+    horizon_s = math.pow(math.sqrt(3.0) * spread_m / (speed_mps * turn_std_rad), 2.0 / 3.0)
+    return min(max(horizon_s, bounds_s[0]), bounds_s[1])

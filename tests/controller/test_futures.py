@@ -9,9 +9,15 @@ import numpy as np
 import pytest
 
 from qnav.contracts.motion import move_obstacles
-from qnav.controller.futures import fold, random_futures
+from qnav.controller.futures import (
+    fold,
+    informative_horizon_s,
+    random_futures,
+    turn_from_misses,
+)
 from qnav.controller.lookahead import Lookahead, LookaheadSettings, risks_of
 from qnav.controller.perception import TrackerSettings
+from qnav.sim import world as sim_world
 from qnav.sim.config import scenario
 from qnav.sim.world import observe, reset
 from qnav.tracking import world_lookahead
@@ -107,3 +113,46 @@ def test_a_room_given_by_its_walls_as_segments_is_the_square_given_by_its_side()
             car.observe(0.2 * frame, state.pose[0], 0.2 * frame, scan[0])
         risks.append(car.risks(state.target_xy[0]))
     np.testing.assert_array_equal(risks[0], risks[1])
+
+
+def test_the_turn_measured_from_straight_line_misses_is_the_walks_own() -> None:
+    """Walkers at 1 m/s whose heading walks 0.67 rad per second (0.3 per 0.2 s, the robustness
+    table's row 6): their straight-line forecasts' misses after 1 s give back the spread, to
+    about the square-root-of-time law's precision; walkers that do not turn give 0."""
+    random = np.random.default_rng(5)
+    period_s, steps, walkers = 0.2, 5, 4000
+    heading = np.cumsum(random.normal(0.0, 0.3, (walkers, steps)), axis=1)
+    path = np.stack([np.cos(heading), np.sin(heading)], axis=-1).sum(axis=1) * period_s
+    miss = np.linalg.norm(path - np.array([1.0, 0.0]), axis=1)
+    measured = turn_from_misses(miss, np.ones(walkers), lag_s=1.0)
+    assert measured == pytest.approx(0.3 / math.sqrt(period_s), rel=0.25)
+    assert turn_from_misses(np.zeros(3), np.ones(3), 1.0) == 0.0
+    assert turn_from_misses(np.zeros(0), np.zeros(0), 1.0) == 0.0
+
+
+def test_the_informative_horizon_shortens_as_the_obstacles_turn_more() -> None:
+    bounds = (2.0, 6.0)
+    assert informative_horizon_s(0.0, 1.0, 1.0, bounds) == 6.0  # straight lines: all of it
+    assert informative_horizon_s(0.22, 1.0, 1.0, bounds) == pytest.approx(3.96, abs=0.05)
+    assert informative_horizon_s(0.67, 1.0, 1.0, bounds) == 2.0  # 1.9 s, at least 2
+    assert informative_horizon_s(0.05, 1.0, 1.0, bounds) == 6.0  # 10.6 s, at most 6
+
+
+def test_a_car_that_measures_turning_forecasts_straight_obstacles_straight() -> None:
+    """In the simulator's own world (straight lines) the measured spread stays 0 and the shield
+    counts collisions over its whole horizon: the same risks as without the measure."""
+    world = scenario("obstacles-inertia")
+    state = reset(world, np.array([3]), np.array([0]))
+    plain = world_lookahead(world, LookaheadSettings(), TrackerSettings())
+    measuring = world_lookahead(world, LookaheadSettings(measure_turning=True), TrackerSettings())
+    for k in range(12):
+        scan = observe(world, state).scan_m
+        assert scan is not None
+        for car in (plain, measuring):
+            car.observe(0.2 * k, state.pose[0], 0.2 * k, scan[0])
+        state, _, _ = sim_world.step(world, state, np.array([1]))  # turn in place
+    assert len(measuring.misses) >= 1
+    assert len(measuring.misses) >= 10 and measuring.turn_std() == 0.0
+    assert measuring.counted_steps() == measuring.horizon
+    target = [state.target_xy[0]]
+    np.testing.assert_array_equal(risks_of([plain], target), risks_of([measuring], target))
