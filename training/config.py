@@ -41,9 +41,9 @@ class ImitationSettings:
     """Gradient steps (of `train.batch_size` windows, uniformly from every round so far) after
     each round."""
     turn_commitment: bool = False
-    """The learner never reverses its previous turn before a forward decision, in its rounds,
-    its evaluations and its policy file (`contracts.actions.committed_turns`): without it, a
-    network imitating a planner it cannot see dithers between turns on the spot."""
+    """The network never reverses its previous turn before a forward decision, in the run's
+    evaluations and its policy file (`contracts.actions.committed_turns`; the rounds roll it out
+    greedy): without it, a network imitating a planner it cannot see dithers on the spot."""
 
     def __post_init__(self) -> None:
         check_range(self, "rounds", self.rounds, 0, 100_000)

@@ -102,13 +102,9 @@ class Imitation:
             return self.logged[round_index]
         imitation = self.settings.imitation
         count = imitation.episodes_per_round
-        learner = policy_agent(
-            self.network,
-            self.world,
-            count,
-            self.settings.window,
-            turn_commitment=imitation.turn_commitment,
-        )
+        # Greedy, even with imitation.turn_commitment: rounds rolled out committed validated
+        # lower (docs/log/barn-learner.md).
+        learner = policy_agent(self.network, self.world, count, self.settings.window)
         driver = MixedDriver(
             learner,
             self.expert,
