@@ -170,18 +170,43 @@ NOISE_NEAR_WALL_M = 0.3
 """Returns within this of a known wall tell the range noise (`wall_noise`)."""
 NOISE_MEMORY = 0.2
 """Weight of each scan's noise estimate in the running one."""
+STATIC_CELL_M = 0.15
+"""Side of the cells of the grid fixed in the room where evidence of standing things gathers
+(`StaticGrid`): about a thin pole's diameter, a third of a person's width."""
+STATIC_EVIDENCE = 8.0
+"""Evidence (scans that hit a cell, each decayed by `STATIC_MEMORY` a scan since) from which the
+cell's returns are of something that stands: a thing in view stands from its tenth scan (1.8 s
+at 5 Hz); an obstacle of 0.2 m radius crossing the view at 0.5 m/s hits a cell for about 5."""
+STATIC_MEMORY = 0.98
+"""Share of a cell's evidence kept from one scan to the next (a thing out of sight for 35 scans,
+7 s at 5 Hz, keeps half of it)."""
 
 
-def wall_noise(points: F64, walls: F64) -> float | None:
+def wall_noise(points: F64, walls: F64, sensor_xy: F64 | None = None) -> float | None:
     """The range noise the walls' returns show: a robust standard deviation (1.4826 times the
     median absolute distance) of the returns within `NOISE_NEAR_WALL_M` of a known wall; None
-    with fewer than 20 such returns."""
+    with fewer than 20 such returns. Seen from `sensor_xy`, only the returns beyond their
+    nearest wall count (half a wall's noisy returns fall there, at the same distances as the
+    other half; nothing else does), so that clutter standing near a wall is not taken for
+    noise; None with fewer than 10 of them."""
     valid = np.all(np.isfinite(points), axis=1)
-    distance = distance_to_walls(points[valid], walls)
-    near = distance[distance < NOISE_NEAR_WALL_M]
-    if near.size < 20:
+    if sensor_xy is None:
+        distance = distance_to_walls(points[valid], walls)
+        near = distance[distance < NOISE_NEAR_WALL_M]
+        return float(1.4826 * np.median(near)) if near.size >= 20 else None
+    start, along = walls[:, :2], walls[:, 2:] - walls[:, :2]
+    offset = points[valid][:, None] - start[None]  # (P, W, 2)
+    t = np.clip(np.sum(offset * along, axis=2) / np.sum(along * along, axis=1), 0.0, 1.0)
+    distance = np.linalg.norm(offset - t[..., None] * along, axis=2)
+    nearest = distance.argmin(axis=1)
+    rows = np.arange(len(nearest))
+    wall, point, sensor = along[nearest], offset[rows, nearest], sensor_xy - start[nearest]
+    side = wall[:, 0] * point[:, 1] - wall[:, 1] * point[:, 0]
+    sensor_side = wall[:, 0] * sensor[:, 1] - wall[:, 1] * sensor[:, 0]
+    beyond = (distance[rows, nearest] < NOISE_NEAR_WALL_M) & (side * sensor_side < 0)
+    if beyond.sum() < 10:
         return None
-    return float(1.4826 * np.median(near))
+    return float(1.4826 * np.median(distance[rows, nearest][beyond]))
 
 
 def bounce_mirrors(walls: F64, radius_m: float) -> F64:
@@ -194,6 +219,44 @@ def bounce_mirrors(walls: F64, radius_m: float) -> F64:
     return np.concatenate(
         [np.column_stack([normal, offset + radius_m]), np.column_stack([normal, offset - radius_m])]
     )
+
+
+class StaticGrid:
+    """Evidence, cell by cell of a grid fixed in the room (the walls' bounding box, cells of
+    `STATIC_CELL_M`), of what stands there: every scan adds one to each cell its returns hit,
+    and every cell keeps `STATIC_MEMORY` of its evidence from one scan to the next. A return in
+    a cell whose evidence from the earlier scans reaches `STATIC_EVIDENCE` is of something that
+    stands: clutter the map lacks, which a moving obstacle passes, or a person who stopped.
+    (The car's pose comes from motion capture, so a standing thing's returns fall in the same
+    cells scan after scan however the car moves; a moving obstacle's, in each for a few.)"""
+
+    def __init__(self, walls: F64) -> None:
+        corners = walls.reshape(-1, 2)
+        self.low = corners.min(axis=0) - STATIC_CELL_M
+        size = np.ceil((corners.max(axis=0) + STATIC_CELL_M - self.low) / STATIC_CELL_M)
+        self.evidence = np.zeros(size.astype(np.int64))
+
+    def _cells(self, points: F64, keep: NDArray[np.bool_]) -> tuple[NDArray[np.int64], ...]:
+        """The beams of `keep` whose points lie on the grid, and their cells' (row, column)."""
+        cell = np.floor((points - self.low) / STATIC_CELL_M)
+        inside = keep & np.all((cell >= 0) & (cell < self.evidence.shape), axis=1)
+        beams = np.flatnonzero(inside)
+        return beams, cell[beams, 0].astype(np.int64), cell[beams, 1].astype(np.int64)
+
+    def standing(self, points: F64, keep: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """(B,) True for the returns of `keep` in cells where things stand."""
+        beams, row, column = self._cells(points, keep)
+        standing = np.zeros(len(points), dtype=bool)
+        standing[beams] = self.evidence[row, column] >= STATIC_EVIDENCE
+        return standing
+
+    def add(self, points: F64, keep: NDArray[np.bool_]) -> None:
+        """Take in one scan's returns of `keep` (after the older evidence decayed)."""
+        self.evidence *= STATIC_MEMORY
+        _, row, column = self._cells(points, keep)
+        hit = np.zeros(self.evidence.shape, dtype=bool)
+        hit[row, column] = True
+        self.evidence[hit] += 1.0
 
 
 def _straight_slope(times_s: F64, centres: F64, tolerance_m: float) -> F64 | None:
@@ -306,6 +369,9 @@ class _Track:
     """Found by one return each time so far (a stray return, or a thin pole far away)."""
     wide: bool = False
     """Found as a piece of something wide (`shapes.grid_pieces`) at least once: it stands."""
+    static: bool = False
+    """Found where things stand (`StaticGrid`): it stands, and takes only detections found
+    there (a moving obstacle passing it is another track)."""
 
     @property
     def radius_m(self) -> float:
@@ -329,6 +395,10 @@ class ObstacleTracker:
         self._tracks: list[_Track] = []
         self._time_s = 0.0
         self._mirror_cache: dict[float, F64] = {}
+        self.grid = StaticGrid(walls)
+        """Where things stand, from the scans so far."""
+        self._static: NDArray[np.bool_] = np.zeros(0, dtype=bool)
+        """Which of the last `_detect`'s objects were found where things stand."""
 
     def detect(self, scan_m: NDArray[np.floating], pose: F64) -> list[Shape]:
         """The objects found in one scan seen from `pose` (as `scan_points`)."""
@@ -337,15 +407,27 @@ class ObstacleTracker:
     def _detect(self, points: F64, pose: F64) -> list[Shape]:
         """`detect` on the scan's points in the room's frame (B, 2)."""
         s = self.settings
-        measured = wall_noise(points, self.walls)
+        measured = wall_noise(points, self.walls, _sensor_xy(pose, np.arange(len(points))))
         if measured is not None:
             weight = NOISE_MEMORY if self.noise_m else 1.0
             self.noise_m += weight * (measured - self.noise_m)
         band = max(s.wall_band_m, 3.5 * self.noise_m)
+        keep = off_the_walls(points, self.walls, band)
+        standing = self.grid.standing(points, keep)
+        self.grid.add(points, keep)
+        moving = self._objects(points, pose, keep & ~standing, 0)
+        static = self._objects(points, pose, standing, len(points))
+        self._static = np.arange(len(moving) + len(static)) >= len(moving)
+        return moving + static
+
+    def _objects(
+        self, points: F64, pose: F64, keep: NDArray[np.bool_], first_run: int
+    ) -> list[Shape]:
+        """The objects the returns of `keep` make (their clusters numbered from `first_run`)."""
+        s = self.settings
         gap = max(s.cluster_gap_m, 4.0 * self.noise_m)
-        runs = clusters(points, off_the_walls(points, self.walls, band), gap)
         found = []
-        for index, run in enumerate(runs):
+        for index, run in enumerate(clusters(points, keep, gap)):
             shapes = shapes_of(
                 run,
                 points,
@@ -354,10 +436,9 @@ class ObstacleTracker:
                 max_radius_m=s.max_radius_m,
                 piece_m=s.piece_m,
             )
-            found += [shape._replace(run=index) for shape in shapes]
+            found += [shape._replace(run=first_run + index) for shape in shapes]
         found = merge_close(found, points, _sensor_xy(pose, np.arange(len(points))), s.legs_m)
-        found = [shape for shape in found if len(shape.beams) >= s.min_returns]
-        return found
+        return [shape for shape in found if len(shape.beams) >= s.min_returns]
 
     def update(
         self,
@@ -370,6 +451,7 @@ class ObstacleTracker:
         from each beam's pose (B, 3) (`beam_poses`); the tracks as they are at its last beam."""
         points = scan_points(scan_m, pose, self.beam_angles_rad)
         shapes = self._detect(points, pose)
+        static = self._static
         centres = np.array([shape.centre for shape in shapes]).reshape(-1, 2)
         radii = np.array([shape.radius_m for shape in shapes])
         if beam_times_s is None:
@@ -381,7 +463,8 @@ class ObstacleTracker:
             latest = seen_once(centres, seen_s, radii, span_s, speed)
             shapes = [shapes[i] for i in latest]
             centres, radii, seen_s = centres[latest], radii[latest], seen_s[latest]
-        taken = self._associate(centres, seen_s, time_s)
+            static = static[latest]
+        taken = self._associate(centres, seen_s, time_s, static)
         kept = []
         for index, track in enumerate(self._tracks):
             if index in taken:
@@ -415,14 +498,19 @@ class ObstacleTracker:
                     deque([float(radii[index])], maxlen=frames),
                     single=len(shapes[index].beams) == 1,
                     wide=shapes[index].wide,
+                    static=bool(static[index]),
                 )
             )
         self._tracks = kept
         self._time_s = time_s
         return self.tracks()
 
-    def _associate(self, centres: F64, seen_s: F64, time_s: float) -> dict[int, int]:
-        """Track index -> detection index: nearest predictions first, each within its gate."""
+    def _associate(
+        self, centres: F64, seen_s: F64, time_s: float, static: NDArray[np.bool_]
+    ) -> dict[int, int]:
+        """Track index -> detection index: nearest predictions first, each within its gate, a
+        track found where things stand only to a detection found there, and others to others
+        (`static`, by detection)."""
         if not self._tracks or not len(centres):
             return {}
         last = np.array([t.centres[-1] for t in self._tracks]).reshape(-1, 2)
@@ -432,6 +520,8 @@ class ObstacleTracker:
         distance = np.linalg.norm(predicted - centres[None], axis=2)
         gate = np.array([self._gate_m(track, time_s) for track in self._tracks])
         distance[distance > gate[:, None]] = np.inf
+        standing = np.array([t.static for t in self._tracks])
+        distance[standing[:, None] != static[None]] = np.inf
         taken: dict[int, int] = {}
         for flat in np.argsort(distance, axis=None):
             row, detection = divmod(int(flat), len(centres))
@@ -489,15 +579,17 @@ class ObstacleTracker:
 
     def tracks(self) -> Tracks:
         """Every kept track's centre (coasting ones moved on by their velocity; one that stands
-        at its recent centres' mean), velocity (zero
-        where it stands: a piece of something wide, or slower than `moving_speed_mps` or than
-        three standard errors of a velocity fitted under the range noise, `_moving_threshold`) and
-        radius (the median of its recent ones); a track found by single returns only once is
-        left out (a stray return)."""
+        at its recent centres' mean), velocity (zero where it stands: a piece of something wide,
+        found where things stand, or slower than `moving_speed_mps` or than three standard
+        errors of a velocity fitted under the range noise, `_moving_threshold`) and radius (the
+        median of its recent ones); a track found by single returns only once is left out (a
+        stray return)."""
         shown = [t for t in self._tracks if not (t.single and t.hits < 2)]
         xy = np.array([t.predicted(self._time_s) for t in shown]).reshape(-1, 2)
         velocity = np.array([t.velocity for t in shown]).reshape(-1, 2)
-        threshold = np.array([math.inf if t.wide else self._moving_threshold(t) for t in shown])
+        threshold = np.array(
+            [math.inf if t.wide or t.static else self._moving_threshold(t) for t in shown]
+        )
         standing = np.linalg.norm(velocity, axis=1) < threshold
         velocity[standing] = 0.0
         for index in np.flatnonzero(standing):  # where it stands: its recent centres' mean

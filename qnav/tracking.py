@@ -15,6 +15,7 @@ from typing import Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.errors import ConfigError
 from qnav.contracts.lookahead import shielded_actions
 from qnav.contracts.motion import action_velocities
@@ -29,7 +30,8 @@ from qnav.controller.proximity import (
     guarded_action,
 )
 from qnav.sim.config import WorldConfig
-from qnav.sim.evaluate import WanderingGoToTarget
+from qnav.sim.evaluate import WanderingGoToTarget, go_to_target
+from qnav.sim.layouts import layouts_of
 from qnav.sim.room import room_walls
 from qnav.sim.world import BatchedWorld, Observation
 
@@ -42,11 +44,18 @@ def lidar_of(world: WorldConfig) -> LidarSpec:
 
 
 def room_of(world: WorldConfig, settings: LookaheadSettings) -> LookaheadSettings:
-    """`settings` with `world`'s room as a user measures it: the square's side, or the walls of
-    a polygon room as segments (`sim.room.room_walls`)."""
+    """`settings` with `world`'s room as a user measures it: the square's side, the walls of a
+    polygon room as segments (`sim.room.room_walls`), or in a world of layouts (caves, BARN),
+    which has no walls and lies outside the square, the box its obstacles move in
+    (`Layouts.box`, the box round every layout's cylinders, starts and goals)."""
     if world.room.corners:
         walls = tuple(tuple(float(v) for v in wall) for wall in room_walls(world))
         return replace(settings, walls=walls)  # type: ignore[arg-type]
+    layouts = layouts_of(world.layout)
+    if layouts is not None:
+        (x0, y0), (x1, y1) = layouts.box().tolist()
+        box = ((x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0))
+        return replace(settings, walls=box)
     return replace(settings, room_size_m=world.arena.size_m)
 
 
@@ -87,6 +96,24 @@ class QAgent(Protocol):
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None: ...
 
     def act(self, observation: Observation) -> NDArray[np.int64]: ...
+
+
+class GoToTargetValues:
+    """Blind go-to-target (`sim.evaluate.go_to_target`) as a policy to shield: its choice valued
+    1, the others 0, so the shield keeps its choice unless that is too risky, and then takes the
+    first of the least risky (`qnav eval --agent goto --lookahead shield`: what the shield and
+    its forecast achieve without a learned policy)."""
+
+    def __init__(self, num_worlds: int) -> None:
+        self.last_q = np.zeros((num_worlds, NUM_ACTIONS), dtype=np.float32)
+
+    def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
+        """No memory to reset."""
+
+    def act(self, observation: Observation) -> NDArray[np.int64]:
+        action = go_to_target(observation.target_features())
+        self.last_q = np.eye(NUM_ACTIONS, dtype=np.float32)[action]
+        return action
 
 
 class LookaheadAgent:

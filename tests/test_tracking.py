@@ -1,20 +1,19 @@
 """The controller's look ahead on simulated cars: the shield it puts over a policy, and eval's
-refusal of a shield without one."""
+refusal of a shield without one, and go-to-target shielded as a policy."""
 
+import json
 import subprocess
 import sys
 
 import numpy as np
-from numpy.typing import NDArray
 
-from qnav.contracts.actions import NUM_ACTIONS
 from qnav.contracts.lookahead import shielded_actions
 from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.perception import TrackerSettings
 from qnav.sim.config import SCENARIOS
 from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, evaluate, go_to_target
-from qnav.sim.world import Observation
-from qnav.tracking import LookaheadAgent
+from qnav.sim.world import BatchedWorld
+from qnav.tracking import GoToTargetValues, LookaheadAgent
 
 INERTIA = SCENARIOS["obstacles-inertia"]
 
@@ -33,27 +32,12 @@ def test_the_shield_keeps_the_policys_action_below_the_overrule_share() -> None:
     assert shielded_actions(q, shares, 1.0).tolist() == [0, 0, 1]
 
 
-class _GoToTargetValues:
-    """Go-to-target as a Q agent: its action valued 1, the others 0 (a policy to shield)."""
-
-    def __init__(self, worlds: int) -> None:
-        self.last_q = np.zeros((worlds, NUM_ACTIONS), dtype=np.float32)
-
-    def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
-        pass
-
-    def act(self, observation: Observation) -> NDArray[np.int64]:
-        action = go_to_target(observation.target_features())
-        self.last_q = np.eye(NUM_ACTIONS, dtype=np.float32)[action]
-        return action
-
-
 def test_the_shield_turns_the_blind_controller_into_one_that_dodges() -> None:
     episodes = 32
     settings = EvalSettings(episodes=episodes, num_worlds=episodes, seed=77, max_episode_steps=100)
     blind = evaluate(INERTIA, GoToTargetAgent(), settings)
     shield = LookaheadAgent(
-        _GoToTargetValues(episodes),
+        GoToTargetValues(episodes),
         INERTIA,
         episodes,
         tracker=TrackerSettings(),
@@ -87,6 +71,26 @@ def test_eval_rejects_a_shield_without_a_policy_naming_the_option() -> None:
     )
     assert result.returncode != 0
     assert "--lookahead" in result.stderr
+
+
+def test_eval_shields_go_to_target_as_a_policy() -> None:
+    command = [sys.executable, "-m", "qnav", "eval", "--scenario", "obstacles-inertia"]
+    options = ["--agent", "goto", "--lookahead", "shield", "--episodes", "4", "--json"]
+    result = subprocess.run(
+        [*command, *options], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    fractions = json.loads(result.stdout)
+    assert sum(fractions[k] for k in ("success", "collision", "unfinished")) == 1.0
+
+
+def test_go_to_target_values_its_own_choice_only() -> None:
+    agent = GoToTargetValues(2)
+    observation = BatchedWorld(INERTIA, 2, seed=5).reset(5)
+    action = agent.act(observation)
+    assert action.tolist() == go_to_target(observation.target_features()).tolist()
+    assert agent.last_q.argmax(axis=1).tolist() == action.tolist()
+    assert agent.last_q.sum(axis=1).tolist() == [1.0, 1.0]
 
 
 def test_the_shield_keeps_the_policys_chosen_action_not_only_its_highest_valued() -> None:

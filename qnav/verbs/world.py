@@ -174,9 +174,11 @@ def _check_views(args: argparse.Namespace) -> None:
     if args.state_error and not planner:
         raise ConfigError("--state-error is for --agent oracle (the planner's view of the state)")
     looking = args.lookahead != "off"
-    if looking and (args.policy is None or args.random_action_prob):
+    goto = args.policy is None and args.agent == "goto"
+    if looking and ((args.policy is None and not goto) or args.random_action_prob):
         raise ConfigError(
-            "--lookahead runs beside a greedy policy: give --policy, no random actions"
+            "--lookahead runs beside a greedy policy: give --policy (or --agent goto), "
+            "no random actions"
         )
     if args.range_noise_m and not looking:
         raise ConfigError("--range-noise-m is the noise the tracker reads: give --lookahead")
@@ -190,13 +192,15 @@ def _looking_ahead(
     args: argparse.Namespace, agent: Agent, world: WorldConfig, worlds: int, seed: int
 ) -> LookaheadAgent:
     """The policy's agent with the controller's look ahead in --lookahead's mode and the
-    proximity stop below it, as the shipped controller runs them."""
+    proximity stop below it, as the shipped controller runs them; go-to-target's choice as a
+    policy's (`tracking.GoToTargetValues`)."""
     from qnav.controller.perception import TrackerSettings
     from qnav.controller.proximity import ProximitySettings
-    from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
+    from qnav.tracking import GoToTargetValues, LookaheadAgent, QAgent, lookahead_settings
 
+    inner = GoToTargetValues(worlds) if isinstance(agent, GoToTargetAgent) else agent
     return LookaheadAgent(
-        cast(QAgent, agent),  # a StreamPolicyAgent or a TorchAgent
+        cast(QAgent, inner),  # a StreamPolicyAgent, a TorchAgent or go-to-target's values
         world,
         worlds,
         tracker=TrackerSettings(),
@@ -289,7 +293,7 @@ def _add_eval(verbs: Verbs) -> None:
         help="with --agent oracle: plan on a noisy estimate of the state, as a perceive-then-plan "
         "controller would (errors in lab.oracle.PERCEPTION_LEVELS)",
     )
-    lookahead_option(parser, "with --policy: ")
+    lookahead_option(parser, "with --policy or --agent goto: ")
     parser.add_argument(
         "--range-noise-m",
         type=float,

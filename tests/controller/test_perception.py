@@ -9,6 +9,7 @@ from qnav.contracts.errors import ConfigError
 from qnav.contracts.observation import LidarSpec
 from qnav.controller.perception import (
     ObstacleTracker,
+    StaticGrid,
     TrackerSettings,
     bounce_mirrors,
     box_walls,
@@ -17,6 +18,7 @@ from qnav.controller.perception import (
     fit_velocity,
     off_the_walls,
     scan_points,
+    wall_noise,
 )
 from qnav.controller.shapes import arc_of, fit_arc
 
@@ -259,3 +261,57 @@ def test_a_bounce_off_a_wall_is_unfolded_so_the_velocity_is_right_at_once() -> N
     assert np.allclose(fit_velocity(times, centres, 0.01, mirrors), [1.5, 0.5])
     # Without the mirrors only the last two centres are straight, and they mix both legs.
     assert not np.allclose(fit_velocity(times, centres, 0.01), [1.5, 0.5], atol=0.1)
+
+
+def _scan_of_poles(poles: np.ndarray, mover: np.ndarray | None, pose: np.ndarray) -> np.ndarray:
+    """The 10 m box's scan with poles of radius 0.075 m (P, 2) and a mover of 0.2 m."""
+    ranges = _scan_of(mover, pose)
+    for pole in poles:
+        ranges = np.minimum(ranges, _scan_of_radius(pole, pose, 0.075))
+    return ranges
+
+
+def test_a_mover_passing_standing_clutter_keeps_its_own_track_and_velocity() -> None:
+    # A row of thin poles (BARN's clutter: 0.075 m radius on a 0.15 m grid) and an obstacle of
+    # 0.2 m passing 5 cm beside it at 1 m/s: their returns make one run of beams. Once the
+    # poles have stood in view long enough (`StaticGrid`), their returns are clustered apart.
+    poles = np.stack([4.0 + 0.15 * np.arange(8), np.full(8, 6.0)], axis=1)
+    pose = np.array([5.0, 2.0, 0.0])
+    tracker = ObstacleTracker(TrackerSettings(), box_walls(10.0), BEAMS)
+    for frame in range(10):
+        tracker.update(0.2 * frame, _scan_of_poles(poles, None, pose), pose)
+    velocity = np.array([1.0, 0.0])
+    for frame in range(6):
+        mover = np.array([3.8, 5.675]) + velocity * 0.2 * frame
+        tracks = tracker.update(2.0 + 0.2 * frame, _scan_of_poles(poles, mover, pose), pose)
+    moving = np.flatnonzero(np.linalg.norm(tracks.velocity_mps, axis=1) > 0)
+    assert len(moving) == 1
+    np.testing.assert_allclose(tracks.xy_m[moving[0]], mover, atol=0.02)
+    np.testing.assert_allclose(tracks.velocity_mps[moving[0]], velocity, atol=0.05)
+
+
+def test_returns_hit_again_and_again_in_the_rooms_frame_are_of_what_stands() -> None:
+    grid = StaticGrid(box_walls(10.0))
+    points = np.array([[3.0, 3.0], [7.0, 7.0]])
+    keep = np.array([True, True])
+    for _ in range(9):  # the first point in every scan; the second in one
+        assert not grid.standing(points, keep).any()
+        grid.add(points, np.array([True, False]))
+    grid.add(points, keep)
+    assert grid.standing(points, keep).tolist() == [True, False]
+
+
+def test_clutter_along_a_wall_is_not_taken_for_the_walls_range_noise() -> None:
+    # Poles 0.15 m inside the wall y = 10, seen from close by, hide most of it; their returns
+    # lie within `NOISE_NEAR_WALL_M` of it. The noise is read from the returns beyond the walls,
+    # where only a noisy wall's fall.
+    poles = np.stack([2.0 + 0.15 * np.arange(30), np.full(30, 9.85)], axis=1)
+    pose = np.array([4.2, 9.3, 0.0])
+    north = box_walls(10.0)[2:3]
+    points = scan_points(_scan_of_poles(poles, None, pose), pose, BEAMS)
+    assert (wall_noise(points, north) or 0.0) > 0.05  # the poles taken for noise
+    assert (wall_noise(points, north, pose[:2]) or 0.0) < 1e-6
+    chance = np.random.default_rng(5)
+    ranges = _scan_of_poles(poles, None, pose) + chance.normal(0.0, 0.05, len(BEAMS))
+    noisy = scan_points(ranges.astype(np.float32), pose, BEAMS)
+    assert wall_noise(noisy, box_walls(10.0), pose[:2]) == pytest.approx(0.05, rel=0.25)
