@@ -465,18 +465,21 @@ def episode_health(episodes_log: Path) -> dict[str, int]:
 
 @contextmanager
 def sigterm_interrupts() -> Iterator[None]:
-    """Within the block SIGTERM interrupts as SIGINT does (KeyboardInterrupt), so `run_stack`
-    stops its daemons in order; by default SIGTERM ended the stack at once and left them
-    running. Call from the main thread."""
+    """Within the block SIGTERM and SIGINT interrupt (KeyboardInterrupt), so `run_stack` stops
+    its daemons in order: by default SIGTERM ended the stack at once and left them running, and
+    SIGINT did nothing where the stack inherited it ignored (started in the background by a
+    non-interactive shell). Call from the main thread."""
 
     def interrupt(number: int, frame: FrameType | None) -> None:
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    numbers = (signal.SIGTERM, signal.SIGINT)
+    previous = [signal.signal(number, interrupt) for number in numbers]
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for number, handler in zip(numbers, previous, strict=True):
+            signal.signal(number, handler)
 
 
 def stack_verb(args: argparse.Namespace) -> int:
