@@ -40,3 +40,20 @@ def committed_turns(
     left, right = int(Action.LEFT), int(Action.RIGHT)
     reversed_ = ((greedy == left) & (previous == right)) | ((greedy == right) & (previous == left))
     return np.asarray(np.where(reversed_, previous, greedy), dtype=np.int64)
+
+
+class TurnCommitment:
+    """Each stream's previous decision (forward at an episode's start), and `committed_turns`
+    against it."""
+
+    def __init__(self, streams: int) -> None:
+        self.previous = np.full(streams, int(Action.FORWARD), dtype=np.int64)
+
+    def restart(self, streams: NDArray[np.intp] | slice) -> None:
+        """Episodes start in `streams`: nothing to keep turning."""
+        self.previous[streams] = int(Action.FORWARD)
+
+    def __call__(self, greedy: NDArray[np.integer]) -> NDArray[np.int64]:
+        """The decisions after `greedy` (N,), remembered for the next."""
+        self.previous = committed_turns(greedy, self.previous)
+        return self.previous.copy()

@@ -330,16 +330,23 @@ def collision_shares(
     every first action, so actions are judged alike; with `futures` (K dividing T), continuation
     t meets the obstacles of future t mod K after every first action."""
     worlds, tail_count = tails.shape[:2]
+    rollouts = simulate(model, state, first_action_sequences(tails), futures)
+    collided = rollouts.outcome == Outcome.COLLISION
+    return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
+
+
+def first_action_sequences(tails: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(N, A * T, H) every first action followed by each continuation of `tails` (N, T, H-1),
+    action by action: row a * T + t is action a, then continuation t."""
+    worlds, tail_count = tails.shape[:2]
     first = np.repeat(np.arange(NUM_ACTIONS), tail_count)
-    sequences = np.concatenate(
+    return np.concatenate(
         [
             np.broadcast_to(first[None, :, None], (worlds, first.size, 1)),
             np.tile(tails, (1, NUM_ACTIONS, 1)),
         ],
         axis=2,
     )
-    collided = simulate(model, state, sequences, futures).outcome == Outcome.COLLISION
-    return np.asarray(collided.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
 
 
 def shielded_actions(

@@ -43,6 +43,7 @@ from qnav.contracts.lookahead import (
     best_first_actions,
     candidate_sequences,
     collision_shares,
+    first_action_sequences,
     random_blocks_needed,
     simulate,
 )
@@ -387,15 +388,7 @@ def shares_within(
     tails = tails[:, :, : steps - 1]
     futures = ObstacleFutures(futures.xy[:steps], futures.radius_m)
     worlds, tail_count = tails.shape[:2]
-    first = np.repeat(np.arange(NUM_ACTIONS), tail_count)
-    sequences = np.concatenate(
-        [
-            np.broadcast_to(first[None, :, None], (worlds, first.size, 1)),
-            np.tile(tails, (1, NUM_ACTIONS, 1)),
-        ],
-        axis=2,
-    )
-    rollouts = simulate(model, belief, sequences, futures)
+    rollouts = simulate(model, belief, first_action_sequences(tails), futures)
     early = (rollouts.outcome == Outcome.COLLISION) & (rollouts.end_step <= counted[:, None])
     return np.asarray(early.reshape(worlds, NUM_ACTIONS, tail_count).mean(axis=2))
 
@@ -415,21 +408,21 @@ def futures_of(lookaheads: list[Lookahead], belief: Belief, count: int) -> Obsta
     """The futures of the cars' stacked `belief`: `count` per car, each car's walks from its
     own generator (`Lookahead.walks`); the straight line alone where they have none."""
     most = belief.obstacle_xy.shape[1]
-    car = lookaheads[0]
+    first = lookaheads[0]
     tracked = [len(car.tracker.tracks().xy_m) for car in lookaheads]
     walks = [car.walks(m, count) for car, m in zip(lookaheads, tracked, strict=True)]
     if all(w is None for w in walks):
-        draws = np.zeros((2, len(lookaheads), 1, most, car.horizon))
+        draws = np.zeros((2, len(lookaheads), 1, most, first.horizon))
     else:  # a car without spread walks its `count` futures on its straight lines
-        straight = np.zeros((2, count, most, car.horizon))
+        straight = np.zeros((2, count, most, first.horizon))
         draws = np.stack([straight if w is None else _padded(w, most, 0.0, 2) for w in walks], 1)
     return walked_futures(
         belief.obstacle_xy,
         belief.obstacle_velocity,
         belief.obstacle_radius,
         draws,
-        period_s=car.model.control_period_s,
-        box=car.box,
+        period_s=first.model.control_period_s,
+        box=first.box,
     )
 
 

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
-from qnav.contracts.actions import Action, committed_turns
+from qnav.contracts.actions import Action, TurnCommitment
 from qnav.contracts.errors import PolicyFileError, PolicyInputError
 from qnav.contracts.observation import TARGET_FEATURES, encode_frame
 from qnav.contracts.policy_file import (
@@ -260,8 +260,8 @@ class PolicyRuntime:
         self.state = self.zero_state(num_streams)
         self.fresh = np.ones(num_streams, dtype=bool)
         """Streams whose next frame begins an episode."""
-        self.previous_action = np.full(num_streams, int(Action.FORWARD), dtype=np.int64)
-        """Each stream's last decision (forward at an episode's start), for `turn_commitment`."""
+        self.turns = TurnCommitment(num_streams) if self.contract.turn_commitment else None
+        """Each stream's last decision, with the contract's `turn_commitment`."""
 
     @property
     def num_streams(self) -> int:
@@ -278,7 +278,8 @@ class PolicyRuntime:
     def reset(self, streams: NDArray[np.intp] | None = None) -> None:
         """Start new episodes in `streams` (all by default): their windows restart."""
         self.fresh[slice(None) if streams is None else streams] = True
-        self.previous_action[slice(None) if streams is None else streams] = int(Action.FORWARD)
+        if self.turns is not None:
+            self.turns.restart(slice(None) if streams is None else streams)
 
     def step_batch(
         self, scan_m: NDArray[np.floating] | None, target_features: NDArray[np.floating]
@@ -289,10 +290,7 @@ class PolicyRuntime:
             self._prime(frames)
         q, self.state = self.step_function(frames, self.state)
         actions = q.argmax(axis=1)
-        if self.contract.turn_commitment:
-            actions = committed_turns(actions, self.previous_action)
-        self.previous_action = actions.copy()
-        return actions, q
+        return (actions if self.turns is None else self.turns(actions)), q
 
     def step(
         self, scan_m: NDArray[np.floating] | None, target_features: NDArray[np.floating]

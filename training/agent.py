@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from qnav.contracts.actions import NUM_ACTIONS, Action, committed_turns
+from qnav.contracts.actions import NUM_ACTIONS, TurnCommitment
 from qnav.contracts.observation import FrameWindow, distance_scale_m
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import ExplorationHold
@@ -55,9 +55,8 @@ class TorchAgent:
         turn_commitment: bool = False,
     ) -> None:
         self.network = network
-        self.turn_commitment = turn_commitment
-        self.previous = np.full(num_worlds, int(Action.FORWARD), dtype=np.int64)
-        """Each world's last greedy decision (`turn_commitment`)."""
+        self.turns = TurnCommitment(num_worlds) if turn_commitment else None
+        """Each world's last greedy decision, with `turn_commitment`."""
         self.max_range_m = max_range_m
         self.window = FrameWindow(num_worlds, network.frame_size, window)
         self.exploration = ExplorationHold(num_worlds, epsilon, hold_steps, seed)
@@ -66,7 +65,8 @@ class TorchAgent:
     def start(self, worlds: NDArray[np.intp], episodes: NDArray[np.int64]) -> None:
         self.window.restart(worlds)
         self.exploration.start(worlds)
-        self.previous[worlds] = int(Action.FORWARD)
+        if self.turns is not None:
+            self.turns.restart(worlds)
 
     def act(self, observation: Observation) -> NDArray[np.int64]:
         windows = self.window.advance(observation.frames(self.max_range_m))
@@ -75,9 +75,8 @@ class TorchAgent:
             q = self.network(torch.from_numpy(windows).to(device)).cpu().numpy()
         self.last_q = q
         action = q.argmax(axis=1)
-        if self.turn_commitment:
-            action = committed_turns(action, self.previous)
-            self.previous = action
+        if self.turns is not None:
+            action = self.turns(action)
         return self.exploration(action)
 
 

@@ -106,12 +106,7 @@ def export_onnx(
     if contract.weight_type == "int8":
         model = quantize_int8(model)
     write_metadata(model, contract)
-    extra = extra_metadata or {}
-    kept = [p for p in model.metadata_props if p.key not in extra]
-    del model.metadata_props[:]
-    model.metadata_props.extend(kept)
-    for key, value in extra.items():
-        model.metadata_props.add(key=key, value=value)
+    replace_metadata(model, extra_metadata or {})
     save_checked(model, path)
 
 
@@ -211,10 +206,15 @@ class HasMetadata(Protocol):
 
 def write_metadata(model: onnx.ModelProto, contract: HasMetadata) -> None:
     """Replace the model's qnav metadata with `contract`."""
-    kept = [p for p in model.metadata_props if p.key not in contract.to_metadata()]
+    replace_metadata(model, contract.to_metadata())
+
+
+def replace_metadata(model: onnx.ModelProto, entries: dict[str, str]) -> None:
+    """Set the model's metadata `entries`, in place of any it has under the same keys."""
+    kept = [p for p in model.metadata_props if p.key not in entries]
     del model.metadata_props[:]
     model.metadata_props.extend(kept)
-    for key, value in contract.to_metadata().items():
+    for key, value in entries.items():
         model.metadata_props.add(key=key, value=value)
 
 
