@@ -41,6 +41,7 @@ from qnav.controller.config import DaemonConfig
 from qnav.controller.decision import Controller, Input, Output, Reason
 from qnav.controller.delivery import Candidate, PolicyFetcher
 from qnav.controller.policy import PolicyRuntime
+from qnav.controller.proximity import footprint_mismatch
 
 log = logging.getLogger("qnav.controller")
 
@@ -371,6 +372,11 @@ def build(config: DaemonConfig) -> Daemon:
     )
     if not controller.uses_scan and config.proximity.enabled:
         log.info("proximity stop: none (the policy reads no lidar)")
+    elif config.proximity.enabled and contract.motion:
+        _, robot_radius_m = contract.motion_model(str(path))
+        mismatch = footprint_mismatch(config.proximity.footprint_m, robot_radius_m)
+        if mismatch:
+            log.warning(mismatch)
     return Daemon(config, controller, sha, public_key)
 
 

@@ -23,10 +23,12 @@ from qnav.controller.proximity import (
     allowed_actions,
     blocked_parts,
     field_ranges,
+    footprint_mismatch,
     guarded_action,
 )
 
 OBSTACLES_POLICY = Path(__file__).parents[1] / "data" / "stack" / "obstacles-inertia.onnx"
+BARN_POLICY = Path(__file__).parents[2] / "results" / "barn" / "barn-recurrent.onnx"
 BEAMS = 720
 ROOM_M = 10.0
 FOOTPRINT_M, TRAVEL_M = ProximitySettings().footprint_m, ProximitySettings().travel_m
@@ -192,3 +194,32 @@ def test_proximity_settings_out_of_range_name_the_setting() -> None:
         ProximitySettings(footprint_m=-0.1)
     with pytest.raises(ConfigError, match=r"proximity\.travel_m"):
         ProximitySettings(travel_m=math.nan)
+
+
+def test_a_safety_field_that_does_not_fit_the_policys_robot_is_named_either_way() -> None:
+    assert footprint_mismatch(0.5, 0.5) is None and footprint_mismatch(0.33, 0.3) is None
+    larger = footprint_mismatch(0.5, 0.3)
+    assert larger is not None and "proximity.footprint_m = 0.5 m" in larger
+    assert "radius 0.3 m" in larger and "hold the car in gaps" in larger
+    smaller = footprint_mismatch(0.2, 0.5)
+    assert smaller is not None and "larger robot than the field protects" in smaller
+
+
+def test_the_daemon_warns_when_the_shipped_field_does_not_fit_the_policys_robot(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The BARN policy (a 0.3 m robot) under the shipped 0.5 m field: logged at start, naming
+    the setting; with the field set to its radius, nothing."""
+    from qnav.controller.config import ControllerSettings, DaemonConfig
+    from qnav.controller.daemon import build
+
+    for footprint_m, warned in ((0.5, True), (0.3, False)):
+        caplog.clear()
+        config = DaemonConfig(
+            controller=ControllerSettings(policy=str(BARN_POLICY)),
+            proximity=ProximitySettings(footprint_m=footprint_m),
+            lookahead=LookaheadSettings(room_size_m=10.0),
+        )
+        build(config)
+        warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        assert any("proximity.footprint_m" in w for w in warnings) is warned, warnings
