@@ -139,14 +139,13 @@ def write_configs(
     public_key: Path | None = None,
     input_timeout_s: float = 0.0,
     lookahead: LookaheadSettings | None = None,
-    room_size_m: float = 10.0,
 ) -> None:
     """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
     bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
     controller takes policies from a server signed with its private key, `policy` first;
     `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default;
-    `lookahead`: the controller's look ahead, in a room of `room_size_m`, and its proximity stop;
-    None: the policy alone, neither)."""
+    `lookahead`: the controller's look ahead, with its room (`tracking.room_of`), and its
+    proximity stop; None: the policy alone, neither)."""
     from qnav.controller.config import DaemonConfig
     from qnav.firmware_bridge.settings import BridgeSettings
     from qnav.simcar.car import SimCarSettings
@@ -164,7 +163,7 @@ def write_configs(
             ),
             "zenoh": zenoh,
         }
-        | _lookahead_tables(lookahead, room_size_m)
+        | _lookahead_tables(lookahead)
         | (
             {}
             if public_key is None
@@ -344,6 +343,7 @@ def _configure(
 ) -> None:
     """The daemons' settings files for this stack (`write_configs`)."""
     from qnav.simcar.car import SimCarSettings
+    from qnav.tracking import room_of
 
     write_configs(
         files,
@@ -359,8 +359,7 @@ def _configure(
         input_timeout_s=(
             SimCarSettings().lockstep_timeout_s + world.control_period_s if lockstep else 0.0
         ),
-        lookahead=lookahead,
-        room_size_m=world.arena.size_m,
+        lookahead=None if lookahead is None else room_of(world, lookahead),
     )
 
 
@@ -639,13 +638,18 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     }
 
 
-def _lookahead_tables(lookahead: LookaheadSettings | None, room_size_m: float) -> dict[str, Any]:
-    """The controller's [lookahead] and [proximity] tables: `lookahead` in the stack's room, and
-    the default proximity stop, as the in-process agent runs them (`file_agent`); None: the
-    policy alone (the look ahead off, the proximity stop off)."""
+def _lookahead_tables(lookahead: LookaheadSettings | None) -> dict[str, Any]:
+    """The controller's [lookahead] and [proximity] tables: `lookahead` in its room (the square's
+    side or the walls), and the default proximity stop, as the in-process agent runs them
+    (`file_agent`); None: the policy alone (the look ahead off, the proximity stop off)."""
     if lookahead is None:
         return {"lookahead": {"mode": "off"}, "proximity": {"enabled": False}}
-    return {"lookahead": {"mode": lookahead.mode, "room_size_m": room_size_m}}
+    room: dict[str, Any] = (
+        {"walls": [list(wall) for wall in lookahead.walls]}
+        if lookahead.walls
+        else {"room_size_m": lookahead.room_size_m}
+    )
+    return {"lookahead": {"mode": lookahead.mode} | room}
 
 
 def in_process_outcomes(

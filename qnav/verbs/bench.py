@@ -114,7 +114,7 @@ def bench_controller(args: argparse.Namespace) -> int:
     from qnav.controller.bench_e2e import format_report, run
     from qnav.controller.policy import PolicyRuntime
     from qnav.sim.config import scenario
-    from qnav.tracking import lookahead_settings
+    from qnav.tracking import lookahead_settings, room_of
 
     rates = [float(r) for r in (args.rates or "5,50").split(",")]
     with tempfile.TemporaryDirectory() as scratch:
@@ -126,7 +126,7 @@ def bench_controller(args: argparse.Namespace) -> int:
             if args.rates is None:  # the look ahead on every scan: the policy's rate
                 rates = [1.0 / contract.control_period_s]
             settings = lookahead_settings(args.lookahead)
-            lookahead = replace(settings, room_size_m=world.arena.size_m)
+            lookahead = room_of(world, settings)
             steps = max(round((args.seconds + 2) * rate) for rate in rates)
             drive = Path(scratch) / "drive.npz"
             bench_drive(world, steps).save(drive)
