@@ -61,13 +61,12 @@ from qnav.contracts.settings import parse_assignments, with_overrides
 from qnav.controller.futures import random_futures, walked_futures
 from qnav.controller.lookahead import LookaheadSettings
 from qnav.controller.perception import TrackerSettings
-from qnav.controller.proximity import ProximitySettings
 from qnav.lab.robustness import ROWS, policy_agent, row_worlds
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, episode_outcomes
 from qnav.sim.room import room_clearance
 from qnav.sim.world import Observation, WorldState
-from qnav.tracking import LookaheadAgent, QAgent
+from qnav.tracking import LookaheadAgent, QAgent, fitted_proximity
 
 F64 = NDArray[np.float64]
 
@@ -422,7 +421,7 @@ def gauge(
         tracker=tracker,
         lookahead=lookahead,
         seed=settings.seed,
-        proximity=ProximitySettings(),
+        proximity=fitted_proximity(world),
     )
     outcomes, lengths = episode_outcomes(world, agent, settings, watch=agent.watch)
     blind = exposure(*episode_outcomes(world, GoToTargetAgent(), settings), world.control_period_s)

@@ -35,7 +35,7 @@ from qnav.sim.evaluate import (
 )
 from qnav.sim.room import room_clearance
 from qnav.sim.world import observe, reset, scatter, step
-from qnav.tracking import shipped_agent
+from qnav.tracking import fitted_proximity, shipped_agent
 
 
 @dataclass(frozen=True)
@@ -170,7 +170,7 @@ def forward_collisions(
     """The proximity stop below a driver that always drives forward (and turns left where the
     field forbids it), over the test protocol's episodes of `world`: each collision told static
     or moving by which surface was within the robot's radius."""
-    proximity = proximity or ProximitySettings()
+    proximity = proximity or fitted_proximity(world)
     world = replace(world, max_episode_steps=settings.max_episode_steps)
     assert world.lidar is not None
     angles = world.lidar.beam_angles_rad()

@@ -177,9 +177,8 @@ def _obstacles_agent(world: WorldConfig, mode: str) -> Agent:
     `mode` with the proximity stop, as `qnav eval --lookahead` runs it."""
     from qnav.controller.perception import TrackerSettings
     from qnav.controller.policy import PolicyRuntime
-    from qnav.controller.proximity import ProximitySettings
     from qnav.sim.evaluate import StreamPolicyAgent
-    from qnav.tracking import LookaheadAgent, QAgent, lookahead_settings
+    from qnav.tracking import LookaheadAgent, QAgent, fitted_proximity, lookahead_settings
 
     agent = StreamPolicyAgent(PolicyRuntime(OBSTACLES_POLICY, num_streams=1), 1)
     if mode == "off":
@@ -190,7 +189,7 @@ def _obstacles_agent(world: WorldConfig, mode: str) -> Agent:
         1,
         tracker=TrackerSettings(),
         lookahead=lookahead_settings(mode),
-        proximity=ProximitySettings(),
+        proximity=fitted_proximity(world),
     )
 
 

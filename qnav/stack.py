@@ -27,7 +27,7 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from types import FrameType
 from typing import IO, TYPE_CHECKING, Any
@@ -39,6 +39,7 @@ from qnav.verbs.parser import Verbs, flag, lookahead_option, verb
 
 if TYPE_CHECKING:
     from qnav.controller.lookahead import LookaheadSettings
+    from qnav.controller.proximity import ProximitySettings
     from qnav.sim.config import WorldConfig
     from qnav.sim.evaluate import Agent
     from qnav.sitl import SitlProcess
@@ -139,13 +140,14 @@ def write_configs(
     public_key: Path | None = None,
     input_timeout_s: float = 0.0,
     lookahead: LookaheadSettings | None = None,
+    proximity: ProximitySettings | None = None,
 ) -> None:
     """The controller's and the bridge's TOML files for this stack (`bridge_values`: the
     bridge's settings other than zenoh, instead of the test vehicle's; `public_key`: the
     controller takes policies from a server signed with its private key, `policy` first;
     `input_timeout_s`: the controller's scan and pose timeouts, 0 for its default;
     `lookahead`: the controller's look ahead, with its room (`tracking.room_of`), and its
-    proximity stop; None: the policy alone, neither)."""
+    proximity stop, `proximity` or the default field; None: the policy alone, neither)."""
     from qnav.controller.config import DaemonConfig
     from qnav.firmware_bridge.settings import BridgeSettings
     from qnav.simcar.car import SimCarSettings
@@ -163,7 +165,7 @@ def write_configs(
             ),
             "zenoh": zenoh,
         }
-        | _lookahead_tables(lookahead)
+        | _lookahead_tables(lookahead, proximity)
         | (
             {}
             if public_key is None
@@ -343,7 +345,7 @@ def _configure(
 ) -> None:
     """The daemons' settings files for this stack (`write_configs`)."""
     from qnav.simcar.car import SimCarSettings
-    from qnav.tracking import room_of
+    from qnav.tracking import fitted_proximity, room_of
 
     write_configs(
         files,
@@ -360,6 +362,7 @@ def _configure(
             SimCarSettings().lockstep_timeout_s + world.control_period_s if lockstep else 0.0
         ),
         lookahead=None if lookahead is None else room_of(world, lookahead),
+        proximity=fitted_proximity(world),
     )
 
 
@@ -638,10 +641,13 @@ def action_response(episodes_log: Path, scenario_name: str) -> dict[str, Any]:
     }
 
 
-def _lookahead_tables(lookahead: LookaheadSettings | None) -> dict[str, Any]:
+def _lookahead_tables(
+    lookahead: LookaheadSettings | None, proximity: ProximitySettings | None
+) -> dict[str, Any]:
     """The controller's [lookahead] and [proximity] tables: `lookahead` in its room (the square's
-    side or the walls), and the default proximity stop, as the in-process agent runs them
-    (`file_agent`); None: the policy alone (the look ahead off, the proximity stop off)."""
+    side or the walls), and the proximity stop's field (`proximity`, or the default), as the
+    in-process agent runs them (`file_agent`); None: the policy alone (the look ahead off, the
+    proximity stop off)."""
     if lookahead is None:
         return {"lookahead": {"mode": "off"}, "proximity": {"enabled": False}}
     room: dict[str, Any] = (
@@ -649,7 +655,8 @@ def _lookahead_tables(lookahead: LookaheadSettings | None) -> dict[str, Any]:
         if lookahead.walls
         else {"room_size_m": lookahead.room_size_m}
     )
-    return {"lookahead": {"mode": lookahead.mode} | room}
+    field = {} if proximity is None else {"proximity": asdict(proximity)}
+    return {"lookahead": {"mode": lookahead.mode} | room} | field
 
 
 def in_process_outcomes(
@@ -683,12 +690,11 @@ def file_agent(
     policy: Path, world: WorldConfig, worlds: int, *, lookahead: LookaheadSettings | None
 ) -> Agent:
     """The policy file on one stream per world, as the controller runs it, with its look ahead
-    and its default proximity stop (None: neither)."""
+    and its proximity stop fitted to the world's robot (None: neither)."""
     from qnav.controller.perception import TrackerSettings
     from qnav.controller.policy import PolicyRuntime
-    from qnav.controller.proximity import ProximitySettings
     from qnav.sim.evaluate import StreamPolicyAgent
-    from qnav.tracking import LookaheadAgent
+    from qnav.tracking import LookaheadAgent, fitted_proximity
 
     agent = StreamPolicyAgent(PolicyRuntime(policy, num_streams=worlds), worlds)
     if lookahead is None:
@@ -699,7 +705,7 @@ def file_agent(
         worlds,
         tracker=TrackerSettings(),
         lookahead=lookahead,
-        proximity=ProximitySettings(),
+        proximity=fitted_proximity(world),
     )
 
 

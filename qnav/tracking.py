@@ -232,11 +232,19 @@ class LookaheadAgent:
         return guarded
 
 
+def fitted_proximity(world: WorldConfig) -> ProximitySettings:
+    """The proximity stop's field fitted to `world`'s robot: footprint and travel one robot
+    radius each, as the shipped defaults are in the paper's world (0.5 m). The 0.5 m field
+    holds BARN's 0.3 m robot among the cylinders (docs/barn.md)."""
+    return ProximitySettings(footprint_m=world.robot_radius_m, travel_m=world.robot_radius_m)
+
+
 def shipped_agent(
     inner: QAgent, world: WorldConfig, num_worlds: int, mode: str = "shield", seed: int = 0
 ) -> LookaheadAgent:
     """The policy as the shipped controller runs it (`config/controller.toml`): the look ahead
-    in `mode` with the default tracker and forecast, and the proximity stop below it."""
+    in `mode` with the default tracker and forecast, and the proximity stop below it, its field
+    fitted to the world's robot (`fitted_proximity`)."""
     return LookaheadAgent(
         inner,
         world,
@@ -244,7 +252,7 @@ def shipped_agent(
         tracker=TrackerSettings(),
         lookahead=lookahead_settings(mode),
         seed=seed,
-        proximity=ProximitySettings(),
+        proximity=fitted_proximity(world),
     )
 
 

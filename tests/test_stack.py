@@ -295,17 +295,18 @@ def test_the_stacks_bridge_is_calibrated_to_the_sim_car(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("scenario_name", ["obstacles-inertia", "cave"])
-def test_the_stacks_controller_knows_the_room_the_sim_car_drives_in(
+def test_the_stacks_controller_knows_the_room_and_the_robot_the_sim_car_drives(
     tmp_path: Path, scenario_name: str
 ) -> None:
     """The controller's look ahead gets the world's room: the square in the paper's world, and in
     a world of layouts (which lies outside that square) the box its movers bounce in, as the
-    in-process agent has it (`tracking.room_of`)."""
+    in-process agent has it (`tracking.room_of`); its proximity stop a field fitted to the
+    world's robot (BARN's 0.3 m robot, not the paper's 0.5 m)."""
     from qnav.controller.config import load_config
     from qnav.controller.lookahead import LookaheadSettings
     from qnav.sim.config import scenario
     from qnav.stack import StackFiles, _configure, _Vehicle
-    from qnav.tracking import room_of
+    from qnav.tracking import fitted_proximity, room_of
 
     world = scenario(scenario_name)
     files = StackFiles(tmp_path / "stack")
@@ -315,10 +316,12 @@ def test_the_stacks_controller_knows_the_room_the_sim_car_drives_in(
         files, POLICY, "tcp/127.0.0.1:7447", vehicle, world,
         lockstep=True, serve=None, lookahead=shield,
     )  # fmt: skip
-    written = load_config(files.controller_toml, []).lookahead
-    expected = room_of(world, shield)
+    config = load_config(files.controller_toml, [])
+    written, expected = config.lookahead, room_of(world, shield)
     assert (written.room_size_m, written.walls) == (expected.room_size_m, expected.walls)
     assert bool(written.walls) is (scenario_name == "cave")
+    assert config.proximity == fitted_proximity(world)
+    assert config.proximity.footprint_m == world.robot_radius_m
 
 
 def _children(pid: int) -> list[int]:

@@ -99,3 +99,13 @@ def test_the_shield_keeps_the_policys_chosen_action_not_only_its_highest_valued(
     assert shielded_actions(q, shares, 0.3, np.array([2])).tolist() == [2]
     risky = np.array([[0.0, 0.0, 0.9]])
     assert shielded_actions(q, risky, 0.3, np.array([2])).tolist() == [0]
+
+
+def test_the_shipped_proximity_field_is_the_paper_robots_and_fits_each_worlds_robot() -> None:
+    from qnav.controller.proximity import ProximitySettings
+    from qnav.sim.config import scenario
+    from qnav.tracking import fitted_proximity
+
+    assert fitted_proximity(scenario("obstacles-inertia")) == ProximitySettings()
+    barn = fitted_proximity(scenario("barn"))
+    assert (barn.footprint_m, barn.travel_m) == (0.3, 0.3)

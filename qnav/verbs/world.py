@@ -195,8 +195,13 @@ def _looking_ahead(
     proximity stop below it, as the shipped controller runs them; go-to-target's choice as a
     policy's (`tracking.GoToTargetValues`)."""
     from qnav.controller.perception import TrackerSettings
-    from qnav.controller.proximity import ProximitySettings
-    from qnav.tracking import GoToTargetValues, LookaheadAgent, QAgent, lookahead_settings
+    from qnav.tracking import (
+        GoToTargetValues,
+        LookaheadAgent,
+        QAgent,
+        fitted_proximity,
+        lookahead_settings,
+    )
 
     inner = GoToTargetValues(worlds) if isinstance(agent, GoToTargetAgent) else agent
     return LookaheadAgent(
@@ -207,7 +212,7 @@ def _looking_ahead(
         lookahead=lookahead_settings(args.lookahead),
         range_noise_m=args.range_noise_m,
         seed=seed,
-        proximity=ProximitySettings(),
+        proximity=fitted_proximity(world),
     )
 
 
