@@ -43,25 +43,51 @@ PICTURE_TRIES = 20
 """Episodes tried for a picture that the policy alone loses and the shielded controller wins."""
 
 
-def _step(number: int, text: str) -> None:
-    print(f"\n{number}/4  {text}", flush=True)
+class _Steps:
+    """The demo's numbered steps, each timed: a user sees where the minutes go."""
+
+    def __init__(self) -> None:
+        self.started = self.lap = time.perf_counter()
+        self.seconds: list[tuple[str, float]] = []
+
+    def next(self, number: int, name: str, text: str) -> None:
+        self._close()
+        self.seconds.append((name, 0.0))
+        print(f"\n{number}/4  {text}", flush=True)
+
+    def _close(self) -> None:
+        now = time.perf_counter()
+        if self.seconds:
+            self.seconds[-1] = (self.seconds[-1][0], now - self.lap)
+        self.lap = now
+
+    def summary(self) -> str:
+        self._close()
+        laps = ", ".join(f"{name} {seconds:.0f} s" for name, seconds in self.seconds)
+        return f"done in {time.perf_counter() - self.started:.0f} s ({laps})"
 
 
 def main() -> int:
     """Run the demo."""
-    started = time.perf_counter()
+    steps = _Steps()
     print("qnav demo: learn walls-increment, drive the car through the full stack, then dodge")
-    _step(1, f"Training the recurrent Q-network, {TRAIN_EPISODES} episodes of {SCENARIO}")
+    steps.next(
+        1, "training", f"Training the recurrent Q-network, {TRAIN_EPISODES} episodes of {SCENARIO}"
+    )
     policy, tested = _train_and_export()
-    _step(2, f"Full stack: sim-car, controller, bridge, recorder; {STACK_EPISODES} episodes")
+    steps.next(
+        2, "stack", f"Full stack: sim-car, controller, bridge, recorder; {STACK_EPISODES} episodes"
+    )
     pictures = _drive_the_stack(policy, tested)
-    _step(3, f"Moving obstacles: {OBSTACLES_POLICY} alone, then shielded (as shipped)")
+    steps.next(
+        3, "obstacles", f"Moving obstacles: {OBSTACLES_POLICY} alone, then shielded (as shipped)"
+    )
     _obstacles()
-    _step(4, "Pictures")
+    steps.next(4, "pictures", "Pictures")
     pictures += _dodge_pictures()
     for label, path in pictures:
         print(f"  {label:<42} {path}")
-    print(f"\ndone in {time.perf_counter() - started:.0f} s")
+    print(f"\n{steps.summary()}")
     return 0
 
 

@@ -5,6 +5,8 @@ obstacles policy it drives is committed."""
 import re
 from pathlib import Path
 
+import pytest
+
 from qnav import demo
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,3 +32,12 @@ def test_the_demo_installs_the_train_extra_and_the_tests_the_dev_one() -> None:
 
 def test_the_demo_drives_the_committed_obstacles_policy() -> None:
     assert (ROOT / demo.OBSTACLES_POLICY).is_file()
+
+
+def test_the_demo_says_how_long_each_step_took(capsys: pytest.CaptureFixture[str]) -> None:
+    steps = demo._Steps()
+    steps.next(1, "training", "Training")
+    steps.next(2, "stack", "Stack")
+    summary = steps.summary()
+    assert "1/4  Training" in capsys.readouterr().out
+    assert summary.startswith("done in ") and "(training 0 s, stack 0 s)" in summary
