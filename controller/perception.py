@@ -397,17 +397,17 @@ class ObstacleTracker:
         self._mirror_cache: dict[float, F64] = {}
         self.grid = StaticGrid(walls)
         """Where things stand, from the scans so far."""
-        self._static: NDArray[np.bool_] = np.zeros(0, dtype=bool)
-        """Which of the last `_detect`'s objects were found where things stand."""
 
     def detect(self, scan_m: NDArray[np.floating], pose: F64) -> list[Shape]:
         """The objects found in one scan seen from `pose` (as `scan_points`)."""
-        return self._detect(scan_points(scan_m, pose, self.beam_angles_rad), pose)
+        return self._detect(scan_points(scan_m, pose, self.beam_angles_rad), pose)[0]
 
-    def _detect(self, points: F64, pose: F64) -> list[Shape]:
-        """`detect` on the scan's points in the room's frame (B, 2)."""
+    def _detect(self, points: F64, pose: F64) -> tuple[list[Shape], NDArray[np.bool_]]:
+        """`detect` on the scan's points in the room's frame (B, 2), and which of the objects
+        were found where things stand."""
         s = self.settings
-        measured = wall_noise(points, self.walls, _sensor_xy(pose, np.arange(len(points))))
+        sensor_xy = _sensor_xy(pose, np.arange(len(points)))
+        measured = wall_noise(points, self.walls, sensor_xy)
         if measured is not None:
             weight = NOISE_MEMORY if self.noise_m else 1.0
             self.noise_m += weight * (measured - self.noise_m)
@@ -415,15 +415,15 @@ class ObstacleTracker:
         keep = off_the_walls(points, self.walls, band)
         standing = self.grid.standing(points, keep)
         self.grid.add(points, keep)
-        moving = self._objects(points, pose, keep & ~standing, 0)
-        static = self._objects(points, pose, standing, len(points))
-        self._static = np.arange(len(moving) + len(static)) >= len(moving)
-        return moving + static
+        moving = self._objects(points, pose, sensor_xy, keep & ~standing, 0)
+        static = self._objects(points, pose, sensor_xy, standing, len(points))
+        return moving + static, np.arange(len(moving) + len(static)) >= len(moving)
 
     def _objects(
-        self, points: F64, pose: F64, keep: NDArray[np.bool_], first_run: int
+        self, points: F64, pose: F64, sensor_xy: F64, keep: NDArray[np.bool_], first_run: int
     ) -> list[Shape]:
-        """The objects the returns of `keep` make (their clusters numbered from `first_run`)."""
+        """The objects the returns of `keep` make (their clusters numbered from `first_run`),
+        the scan seen from `sensor_xy`."""
         s = self.settings
         gap = max(s.cluster_gap_m, 4.0 * self.noise_m)
         found = []
@@ -437,7 +437,7 @@ class ObstacleTracker:
                 piece_m=s.piece_m,
             )
             found += [shape._replace(run=first_run + index) for shape in shapes]
-        found = merge_close(found, points, _sensor_xy(pose, np.arange(len(points))), s.legs_m)
+        found = merge_close(found, points, sensor_xy, s.legs_m)
         return [shape for shape in found if len(shape.beams) >= s.min_returns]
 
     def update(
@@ -450,8 +450,7 @@ class ObstacleTracker:
         """Take in a scan taken at `time_s` from `pose`, or beam by beam at `beam_times_s` (B,)
         from each beam's pose (B, 3) (`beam_poses`); the tracks as they are at its last beam."""
         points = scan_points(scan_m, pose, self.beam_angles_rad)
-        shapes = self._detect(points, pose)
-        static = self._static
+        shapes, static = self._detect(points, pose)
         centres = np.array([shape.centre for shape in shapes]).reshape(-1, 2)
         radii = np.array([shape.radius_m for shape in shapes])
         if beam_times_s is None:

@@ -47,24 +47,22 @@ class _Steps:
     """The demo's numbered steps, each timed: a user sees where the minutes go."""
 
     def __init__(self) -> None:
-        self.started = self.lap = time.perf_counter()
-        self.seconds: list[tuple[str, float]] = []
+        self.started = time.perf_counter()
+        self.starts: list[tuple[str, float]] = []
+        """Each step's name and when it began."""
 
     def next(self, number: int, name: str, text: str) -> None:
-        self._close()
-        self.seconds.append((name, 0.0))
+        self.starts.append((name, time.perf_counter()))
         print(f"\n{number}/4  {text}", flush=True)
 
-    def _close(self) -> None:
-        now = time.perf_counter()
-        if self.seconds:
-            self.seconds[-1] = (self.seconds[-1][0], now - self.lap)
-        self.lap = now
-
     def summary(self) -> str:
-        self._close()
-        laps = ", ".join(f"{name} {seconds:.0f} s" for name, seconds in self.seconds)
-        return f"done in {time.perf_counter() - self.started:.0f} s ({laps})"
+        now = time.perf_counter()
+        ends = [began for _, began in self.starts[1:]] + [now]
+        laps = ", ".join(
+            f"{name} {end - began:.0f} s"
+            for (name, began), end in zip(self.starts, ends, strict=True)
+        )
+        return f"done in {now - self.started:.0f} s ({laps})"
 
 
 def main() -> int:
