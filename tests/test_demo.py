@@ -41,3 +41,16 @@ def test_the_demo_says_how_long_each_step_took(capsys: pytest.CaptureFixture[str
     summary = steps.summary()
     assert "1/4  Training" in capsys.readouterr().out
     assert summary.startswith("done in ") and "(training 0 s, stack 0 s)" in summary
+
+
+def test_a_failed_background_command_raises_with_its_errors() -> None:
+    failing = demo._background([["eval", "--no-such-option"]])
+    with failing as runs, pytest.raises(RuntimeError, match="no-such-option"):
+        demo._report(runs)
+
+
+def test_background_commands_still_running_are_killed_on_the_way_out() -> None:
+    endless = ["eval", "--scenario", "obstacles-inertia", "--agent", "goto", "--episodes=100000"]
+    with pytest.raises(KeyboardInterrupt), demo._background([endless]) as runs:
+        raise KeyboardInterrupt
+    assert runs[0][1].returncode is not None
