@@ -1,0 +1,102 @@
+"""Offline gauge: behaviour cloning on stored DAgger rounds, judged by accuracy / CE against the
+planner on a fixed validation set (planner labels, shipped network's paths, 128 validation
+caves, cached in /tmp/g/valset), and on the planner's own paths there.
+
+    .venv/bin/python docs/log/scripts/barn_offline_bc.py data=RUN[,RUN...] iters=8000 save=FILE.pt
+    (options: wd=, mirror=1, noise=, lr=, batch=, rounds=)
+Export a saved network with a run's settings.toml beside it as model.pt:
+    qnav export DIR -o FILE.onnx --weights int8 --eval-episodes 0 --turn-commitment
+"""
+from __future__ import annotations
+import sys, time
+from dataclasses import replace
+from pathlib import Path
+import numpy as np
+import torch
+from torch.nn import functional
+from qnav.sim.mapplan import MapPlanner
+from qnav.training.agent import policy_agent
+from qnav.training.collect import collect_round
+from qnav.training.episode_log import read_rounds, write_round
+from qnav.training.networks import make_network
+from qnav.training.replay import EpisodeReplay
+from qnav.training.run_folder import load_network, read_settings
+
+torch.set_num_threads(1)
+args = dict(a.split("=", 1) for a in sys.argv[1:])
+runs = [Path(r) for r in args.get("data", "runs/cave/dagger-recurrent-seed0").split(",")]
+iters = int(args.get("iters", 8000)); wd = float(args.get("wd", 0)); mirror = args.get("mirror", "0") == "1"
+rounds_max = int(args.get("rounds", 10)); lr = float(args.get("lr", 5e-4)); batch = int(args.get("batch", 256))
+noise = float(args.get("noise", 0))
+settings = read_settings(runs[0])
+world, train = settings.world, settings.train
+window = train.window
+
+def replay_of(episodes, w):
+    data = EpisodeReplay(w, sum(len(e.action) + 1 for e in episodes) + 10, window)
+    for e in episodes:
+        data.add(e)
+    return data
+
+val_dir = Path("/tmp/g/valset")
+val_world = replace(world, layout=replace(world.layout, split="validation", worlds=128, order="cycle"))
+if not val_dir.exists():
+    net, _ = load_network(Path("runs/cave/dagger-recurrent-seed0"), Path("runs/cave/dagger-recurrent-seed0/best.pt"))
+    expert = MapPlanner(val_world)
+    eps = collect_round(val_world, policy_agent(net, val_world, 128, window), 0, np.arange(128, dtype=np.int64),
+                        labeller=lambda s: expert.act_at(s.pose, s.layout))
+    write_round(val_dir, 0, eps)
+    eps2 = collect_round(val_world, expert, 0, np.arange(128, dtype=np.int64), labeller=lambda s: expert.act_at(s.pose, s.layout))
+    write_round(val_dir, 1, eps2)
+vr = read_rounds(val_dir)
+val_own, val_expert = replay_of(vr[0], val_world), replay_of(vr[1], val_world)
+
+episodes = [e for r in runs for rnd in read_rounds(r / "imitation")[:rounds_max] for e in rnd]
+data = replay_of(episodes, world)
+stored = data.transitions()
+print(f"data: {len(episodes)} episodes, {stored.size} windows", flush=True)
+
+torch.manual_seed(0)
+network = make_network(world, train)
+opt = torch.optim.Adam(network.parameters(), lr=lr, weight_decay=wd) if wd == 0 else torch.optim.AdamW(network.parameters(), lr=lr, weight_decay=wd)
+B = world.lidar.num_beams
+flip = np.r_[0, np.arange(B - 1, 0, -1)]
+def mirrored(frames, labels):
+    f = frames.copy()
+    f[..., :B] = f[..., flip]
+    f[..., B + 1] *= -1
+    l = labels.copy(); l[labels == 1] = 2; l[labels == 2] = 1
+    return f, l
+
+def score(d, n=12000):
+    rng = np.random.default_rng(1)
+    now = d.transitions()
+    now = rng.choice(now, min(n, now.size), replace=False)
+    network.eval()
+    with torch.no_grad():
+        logits = torch.cat([network(torch.from_numpy(d.windows(c))) for c in np.array_split(now, 8)])
+    network.train()
+    lab = torch.from_numpy(d.action[now])
+    return float((logits.argmax(1) == lab).float().mean()), float(functional.cross_entropy(logits, lab))
+
+rng = np.random.default_rng(0)
+t = time.perf_counter()
+for it in range(1, iters + 1):
+    now = stored[rng.integers(0, stored.size, batch)]
+    frames = data.windows(now); labels = data.action[now]
+    if mirror:
+        m = rng.random(batch) < 0.5
+        f2, l2 = mirrored(frames[m], labels[m])
+        frames[m] = f2; labels = labels.copy(); labels[m] = l2
+    if noise:
+        frames[..., :B] += rng.normal(0, noise, frames[..., :B].shape).astype(np.float32)
+    logits = network(torch.from_numpy(frames))
+    loss = functional.cross_entropy(logits, torch.from_numpy(labels))
+    opt.zero_grad(); loss.backward()
+    torch.nn.utils.clip_grad_norm_(network.parameters(), 10.0); opt.step()
+    if it % 2000 == 0 or it == iters:
+        tr = score(data); vo = score(val_own); ve = score(val_expert)
+        print(f"{' '.join(sys.argv[1:])} it={it} {time.perf_counter()-t:.0f}s train acc={tr[0]:.3f} ce={tr[1]:.3f} | val own acc={vo[0]:.3f} ce={vo[1]:.3f} | val planner-path acc={ve[0]:.3f} ce={ve[1]:.3f}", flush=True)
+out = args.get("save")
+if out:
+    torch.save({"online": network.state_dict()}, out)
