@@ -30,7 +30,7 @@ rounds_max = int(args.get("rounds", 10)); lr = float(args.get("lr", 5e-4)); batc
 noise = float(args.get("noise", 0))
 settings = read_settings(runs[0])
 world, train = settings.world, settings.train
-window = train.window
+window = int(args.get("window", train.window))
 
 def replay_of(episodes, w):
     data = EpisodeReplay(w, sum(len(e.action) + 1 for e in episodes) + 10, window)
