@@ -1,12 +1,6 @@
 """Offline gauge: behaviour cloning on stored DAgger rounds, judged by accuracy / CE against the
 planner on a fixed validation set (planner labels, shipped network's paths, 128 validation
-caves, cached in /tmp/g/valset), and on the planner's own paths there.
-
-    .venv/bin/python docs/log/scripts/barn_offline_bc.py data=RUN[,RUN...] iters=8000 save=FILE.pt
-    (options: wd=, mirror=1, noise=, lr=, batch=, rounds=)
-Export a saved network with a run's settings.toml beside it as model.pt:
-    qnav export DIR -o FILE.onnx --weights int8 --eval-episodes 0 --turn-commitment
-"""
+caves). variants: data=RUNS (comma), iters, wd, mirror, dropout."""
 from __future__ import annotations
 import sys, time
 from dataclasses import replace
@@ -54,6 +48,13 @@ val_own, val_expert = replay_of(vr[0], val_world), replay_of(vr[1], val_world)
 episodes = [e for r in runs for rnd in read_rounds(r / "imitation")[:rounds_max] for e in rnd]
 data = replay_of(episodes, world)
 stored = data.transitions()
+tie = float(args.get("tie", 0))
+weight_of = np.ones(data.size)
+if tie:
+    margins = np.concatenate([np.load(f"/tmp/g/margins-{r.name}.npy") for r in runs])
+    assert margins.size == stored.size, (margins.size, stored.size)
+    weight_of[stored] = np.clip(margins / tie, 0.1, 1.0)
+    print(f"tie weights: mean {weight_of[stored].mean():.3f}", flush=True)
 print(f"data: {len(episodes)} episodes, {stored.size} windows", flush=True)
 
 torch.manual_seed(0)
@@ -91,7 +92,8 @@ for it in range(1, iters + 1):
     if noise:
         frames[..., :B] += rng.normal(0, noise, frames[..., :B].shape).astype(np.float32)
     logits = network(torch.from_numpy(frames))
-    loss = functional.cross_entropy(logits, torch.from_numpy(labels))
+    weights = torch.from_numpy(weight_of[now].astype(np.float32))
+    loss = (functional.cross_entropy(logits, torch.from_numpy(labels), reduction="none") * weights).sum() / weights.sum()
     opt.zero_grad(); loss.backward()
     torch.nn.utils.clip_grad_norm_(network.parameters(), 10.0); opt.step()
     if it % 2000 == 0 or it == iters:
