@@ -19,15 +19,14 @@ Everything goes to out/demo/. A second run reuses the trained run.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
+import tempfile
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, cast
+from typing import IO, TYPE_CHECKING, NamedTuple, cast
 
 from qnav.sim import paper
 from qnav.sim.config import WorldConfig, scenario
@@ -184,8 +183,13 @@ OBSTACLE_COMMANDS = tuple(
 )
 """Step 3's evaluations: the committed obstacles policy alone, then as shipped."""
 
-Evaluation = tuple[list[str], "subprocess.Popen[str]"]
-"""A `qnav` command line and the child process running it."""
+
+class Evaluation(NamedTuple):
+    """A `qnav` command line, the child process running it and the file of its stderr."""
+
+    argv: list[str]
+    process: subprocess.Popen[str]
+    errors: IO[str]
 
 
 @contextmanager
@@ -193,29 +197,35 @@ def _background(commands: Sequence[list[str]]) -> Iterator[list[Evaluation]]:
     """`qnav` commands in child processes, killed on the way out if still running. Step 3 runs
     beside the stack: the stack waits on its daemons' clocks (a tenth of a core), the
     evaluations need the CPU, so together they take the stack's minute."""
-    env = os.environ | {"OMP_NUM_THREADS": "1"}
+    from qnav.stack import qnav_child
+
     runs: list[Evaluation] = []
-    try:
-        for argv in commands:
-            command = [sys.executable, "-m", "qnav", *argv]
-            pipe = subprocess.PIPE
-            process = subprocess.Popen(command, stdout=pipe, stderr=pipe, text=True, env=env)
-            runs.append((list(argv), process))
-        yield runs
-    finally:
-        for _, process in runs:
-            if process.poll() is None:
-                process.kill()
-                process.wait()
+    with ExitStack() as files:
+        try:
+            for argv in commands:
+                # stderr (progress bars) to a file: nothing reads the pipes until the stack is
+                # done, and a full pipe would stall the child.
+                errors = files.enter_context(tempfile.TemporaryFile("w+"))
+                process = qnav_child(argv, stdout=subprocess.PIPE, stderr=errors)
+                runs.append(Evaluation(list(argv), process, errors))
+            yield runs
+        finally:
+            for run in runs:
+                if run.process.poll() is None:
+                    run.process.kill()
+                    run.process.wait()
 
 
 def _report(evaluations: list[Evaluation]) -> None:
     """Each command and what it printed, once it is done; a failed one raises with its errors."""
-    for argv, process in evaluations:
-        printed, errors = process.communicate()
+    for argv, process, errors in evaluations:
+        printed, _ = process.communicate()
         print(f"\n  $ qnav {' '.join(argv)}\n{printed}", end="", flush=True)
         if process.returncode != 0:
-            raise RuntimeError(f"qnav {' '.join(argv)} exited with {process.returncode}:\n{errors}")
+            errors.seek(0)
+            raise RuntimeError(
+                f"qnav {' '.join(argv)} exited with {process.returncode}:\n{errors.read()}"
+            )
 
 
 def _dodge_pictures() -> list[tuple[str, Path]]:

@@ -25,7 +25,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -196,6 +196,16 @@ def write_configs(
     files.bridge_toml.write_text(to_toml(bridge))
 
 
+def qnav_child(
+    args: Sequence[str], *, stdout: int | IO[str], stderr: int | IO[str]
+) -> subprocess.Popen[str]:
+    """`qnav ARGS...` in a child process, its numerics on one thread (children share the
+    machine's cores with each other and with this process)."""
+    env = os.environ | {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "qnav", *args]
+    return subprocess.Popen(command, stdout=stdout, stderr=stderr, text=True, env=env)
+
+
 class Daemons:
     """Child processes started as a user would start them; stopped with SIGTERM."""
 
@@ -208,14 +218,7 @@ class Daemons:
         """`qnav ARGS...`, stderr to `<name>.log`."""
         log = self.files.log(name).open("w")
         self._logs.append(log)
-        env = os.environ | {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-        process = subprocess.Popen(
-            [sys.executable, "-m", "qnav", *args],
-            stdout=stdout if stdout is not None else log,
-            stderr=log,
-            text=True,
-            env=env,
-        )
+        process = qnav_child(args, stdout=stdout if stdout is not None else log, stderr=log)
         self.processes[name] = process
         return process
 

@@ -1,4 +1,9 @@
-"""Per-state planner margins (usage: barn_label_margins.py RUN [RUN...] -> /tmp/g/margins-RUN.npy, read by barn_offline_bc.py tie=RAD) (| |heading error| - forward threshold |, rad) for stored DAgger rounds."""
+"""The planner's margin at every stored state of DAgger rounds: | |heading error| - forward
+threshold | in rad (how near its label was to flipping), in the rounds' order.
+
+    .venv/bin/python docs/log/scripts/barn_label_margins.py RUN [RUN...]
+writes /tmp/g/margins-RUN.npy for each, read by barn_offline_bc.py tie=RAD.
+"""
 import math, sys
 from pathlib import Path
 import numpy as np

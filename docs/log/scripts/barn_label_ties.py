@@ -1,6 +1,10 @@
-"""Gauge (usage: barn_label_ties.py RUN WEIGHTS.pt; needs barn_offline_bc.py's /tmp/g/valset): are the learner's disagreements with the planner near-ties? For each state along the
+"""Gauge: are the learner's disagreements with the planner near-ties? For each state along the
 planner's own paths in 128 validation caves: the planner's heading error against its forward
-threshold (margin = | |error| - aligned |), and whether the network's greedy action differs."""
+threshold (margin = | |error| - aligned |), and whether the network's greedy action differs.
+
+    .venv/bin/python docs/log/scripts/barn_label_ties.py RUN WEIGHTS.pt
+(needs the validation set barn_offline_bc.py caches in /tmp/g/valset)
+"""
 import math, sys
 from dataclasses import replace
 from pathlib import Path

@@ -1,6 +1,13 @@
-"""Offline gauge: behaviour cloning on stored DAgger rounds, judged by accuracy / CE against the
-planner on a fixed validation set (planner labels, shipped network's paths, 128 validation
-caves). variants: data=RUNS (comma), iters, wd, mirror, dropout."""
+"""Offline gauge: behaviour cloning on stored DAgger rounds, judged by agreement / cross-entropy
+against the planner on a fixed validation set: the planner's labels along the shipped seed-0
+network's paths and along the planner's own, 128 validation caves (cached in /tmp/g/valset).
+
+    .venv/bin/python docs/log/scripts/barn_offline_bc.py data=RUN[,RUN...] iters=8000 save=FILE.pt
+    (options: window=K, tie=RAD (near-tie weights; margins from barn_label_margins.py), lr=,
+    batch=, rounds=)
+Export a saved network with a run's settings.toml (its window set to K) beside it as model.pt:
+    qnav export DIR -o FILE.onnx --weights int8 --eval-episodes 0 --turn-commitment
+"""
 from __future__ import annotations
 import sys, time
 from dataclasses import replace
@@ -19,9 +26,8 @@ from qnav.training.run_folder import load_network, read_settings
 torch.set_num_threads(1)
 args = dict(a.split("=", 1) for a in sys.argv[1:])
 runs = [Path(r) for r in args.get("data", "runs/cave/dagger-recurrent-seed0").split(",")]
-iters = int(args.get("iters", 8000)); wd = float(args.get("wd", 0)); mirror = args.get("mirror", "0") == "1"
+iters = int(args.get("iters", 8000))
 rounds_max = int(args.get("rounds", 10)); lr = float(args.get("lr", 5e-4)); batch = int(args.get("batch", 256))
-noise = float(args.get("noise", 0))
 settings = read_settings(runs[0])
 world, train = settings.world, settings.train
 window = int(args.get("window", train.window))
@@ -37,7 +43,7 @@ val_world = replace(world, layout=replace(world.layout, split="validation", worl
 if not val_dir.exists():
     net, _ = load_network(Path("runs/cave/dagger-recurrent-seed0"), Path("runs/cave/dagger-recurrent-seed0/best.pt"))
     expert = MapPlanner(val_world)
-    eps = collect_round(val_world, policy_agent(net, val_world, 128, window), 0, np.arange(128, dtype=np.int64),
+    eps = collect_round(val_world, policy_agent(net, val_world, 128, train.window), 0, np.arange(128, dtype=np.int64),
                         labeller=lambda s: expert.act_at(s.pose, s.layout))
     write_round(val_dir, 0, eps)
     eps2 = collect_round(val_world, expert, 0, np.arange(128, dtype=np.int64), labeller=lambda s: expert.act_at(s.pose, s.layout))
@@ -59,16 +65,7 @@ print(f"data: {len(episodes)} episodes, {stored.size} windows", flush=True)
 
 torch.manual_seed(0)
 network = make_network(world, train)
-opt = torch.optim.Adam(network.parameters(), lr=lr, weight_decay=wd) if wd == 0 else torch.optim.AdamW(network.parameters(), lr=lr, weight_decay=wd)
-B = world.lidar.num_beams
-flip = np.r_[0, np.arange(B - 1, 0, -1)]
-def mirrored(frames, labels):
-    f = frames.copy()
-    f[..., :B] = f[..., flip]
-    f[..., B + 1] *= -1
-    l = labels.copy(); l[labels == 1] = 2; l[labels == 2] = 1
-    return f, l
-
+opt = torch.optim.Adam(network.parameters(), lr=lr)
 def score(d, n=12000):
     rng = np.random.default_rng(1)
     now = d.transitions()
@@ -85,12 +82,6 @@ t = time.perf_counter()
 for it in range(1, iters + 1):
     now = stored[rng.integers(0, stored.size, batch)]
     frames = data.windows(now); labels = data.action[now]
-    if mirror:
-        m = rng.random(batch) < 0.5
-        f2, l2 = mirrored(frames[m], labels[m])
-        frames[m] = f2; labels = labels.copy(); labels[m] = l2
-    if noise:
-        frames[..., :B] += rng.normal(0, noise, frames[..., :B].shape).astype(np.float32)
     logits = network(torch.from_numpy(frames))
     weights = torch.from_numpy(weight_of[now].astype(np.float32))
     loss = (functional.cross_entropy(logits, torch.from_numpy(labels), reduction="none") * weights).sum() / weights.sum()
