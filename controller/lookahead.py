@@ -88,7 +88,7 @@ class LookaheadSettings:
     measured, for a room that is not that square (they replace it; obstacles bounce inside the
     box that bounds them)."""
     shield_horizon_s: float = 6.0
-    """How far ahead the shield forecasts each action's risk (6 s against the gauge's 4 s doom
+    """How far ahead the shield forecasts each action's risk (6 s against the oracle's 4 s doom
     horizon, with `overrule_share` 0.3: 0.900 against 0.882 success in obstacles-inertia, 0.885
     against 0.852 in obstacles-increment; docs/controller.md)."""
     plan_horizon_s: float = 10.0

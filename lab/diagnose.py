@@ -14,9 +14,6 @@
   layout against the blind go-to-target controller: how many layouts it completes that the
   blind controller does not, and the reverse (a learner that only seeks the target differs on
   few, and gains nothing on them).
-- **Decisive states** (obstacle worlds): the share of the gauge's decisive states
-  (`lab.decisive`) where the greedy action is safe, beside what a random choice and the blind
-  go-to-target controller score there.
 """
 
 from __future__ import annotations
@@ -34,18 +31,10 @@ from qnav.contracts.actions import NUM_ACTIONS, Action
 from qnav.contracts.motion import Outcome
 from qnav.contracts.observation import distance_scale_m, encode_frame, encode_scan
 from qnav.contracts.policy_file import CONV_CHANNELS
-from qnav.lab.decisive import (
-    DecisiveStates,
-    constant_choice,
-    go_to_target_choices,
-    random_expectation,
-    score,
-)
-from qnav.lab.gauge import decisive_states
 from qnav.sim.config import WorldConfig
 from qnav.sim.evaluate import EvalSettings, GoToTargetAgent, episode_outcomes
-from qnav.sim.world import Observation, observe, reset, step
-from qnav.training.agent import TorchAgent, policy_agent, q_values
+from qnav.sim.world import Observation, observe, reset
+from qnav.training.agent import TorchAgent, policy_agent
 from qnav.training.algorithm import bootstrap_windows, double_dqn_target
 from qnav.training.collect import collect_round
 from qnav.training.episode_log import read_rounds
@@ -56,102 +45,6 @@ from qnav.training.sampling import sample
 
 _FRESH_LAYOUT_SEED = 777_777
 """Layouts of the fresh episodes (neither training, validation nor test use it)."""
-
-
-@dataclass(frozen=True)
-class DecisiveReport:
-    """The network's greedy choices on the gauge's decisive states, beside two baselines."""
-
-    safe: float
-    """Share of the decisive states where the greedy action is safe."""
-    balanced: float
-    """The same averaged over doom patterns: 1/2 for any choice that ignores the scan."""
-    by_driver: dict[str, float]
-    """The same over the states each driver (planner, go-to-target) visited."""
-    random: float
-    """What a uniformly random choice scores on average."""
-    go_to_target: float
-    """What the blind go-to-target controller scores."""
-    forward: float
-    """What always driving forward scores (the plain share's prior)."""
-    states: int
-    """Decisive states judged."""
-    value_gap: float
-    """Median over them of the best safe action's Q minus the best doomed one's."""
-    target_ranks_safe: float
-    """Share of them where the one-step targets from the network's own values, r + gamma max Q
-    of each action's simulated next state, put the best safe action above the best doomed one:
-    how much of the ranking any one-step TD target from this network carries."""
-    target_gap: float
-    """Median over them of those targets' gap (best safe minus best doomed)."""
-
-    def render(self) -> str:
-        """Two lines for the terminal."""
-        drivers = ", ".join(f"{name} {share:.0%}" for name, share in self.by_driver.items())
-        return (
-            f"safe choices in {self.states} decisive states: {self.safe:.1%} ({drivers}), "
-            f"balanced over doom patterns {self.balanced:.1%} (blind choices: 50%); "
-            f"random {self.random:.1%}, always forward {self.forward:.1%}, "
-            f"go-to-target {self.go_to_target:.1%}\n"
-            f"  Q there, best safe minus best doomed action: median {self.value_gap:+.4f}; "
-            f"one-step targets from its own values rank the safe one first in "
-            f"{self.target_ranks_safe:.1%} (median gap {self.target_gap:+.4f})"
-        )
-
-
-def decisive_report(
-    network: QNetwork, states: DecisiveStates, world: WorldConfig, gamma: float
-) -> DecisiveReport:
-    """Score the network's greedy choices, its values and its one-step targets on the decisive
-    states of `world`."""
-    network.eval()
-    windows = states.policy_windows()
-    q = q_values(network, windows)
-    mine = score(states, q.argmax(axis=1))
-    targets = one_step_targets(network, world, states, windows, gamma)
-    target_ranks_safe, target_gap = safe_ranking(targets, states.doomed)
-    return DecisiveReport(
-        safe=mine.safe,
-        balanced=mine.balanced,
-        by_driver=mine.by_driver,
-        random=random_expectation(states).safe,
-        go_to_target=score(states, go_to_target_choices(states)).safe,
-        forward=constant_choice(states, Action.FORWARD).safe,
-        states=mine.states,
-        value_gap=safe_ranking(q, states.doomed)[1],
-        target_ranks_safe=target_ranks_safe,
-        target_gap=target_gap,
-    )
-
-
-def safe_ranking(values: NDArray[np.floating], doomed: NDArray[np.bool_]) -> tuple[float, float]:
-    """Over decisive states, values (K, A) of the actions: the share where the best safe
-    action's value is above the best doomed one's, and the median of that gap."""
-    best_safe = np.where(doomed, -np.inf, values).max(axis=1)
-    best_doomed = np.where(doomed, values, -np.inf).max(axis=1)
-    gap = best_safe - best_doomed
-    return float(np.mean(gap > 0)), float(np.median(gap))
-
-
-def one_step_targets(
-    network: QNetwork,
-    world: WorldConfig,
-    states: DecisiveStates,
-    windows: NDArray[np.float32],
-    gamma: float,
-) -> NDArray[np.float64]:
-    """(K, A) r + gamma max_a' Q(s', a') of each action's step from each state, by the
-    simulator (the next window: the state's last k - 1 frames of `windows`, the network's view
-    of `states`, and the new one); r alone where the step ends the episode."""
-    scale_m = distance_scale_m(world.lidar)
-    targets = []
-    for action in range(NUM_ACTIONS):
-        _, seen, transition = step(world, states.world, np.full(len(windows), action))
-        frame = seen.frames(scale_m)
-        later = q_values(network, np.concatenate([windows[:, 1:], frame[:, None]], axis=1))
-        going_on = ~np.asarray(transition.terminated)
-        targets.append(transition.reward + gamma * going_on * later.max(axis=1))
-    return np.stack(targets, axis=1)
 
 
 @dataclass(frozen=True)
@@ -200,15 +93,13 @@ class Diagnosis:
     """Success of those test episodes."""
     against_blind: AgainstBlind
     """Those test episodes, layout for layout, against the blind controller's."""
-    decisive: DecisiveReport | None = None
-    """The decisive-state gauge (obstacle worlds with `train.gauge_episodes` > 0)."""
 
     def render(self) -> str:
         """A few lines for the terminal."""
         gap = self.fresh_td_mse / max(self.replay_td_mse, 1e-12)
         forward, left, right = self.action_mix
         return "\n".join(
-            [
+            (
                 f"TD error (mse): replay {self.replay_td_mse:.4f}, fresh episodes "
                 f"{self.fresh_td_mse:.4f} ({gap:.1f}x: above ~1.5x the network memorises)",
                 f"LSTM gate input std: target features {self.target_gate_std:.3f}, lidar "
@@ -220,8 +111,7 @@ class Diagnosis:
                 f"greedy test actions: forward {forward:.0%}, left {left:.0%}, right {right:.0%}; "
                 f"success {self.test_success:.3f}",
                 self.against_blind.render(),
-            ]
-            + ([self.decisive.render()] if self.decisive is not None else [])
+            )
         )
 
 
@@ -249,11 +139,6 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
     )
     target_std, lidar_std = _gate_inputs(network, replay_batch)
     actions, success, against_blind = _test_actions(network, settings)
-    decisive = None
-    if settings.world.obstacles.count and train.gauge_episodes:
-        decisive = decisive_report(
-            network, decisive_states(world, train, progress=True), world, train.gamma
-        )
     return Diagnosis(
         replay_td_mse=_td_mse(network, replay_batch, train.window),
         fresh_td_mse=_td_mse(network, fresh_batch, train.window),
@@ -264,7 +149,6 @@ def diagnose(run_dir: Path, fresh_episodes: int = 64, samples: int = 2048) -> Di
         action_mix=actions,
         test_success=success,
         against_blind=against_blind,
-        decisive=decisive,
     )
 
 

@@ -9,9 +9,8 @@ close to the target and clear of surfaces), and takes the best sequence's first 
 it cannot be expected to beat this planner by much: where the planner fails, the world is hard.
 
 The same simulation says which first actions are *doomed*: every continuation the planner
-knows collides within a few seconds. A state where some action is doomed and another is not is
-a *decisive* state (`doomed_actions`); `lab.decisive` builds the gauge of how often a policy
-picks a safe action there.
+knows collides within a few seconds (`doomed_actions`; `lab.calibrate` counts the layouts lost
+from the start).
 
 `qnav eval --agent oracle --scenario obstacles-inertia` runs it under the test protocol. Its
 random sequences are drawn from (seed, episode, step), so an episode's plan does not depend on
@@ -155,7 +154,7 @@ PERCEPTION_LEVELS: dict[str, StateError] = {
     "tracker": StateError(0.03, 0.05, 0.05, 0.1),
     "coarse": StateError(0.1, 0.2, 0.1, 0.2),
 }
-"""Perception errors `qnav lab gauge --ceiling` and `qnav eval --agent oracle --state-error` know.
+"""Perception errors `qnav eval --agent oracle --state-error` knows.
 A 720-beam lidar resolves 0.5 degree, a few centimetres at the ranges that matter, and five
 frames 0.2 s apart give velocities to a few cm/s: "lidar-grade" is what a perfect perceiver of
 the window could know, "tracker" a good hand-built obstacle tracker, "coarse" a sloppy one."""

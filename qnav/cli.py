@@ -89,7 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=Parser)
     lab = verbs.add_parser(
         "lab",
-        help="the research tools of lab/: calibrate, diagnose, gauge (`qnav lab TOOL --help`)",
+        help="the research tools of lab/: calibrate, diagnose, robustness, forecast "
+        "(`qnav lab TOOL --help`)",
     )
     tools = lab.add_subparsers(dest="tool", metavar="TOOL", required=True, parser_class=Parser)
     bench = verbs.add_parser("bench", help="benchmarks")
@@ -160,7 +161,7 @@ ZENOH_DAEMONS = frozenset(
 
 
 def verb_of(args: argparse.Namespace) -> str:
-    """The verb as typed: `train`, `lab gauge`, `bench learner`."""
+    """The verb as typed: `train`, `lab diagnose`, `bench learner`."""
     sub = getattr(args, "tool", None) or getattr(args, "bench", None)
     return f"{args.verb} {sub}" if sub else str(args.verb)
 

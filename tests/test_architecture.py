@@ -206,7 +206,7 @@ def test_the_scan_sees_each_kind_of_import_and_the_table_names_each_breach(tmp_p
     (tmp_path / "shell.py").write_text(
         "from typing import TYPE_CHECKING\n"
         "from qnav.lab.oracle import run_oracle\n"
-        "if TYPE_CHECKING:\n    from qnav.lab.gauge import DecisiveGauge\n"
+        "if TYPE_CHECKING:\n    from qnav.lab.diagnose import Diagnosis\n"
         "def verb() -> None:\n    from qnav.lab import tracking\n"
         "from qnav import lab, sim\n"
         "import torch.nn, numpy\n"
@@ -216,7 +216,7 @@ def test_the_scan_sees_each_kind_of_import_and_the_table_names_each_breach(tmp_p
     assert [(f.line, f.name, f.lazy) for f in found] == [
         (1, "typing", False),
         (2, "qnav.lab.oracle", False),
-        (4, "qnav.lab.gauge", True),
+        (4, "qnav.lab.diagnose", True),
         (6, "qnav.lab", True),
         (7, "qnav.lab", False),
         (7, "qnav.sim", False),

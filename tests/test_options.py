@@ -28,7 +28,7 @@ def test_every_learner_setting_is_an_option_of_train_with_its_documentation(
     shown = _squeezed(_train_help(capsys))
     docs = field_docs(TrainSettings)
     fields = dataclasses.fields(TrainSettings)
-    assert len(fields) >= 30
+    assert len(fields) >= 20  # the introspection sees them (29 since issue 54)
     for field in fields:
         option = "--" + field.name.replace("_", "-")
         assert option in shown, option

@@ -27,13 +27,12 @@ BENCH_SPECS = [RunSpec("walls-inertia", "recurrent", seed) for seed in range(4)]
 SMALL_RUN = (
     "train.eval_every_episodes=0",
     "train.final_eval_episodes=8",
-    "train.gauge_episodes=0",
     "train.hidden_size=32",
     "train.batch_size=16",
     "train.iterations_per_episode=2",
 )
 """A small run but for its length (`train.episodes`, rounds of 8): a small network, no evaluation
-during training or gauge, an 8-episode test (the cluster tests' runs too)."""
+during training, an 8-episode test (the cluster tests' runs too)."""
 BENCH_SETTINGS = ("train.episodes=24", *SMALL_RUN)
 """Small runs (three rounds of 8 episodes, a short test) so that the pair takes a minute or two."""
 

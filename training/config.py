@@ -111,10 +111,6 @@ class TrainSettings:
     """Episodes between greedy evaluations during training (0: none)."""
     eval_episodes: int = 100
     """Episodes of each greedy evaluation during training (episodes as long as in training)."""
-    gauge_episodes: int = 400
-    """Episodes per driver behind the decisive-state gauge reported with each evaluation in
-    obstacle worlds (`lab.decisive`, handed to the run by `qnav train`; collected once per world
-    and cached; 0: none)."""
     snapshot_every_episodes: int = 0
     """Save the online network every this many episodes, for the action-map figure (0: never)."""
     final_eval_episodes: int = 200
@@ -148,7 +144,6 @@ class TrainSettings:
         check_range(self, "grad_clip_norm", self.grad_clip_norm, 0.0, 1e9)
         check_range(self, "max_episode_steps", self.max_episode_steps, 1, 10**7)
         check_range(self, "eval_every_episodes", self.eval_every_episodes, 0, 10**7)
-        check_range(self, "gauge_episodes", self.gauge_episodes, 0, 10**7)
         check_range(self, "eval_episodes", self.eval_episodes, 1, 10**7)
         check_range(self, "snapshot_every_episodes", self.snapshot_every_episodes, 0, 10**7)
         check_range(self, "final_eval_episodes", self.final_eval_episodes, 1, 10**7)

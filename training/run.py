@@ -7,7 +7,7 @@ The pieces it runs, each in a module of its own:
     training.replay       storage of every collected episode
     training.sampling     how a batch is drawn: steps, targets and obstacles re-drawn
     training.algorithm    double DQN: the update, the target network, the optimiser
-    training.validation   greedy evaluations during training, and an opt-in gauge beside them
+    training.validation   greedy evaluations during training
 
 A run killed at any moment resumes from its last checkpoint when started again with the same
 folder: rounds collected after that checkpoint are read back from `episodes/` and trained on.
@@ -39,7 +39,7 @@ from qnav.training.networks import QNetwork, make_network
 from qnav.training.replay import EpisodeReplay
 from qnav.training.run_folder import Progress, RunFolder, RunSettings, source_commit
 from qnav.training.sampling import sample
-from qnav.training.validation import Gauge, Validation, evaluate_network, layout_tests
+from qnav.training.validation import Validation, evaluate_network, layout_tests
 
 BARN_WORLDS = 300
 """BARN's worlds: a layout run's final test runs the first `final_eval_episodes` of them."""
@@ -53,10 +53,8 @@ def train(
     settings: TrainSettings,
     run_dir: Path,
     progress: bool = True,
-    gauge: Gauge | None = None,
 ) -> dict[str, Any]:
-    """Run (or resume) training in `run_dir`; returns the final test results. A `gauge` judges
-    the network beside each evaluation (progress.csv's decisive_ columns, empty without)."""
+    """Run (or resume) training in `run_dir`; returns the final test results."""
     if world.layout.source == "barn":
         raise ConfigError(
             "layout.source = 'barn': BARN's 300 worlds are the test set; train in generated "
@@ -69,7 +67,7 @@ def train(
     torch.manual_seed(settings.seed)
     dqn = DoubleDQN(make_network(world, settings), settings)
     state, logged, replay = _resume(folder, dqn, world, settings)
-    validation = Validation(world, settings, gauge)
+    validation = Validation(world, settings)
     title = f"{world.name}, {settings.model}, seed {settings.seed}"
     if state.imitation_rounds < settings.imitation.rounds:
         _imitate(
@@ -298,7 +296,6 @@ def _finish(
         "first_reached": {
             str(level): first_reached(state.history, level) for level in REACHED_LEVELS
         },
-        "decisive": shipped_gauge(state.history, settings.keep_best),
         "collect_s": round(state.collect_s, 1),
         "train_s": round(state.train_s, 1),
         "eval_s": round(state.eval_s + time.perf_counter() - started, 1),
@@ -314,22 +311,6 @@ def first_reached(history: list[dict[str, float]], level: float) -> dict[str, fl
         if row.get("eval_success", -1.0) >= level:
             return {k: row[k] for k in ("episodes", "iterations", "wall_s")}
     return None
-
-
-def shipped_gauge(history: list[dict[str, float]], keep_best: bool) -> dict[str, float] | None:
-    """The decisive-state gauge of the network a run ships: the last validation's, or with
-    `keep_best` the best one's (the last of equals, as `save_best` keeps it); None where that
-    validation had no gauge (walls-only worlds) or there was none."""
-    validated = [row for row in history if "eval_success" in row]
-    if not validated:
-        return None
-    shipped = validated[-1]
-    if keep_best:
-        best = max(row["eval_success"] for row in validated)
-        shipped = [row for row in validated if row["eval_success"] == best][-1]
-    if "decisive_safe" not in shipped:
-        return None
-    return {"safe": shipped["decisive_safe"], "balanced": shipped["decisive_balanced"]}
 
 
 def _crossed(every: int, episodes: int, added: int) -> bool:

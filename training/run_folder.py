@@ -69,6 +69,11 @@ _REMOVED_AFTER = {
     ),
 }
 """The last commit with each setting removed later than `LAST_COMMIT_WITH_EXPERIMENTS`."""
+LAST_COMMIT_WITH_GAUGE = "7d4f731"
+"""The last commit with the decisive-state gauge (docs/log/retired.md)."""
+RETIRED_MEASUREMENTS = ("gauge_episodes",)
+"""Learner settings of measurements retired after `LAST_COMMIT_WITH_GAUGE`: they changed what a
+run reported, never what it learned, so a run folder that holds them reads whatever their value."""
 _SWITCHED_BY = {
     "next_scan_range_m": "next_scan_weight",
     "next_scan_sectors": "next_scan_weight",
@@ -88,13 +93,21 @@ PROGRESS_COLUMNS = (
     "eval_success",
     "eval_collision",
     "eval_unfinished",
-    "decisive_safe",
-    "decisive_balanced",
     "phase",
 )
-"""progress.csv's columns; a round without an evaluation leaves the eval_ and decisive_ ones
-empty. In the rounds of imitation (phase "imitation"; empty: reinforcement learning), episodes
-and iterations count the imitation's and epsilon is the planner's share of the steps."""
+"""progress.csv's columns; a round without an evaluation leaves the eval_ ones empty. In the
+rounds of imitation (phase "imitation"; empty: reinforcement learning), episodes and iterations
+count the imitation's and epsilon is the planner's share of the steps."""
+RETIRED_PROGRESS_COLUMNS = ("decisive_safe", "decisive_balanced")
+"""Columns of the decisive-state gauge, retired after `LAST_COMMIT_WITH_GAUGE`: a run resumed
+from before then keeps them, after the others, for its rounds that have them."""
+
+
+def progress_columns(history: list[dict[str, Any]]) -> list[str]:
+    """progress.csv's columns for this history: `PROGRESS_COLUMNS`, and the retired ones its
+    rounds hold."""
+    retired = [c for c in RETIRED_PROGRESS_COLUMNS if any(c in row for row in history)]
+    return [*PROGRESS_COLUMNS, *retired]
 
 
 @dataclass(frozen=True)
@@ -137,9 +150,12 @@ def read_settings(run_dir: Path) -> RunSettings:
 
 def without_removed_settings(train: dict[str, Any], where: str) -> dict[str, Any]:
     """Learner settings read from a file less the `REMOVED_SETTINGS` it holds, which must be
-    off: a run that used a removed experiment is refused, by the setting's name."""
+    off (a run that used a removed experiment is refused, by the setting's name), and less the
+    `RETIRED_MEASUREMENTS`, whatever their value."""
     kept = {}
     for key, value in train.items():
+        if key in RETIRED_MEASUREMENTS:
+            continue
         if key not in REMOVED_SETTINGS:
             kept[key] = value
             continue
@@ -223,7 +239,7 @@ class RunFolder:
         """progress.csv, and success.png when the last round has a new evaluation."""
         partial = self.path / "progress.csv.partial"
         with partial.open("w", newline="") as handle:
-            writer = csv.DictWriter(handle, PROGRESS_COLUMNS)
+            writer = csv.DictWriter(handle, progress_columns(history))
             writer.writeheader()
             writer.writerows(history)
         partial.replace(self.path / "progress.csv")

@@ -861,7 +861,8 @@ def _beyond_lines(scenario: str, beyond: Beyond) -> list[str]:
 
 
 def _gauge_line(results: dict[str, dict[str, Any]], scenario: str) -> list[str]:
-    """The decisive-state gauge of the shipped networks, per model (runs that recorded it)."""
+    """The decisive-state gauge of the shipped networks, per model (runs that recorded it: the
+    gauge was retired after commit 7d4f731, and the committed results keep its scores)."""
     cells = []
     for model in MODELS:
         judged = [r["decisive"] for r in _runs(results, scenario, model) if r.get("decisive")]

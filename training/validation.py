@@ -1,9 +1,9 @@
-"""Greedy evaluations of a network while it trains, and a gauge of its choices beside them."""
+"""Greedy evaluations of a network while it trains, and a layout run's final tests."""
 
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, NamedTuple, Protocol
+from typing import Any
 
 from qnav.sim import clutter
 from qnav.sim.benchmark import run_benchmark
@@ -69,37 +69,15 @@ def evaluate_network(
     return evaluate(world, agent, settings)
 
 
-class GaugeScore(NamedTuple):
-    """A gauge's judgement of a network's greedy choices (progress.csv's decisive_ columns)."""
-
-    safe: float
-    """Share of the judged states where the chosen action is safe."""
-    balanced: float
-    """The safe share averaged over kinds of state, each weighted alike (for the decisive-state
-    gauge: over the doom patterns, where a choice blind to the scan scores 1/2)."""
-
-
-class Gauge(Protocol):
-    """A judge of the network's greedy choices beside each evaluation, opt-in: the run knows
-    only this protocol; `qnav train` hands it the lab's decisive-state gauge
-    (`qnav.lab.gauge.training_gauge`), as the oracle planner behind it is no part of the product."""
-
-    def __call__(self, network: QNetwork) -> GaugeScore: ...
-
-
 class Validation:
     """A run's evaluation during training: its progress.csv columns for the network now."""
 
-    def __init__(
-        self, world: WorldConfig, settings: TrainSettings, gauge: Gauge | None = None
-    ) -> None:
+    def __init__(self, world: WorldConfig, settings: TrainSettings) -> None:
         self.world = validation_world(world, settings.eval_episodes)
         self.settings = settings
-        self.gauge = gauge
 
     def __call__(self, network: QNetwork) -> dict[str, float]:
-        """Success, collision and unfinished shares on the validation layouts, and with a gauge
-        its shares of safe and balanced choices."""
+        """Success, collision and unfinished shares on the validation layouts."""
         settings = self.settings
         result = evaluate_network(
             self.world,
@@ -110,13 +88,8 @@ class Validation:
             max_steps=settings.max_episode_steps,
             turn_commitment=settings.imitation.turn_commitment,
         )
-        row = {
+        return {
             "eval_success": result.success,
             "eval_collision": result.collision,
             "eval_unfinished": result.unfinished,
         }
-        if self.gauge is not None:
-            judged = self.gauge(network)
-            row["decisive_safe"] = round(judged.safe, 4)
-            row["decisive_balanced"] = round(judged.balanced, 4)
-        return row

@@ -1,15 +1,13 @@
-"""Handlers of `qnav lab`: the research tools of lab/ (calibrate, diagnose, gauge, robustness)."""
+"""Handlers of `qnav lab`: the tools of lab/ (calibrate, diagnose, robustness, forecast)."""
 
 from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
 from pathlib import Path
 
 from qnav.contracts.errors import ConfigError
-from qnav.sim.config import load_world
-from qnav.verbs.parser import Verbs, flag, verb, world_options
+from qnav.verbs.parser import Verbs, flag, verb
 
 
 def calibrate(args: argparse.Namespace) -> int:
@@ -44,92 +42,6 @@ def diagnose(args: argparse.Namespace) -> int:
 
     print(measure(args.run, fresh_episodes=args.fresh_episodes).render())
     return 0
-
-
-def gauge(args: argparse.Namespace) -> int:
-    """The decisive states of a world with the baselines' scores, or each run's score on its
-    own world's states beside its test success."""
-    rows = [] if args.runs else _baseline_rows(args)
-    rows += [_run_row(run, args.episodes) for run in args.runs]
-    for row in rows:
-        if args.json:
-            print(json.dumps(row))
-        else:
-            shares = ", ".join(
-                f"{key} {value:.3f}" for key, value in row.items() if isinstance(value, float)
-            )
-            print(f"{row['policy']}: {shares}")
-    return 0
-
-
-def _baseline_rows(args: argparse.Namespace) -> list[dict[str, object]]:
-    """The baselines' scores on the decisive states of the world `args` give (and the best
-    choice under each perception error, with --ceiling); prints how many states there are."""
-    from qnav.contracts.actions import Action
-    from qnav.lab.decisive import (
-        DRIVERS,
-        GaugeResult,
-        GaugeSettings,
-        cached,
-        constant_choice,
-        go_to_target_choices,
-        perception_ceiling,
-        random_expectation,
-    )
-    from qnav.lab.decisive import score as judge
-    from qnav.lab.oracle import PERCEPTION_LEVELS
-
-    world = load_world(args.scenario, args.world_config, args.assignments)
-    if not world.obstacles.count:
-        raise ConfigError(f"scenario {world.name!r} has no moving obstacles: nothing is doomed")
-    states = cached(world, GaugeSettings(episodes_per_driver=args.episodes), progress=True)
-    if len(states.doomed) == 0:
-        raise ConfigError(f"no decisive states in {states.visited.sum()} visited: raise --episodes")
-    baselines: list[tuple[str, GaugeResult]] = [
-        ("random", random_expectation(states)),
-        ("go-to-target", judge(states, go_to_target_choices(states))),
-        *((f"always {a.name.lower()}", constant_choice(states, a)) for a in Action),
-    ]
-    if args.ceiling:
-        baselines += [
-            (f"best choice, {level} state", perception_ceiling(world, states, error))
-            for level, error in PERCEPTION_LEVELS.items()
-        ]
-    visited = dict(zip(DRIVERS, states.visited.tolist(), strict=True))
-    print(
-        f"{len(states.doomed)} decisive states in {sum(visited.values())} visited "
-        f"(planner {visited['planner']}, go-to-target {visited['go-to-target']})"
-    )
-    return [
-        {"policy": name, "safe": result.safe, "balanced": result.balanced, **result.by_driver}
-        for name, result in baselines
-    ]
-
-
-def _run_row(run: Path, episodes: int) -> dict[str, object]:
-    """A training run's score on its own world's decisive states, beside its test success."""
-    from qnav.lab.diagnose import decisive_report
-    from qnav.lab.gauge import decisive_states
-    from qnav.training.run_folder import load_network
-
-    network, settings = load_network(run)
-    train = replace(settings.train, gauge_episodes=episodes)
-    world = replace(settings.world, max_episode_steps=train.max_episode_steps)
-    report = decisive_report(
-        network, decisive_states(world, train, progress=True), world, train.gamma
-    )
-    results = run / "results.json"
-    test = json.loads(results.read_text())["test"]["success"] if results.exists() else None
-    return {
-        "policy": str(run),
-        "safe": report.safe,
-        "balanced": report.balanced,
-        **report.by_driver,
-        "value_gap": report.value_gap,
-        "target_ranks_safe": report.target_ranks_safe,
-        "target_gap": report.target_gap,
-        "test_success": test,
-    }
 
 
 def robustness(args: argparse.Namespace) -> int:
@@ -175,10 +87,9 @@ def forecast(args: argparse.Namespace) -> int:
 
 
 def add_tools(tools: Verbs) -> None:
-    """`qnav lab calibrate|diagnose|gauge|robustness|forecast`: their options."""
+    """`qnav lab calibrate|diagnose|robustness|forecast`: their options."""
     _add_calibrate(tools)
     _add_diagnose(tools)
-    _add_gauge(tools)
     _add_robustness(tools)
     _add_forecast(tools)
 
@@ -266,32 +177,9 @@ def _add_diagnose(tools: Verbs) -> None:
         diagnose,
         "diagnose",
         help="why a run learns or not: generalisation gap, target sensitivity, action mix, "
-        "test layouts against the blind controller, decisive states",
+        "test layouts against the blind controller",
     )
     parser.add_argument("run", type=Path, help="training run folder (finished or not)")
     parser.add_argument(
         "--fresh-episodes", type=int, default=64, help="fresh episodes to measure on (64)"
     )
-
-
-def _add_gauge(tools: Verbs) -> None:
-    """`qnav lab gauge [RUN...]`."""
-    parser = verb(
-        tools,
-        gauge,
-        "gauge",
-        help="decisive-state gauge: how often a policy avoids a doomed action where it matters",
-    )
-    world_options(parser, "obstacles-inertia")
-    parser.add_argument(
-        "runs", nargs="*", type=Path, help="training run folders to score (each in its own world)"
-    )
-    parser.add_argument(
-        "--episodes", type=int, default=400, help="episodes per driver behind the state set (400)"
-    )
-    flag(
-        parser,
-        "--ceiling",
-        "also score the best choice under each perception error (is doom learnable?)",
-    )
-    flag(parser, "--json", "print one JSON object per line")

@@ -40,12 +40,7 @@ def train(args: argparse.Namespace) -> int:
         + ("" if settings.relabel == "paper" else f"-{settings.relabel}")
     )
     print(f"run folder: {run_dir}")
-    # The decisive-state gauge comes from the lab (it needs the oracle planner): the shell hands
-    # it to the run, which knows only the protocol (training.validation.Gauge).
-    from qnav.lab.gauge import training_gauge
-
-    gauge = training_gauge(world, settings, progress=not args.quiet)
-    results = run_training(world, settings, run_dir, progress=not args.quiet, gauge=gauge)
+    results = run_training(world, settings, run_dir, progress=not args.quiet)
     test = results["test"]
     print(
         f"test ({test['episodes']} episodes of up to 500 steps): success {test['success']:.3f}, "

@@ -5,15 +5,11 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
-from qnav.lab.decisive import GaugeSettings, collect
-from qnav.lab.diagnose import _turns_towards_target, diagnose, one_step_targets, safe_ranking
+from qnav.lab.diagnose import _turns_towards_target, diagnose
 from qnav.sim.config import scenario
-from qnav.sim.world import step
-from qnav.training.networks import QNetwork
 from qnav.training.run_folder import load_network
 from tests import tiny_training
 
@@ -37,8 +33,6 @@ def test_a_diagnosis_measures_fractions_and_errors_and_repeats_exactly(tiny_run:
     assert sum(first.action_mix) == pytest.approx(1.0)
     assert first.lidar_gate_std > 0 and first.target_gate_std > 0
     assert len(first.dead_channels) == 3 and all(0 <= d <= 8 for d in first.dead_channels)
-    assert first.decisive is not None and first.decisive.states > 0
-    assert 0 <= first.decisive.safe <= 1 and 0 <= first.decisive.go_to_target <= 1
 
 
 def test_layouts_saved_and_lost_against_the_blind_controller_add_up_to_the_success_gap(
@@ -76,30 +70,3 @@ def test_qnav_diagnose_prints_the_gap_and_the_action_mix(tiny_run: Path) -> None
     assert "greedy test actions: forward" in result.stdout
     assert "against the blind go-to-target controller (" in result.stdout
     assert "dead lidar channels per convolution: " in result.stdout
-    assert "one-step targets from its own values rank the safe one first in" in result.stdout
-
-
-def test_the_ranking_compares_the_best_safe_action_with_the_best_doomed_one() -> None:
-    values = np.array([[1.0, 2.0, 0.0], [3.0, 2.0, 5.0]])
-    doomed = np.array([[False, True, False], [True, False, True]])
-    share, median_gap = safe_ranking(values, doomed)
-    assert share == 0.0  # 1 < 2, and 2 < 5
-    assert median_gap == pytest.approx(-2.0)  # gaps -1 and -3
-
-
-def test_one_step_targets_are_the_simulators_reward_plus_the_discounted_next_value() -> None:
-    world = scenario("obstacles-increment")
-    states = collect(
-        world, GaugeSettings(episodes_per_driver=4, max_episode_steps=30, num_worlds=4)
-    )
-    network = QNetwork("recurrent", 720, hidden_size=8)
-    last = network.head[-1]
-    assert isinstance(last, torch.nn.Linear)
-    with torch.no_grad():  # the same value, 0.25, everywhere
-        last.weight.zero_()
-        last.bias.fill_(0.25)
-    targets = one_step_targets(network, world, states, states.policy_windows(), gamma=0.5)
-    for action in range(3):
-        _, _, transition = step(world, states.world, np.full(len(states.doomed), action))
-        expected = transition.reward + 0.5 * 0.25 * ~transition.terminated
-        np.testing.assert_allclose(targets[:, action], expected, rtol=1e-6)

@@ -15,6 +15,9 @@ import numpy as np
 import torch
 
 TIMINGS = {"collect_s", "train_s", "eval_s", "commit"}
+RETIRED = {"decisive", "decisive_safe", "decisive_balanced"}
+"""What the decisive-state gauge added (issue 54 retired it): left out, so trees from before
+and after compare."""
 
 
 def _hash(array: Any) -> str:
@@ -35,7 +38,7 @@ def _tree(value: Any) -> Any:
 
 
 def _untimed(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    return [{k: v for k, v in row.items() if k != "wall_s"} for row in rows]
+    return [{k: v for k, v in row.items() if k != "wall_s" and k not in RETIRED} for row in rows]
 
 
 def digest(run: Path) -> dict[str, Any]:
@@ -43,7 +46,7 @@ def digest(run: Path) -> dict[str, Any]:
     with (run / "progress.csv").open() as file:
         found: dict[str, Any] = {"progress": _untimed(list(csv.DictReader(file)))}
     results = json.loads((run / "results.json").read_text())
-    found["results"] = {k: v for k, v in results.items() if k not in TIMINGS}
+    found["results"] = {k: v for k, v in results.items() if k not in TIMINGS | RETIRED}
     found["model"] = _tree(torch.load(run / "model.pt", weights_only=False)["online"])
     checkpoint = torch.load(run / "checkpoint.pt", weights_only=False)
     found["checkpoint"] = {k: _tree(checkpoint[k]) for k in ("online", "target", "optimizer")}

@@ -18,7 +18,7 @@ common=(--quiet --train-set train.hidden_size=16 --train-set train.iterations_pe
   --train-set train.batch_size=16 --train-set train.eval_every_episodes=4
   --train-set train.eval_episodes=4 --train-set train.final_eval_episodes=4
   --train-set train.max_episode_steps=30 --train-set train.warmup_episodes=2
-  --train-set train.threads=1 --train-set train.gauge_episodes=4)
+  --train-set train.threads=1)
 
 # A tree's own package: its qnav/ with its folders linked in as pyproject's package-dir maps them
 # (in scratch; a tree of before that change links them itself), run from there.
@@ -32,6 +32,11 @@ view() {  # view SOURCE_TREE VIEW_DIR
 
 runs() {  # runs SOURCE_TREE OUT_DIR
   local src=$1 out=$2
+  local -a common=("${common[@]}")
+  # A tree from before the decisive-state gauge was retired (issue 54) has it: off there.
+  if grep -q gauge_episodes "$src/training/config.py"; then
+    common+=(--train-set train.gauge_episodes=0)
+  fi
   mkdir -p "$out"
   view "$src" "$out.view"
   (

@@ -17,7 +17,7 @@ from qnav.controller.onnx_file import read_onnx
 from qnav.sim.config import scenario
 from qnav.training.config import FAST
 from qnav.training.episode_log import read_rounds
-from qnav.training.run import last_validation, shipped_gauge, train
+from qnav.training.run import last_validation, train
 from qnav.training.run_folder import read_settings
 
 TINY = [
@@ -135,22 +135,6 @@ def test_a_run_folder_refuses_other_settings(tmp_path: Path) -> None:
     train(world, settings, tmp_path, progress=False)
     with pytest.raises(ConfigError, match="other settings"):
         train(world, replace(settings, seed=9), tmp_path, progress=False)
-
-
-def test_the_gauge_reported_is_the_shipped_networks_the_best_validation_with_keep_best() -> None:
-    def validated(episodes: int, success: float, safe: float) -> dict[str, float]:
-        return {"episodes": episodes, "eval_success": success, "decisive_safe": safe,
-                "decisive_balanced": safe - 0.1}  # fmt: skip
-
-    history: list[dict[str, float]] = [
-        {"episodes": 8}, validated(50, 0.6, 0.7), validated(100, 0.6, 0.8),
-        validated(150, 0.5, 0.9), {"episodes": 158},
-    ]  # fmt: skip
-    assert shipped_gauge(history, keep_best=True) == {"safe": 0.8, "balanced": 0.8 - 0.1}
-    assert shipped_gauge(history, keep_best=False) == {"safe": 0.9, "balanced": 0.9 - 0.1}
-    walls = [{"episodes": 50, "eval_success": 1.0}]
-    assert shipped_gauge(walls, keep_best=True) is None
-    assert shipped_gauge([{"episodes": 8}], keep_best=False) is None
 
 
 def test_the_progress_bar_shows_the_last_validation_not_nan_between_them() -> None:

@@ -1,5 +1,6 @@
 """A run folder's settings: what it was started with, and folders older than a removal."""
 
+import csv
 from dataclasses import replace
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from qnav.sim.config import scenario
 from qnav.training.config import TrainSettings
 from qnav.training.run_folder import (
     LAST_COMMIT_WITH_EXPERIMENTS,
+    PROGRESS_COLUMNS,
     RunFolder,
     RunSettings,
     read_settings,
@@ -94,3 +96,27 @@ def test_a_refused_resume_names_the_settings_that_differ_and_threads_may_differ(
         RunFolder(tmp_path).start(other)
     RunFolder(tmp_path).start(RunSettings(SETTINGS.world, replace(SETTINGS.train, threads=7)))
     assert read_settings(tmp_path).train.threads == 7
+
+
+@pytest.mark.parametrize("episodes", [400, 0])
+def test_a_folder_from_before_the_gauge_was_retired_reads_and_resumes_whatever_its_episodes(
+    tmp_path: Path, episodes: int
+) -> None:
+    folder = _started_with(tmp_path, f"gauge_episodes = {episodes}\n")
+    assert read_settings(folder) == SETTINGS
+    RunFolder(folder).start(SETTINGS)  # resumes: the retired measurement is no difference
+
+
+def test_a_resumed_history_keeps_the_retired_gauge_columns_after_the_others(
+    tmp_path: Path,
+) -> None:
+    old = {"episodes": 8, "eval_success": 0.5, "decisive_safe": 0.6, "decisive_balanced": 0.5}
+    history = [old, {"episodes": 16, "loss": 0.1}]
+    RunFolder(tmp_path).write_progress(history, "resumed")
+    with (tmp_path / "progress.csv").open() as handle:
+        reader = csv.DictReader(handle)
+        rows = list(reader)
+    assert reader.fieldnames == [*PROGRESS_COLUMNS, "decisive_safe", "decisive_balanced"]
+    assert rows[0]["decisive_safe"] == "0.6" and rows[1]["decisive_safe"] == ""
+    RunFolder(tmp_path).write_progress(history[1:], "new")
+    assert (tmp_path / "progress.csv").read_text().splitlines()[0] == ",".join(PROGRESS_COLUMNS)
