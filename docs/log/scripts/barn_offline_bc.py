@@ -3,7 +3,7 @@ against the planner on a fixed validation set: the planner's labels along the sh
 network's paths and along the planner's own, 128 validation caves (cached in /tmp/g/valset).
 
     .venv/bin/python docs/log/scripts/barn_offline_bc.py data=RUN[,RUN...] iters=8000 save=FILE.pt
-    (options: window=K, tie=RAD (near-tie weights; margins from barn_label_margins.py), lr=,
+    (options: range=M (ranges encoded at this scale, clipped), window=K, mirror=P (windows reflected left-right with chance P), tie=RAD (near-tie weights; margins from barn_label_margins.py), lr=,
     batch=, rounds=)
 Export a saved network with a run's settings.toml (its window set to K) beside it as model.pt:
     qnav export DIR -o FILE.onnx --weights int8 --eval-episodes 0 --turn-commitment
@@ -30,6 +30,8 @@ iters = int(args.get("iters", 8000))
 rounds_max = int(args.get("rounds", 10)); lr = float(args.get("lr", 5e-4)); batch = int(args.get("batch", 256))
 settings = read_settings(runs[0])
 world, train = settings.world, settings.train
+if "range" in args:  # the scale of the network's ranges (and its target distance): nearer, finer
+    world = replace(world, lidar=replace(world.lidar, max_range_m=float(args["range"])))
 window = int(args.get("window", train.window))
 
 def replay_of(episodes, w):
@@ -55,6 +57,7 @@ episodes = [e for r in runs for rnd in read_rounds(r / "imitation")[:rounds_max]
 data = replay_of(episodes, world)
 stored = data.transitions()
 tie = float(args.get("tie", 0))
+mirror = float(args.get("mirror", 0))
 weight_of = np.ones(data.size)
 if tie:
     margins = np.concatenate([np.load(f"/tmp/g/margins-{r.name}.npy") for r in runs])
@@ -82,6 +85,13 @@ t = time.perf_counter()
 for it in range(1, iters + 1):
     now = stored[rng.integers(0, stored.size, batch)]
     frames = data.windows(now); labels = data.action[now]
+    if mirror:  # the worlds have no handedness: reflect a share of the windows left-right
+        flip = rng.random(batch) < mirror
+        beams = data.num_beams
+        frames = frames.copy(); labels = labels.copy()
+        frames[flip, :, :beams] = frames[flip][:, :, (-np.arange(beams)) % beams]
+        frames[flip, :, beams + 1] *= -1  # the target's sin(bearing)
+        labels[flip] = np.array([0, 2, 1])[labels[flip]]
     logits = network(torch.from_numpy(frames))
     weights = torch.from_numpy(weight_of[now].astype(np.float32))
     loss = (functional.cross_entropy(logits, torch.from_numpy(labels), reduction="none") * weights).sum() / weights.sum()
