@@ -69,11 +69,10 @@ _REMOVED_AFTER = {
     ),
 }
 """The last commit with each setting removed later than `LAST_COMMIT_WITH_EXPERIMENTS`."""
-LAST_COMMIT_WITH_GAUGE = "7d4f731"
-"""The last commit with the decisive-state gauge (docs/log/retired.md)."""
 RETIRED_MEASUREMENTS = ("gauge_episodes",)
-"""Learner settings of measurements retired after `LAST_COMMIT_WITH_GAUGE`: they changed what a
-run reported, never what it learned, so a run folder that holds them reads whatever their value."""
+"""Learner settings of measurements retired after commit 7d4f731 (the decisive-state gauge,
+docs/log/retired.md): they changed what a run reported, never what it learned, so a run folder
+that holds them reads whatever their value."""
 _SWITCHED_BY = {
     "next_scan_range_m": "next_scan_weight",
     "next_scan_sectors": "next_scan_weight",
@@ -99,7 +98,7 @@ PROGRESS_COLUMNS = (
 rounds of imitation (phase "imitation"; empty: reinforcement learning), episodes and iterations
 count the imitation's and epsilon is the planner's share of the steps."""
 RETIRED_PROGRESS_COLUMNS = ("decisive_safe", "decisive_balanced")
-"""Columns of the decisive-state gauge, retired after `LAST_COMMIT_WITH_GAUGE`: a run resumed
+"""Columns of the decisive-state gauge, retired after commit 7d4f731: a run resumed
 from before then keeps them, after the others, for its rounds that have them."""
 
 

@@ -9,7 +9,7 @@ return of `barn_no_return.py`, where 38 of 41 collisions on 512 validation caves
 network drove forward, the planner turned). Stored episodes keep poses but not velocities, so
 each episode is replayed from its start (layout found from the start pose) with the action that
 reproduces each next pose. Flags are cached in /tmp/g/fatal-RUNNAME.npy in the order of the
-run's stored transitions (the rounds' episodes in order), for `barn_offline_bc.py fatal=W`.
+run's stored transitions (the rounds' episodes in order), for later runs.
 With WEIGHTS, the network's agreement with the labels on fatal states and elsewhere, on the
 run's data and on the validation set of `barn_offline_bc.py` (/tmp/g/valset).
 """
@@ -34,8 +34,8 @@ F64 = NDArray[np.float64]
 
 def gap_m(xy: F64, cylinders: F64, radius_m: float) -> F64:
     """(N,) distance from each point (N, 2) to the nearest of its cylinders (N, K, 2)."""
-    d = np.sqrt(((cylinders - xy[:, None, :]) ** 2).sum(-1))
-    return np.asarray(np.nanmin(np.where(np.isfinite(d), d, np.inf), axis=1) - radius_m)
+    d = np.sqrt(((cylinders - xy[:, None, :]) ** 2).sum(-1))  # unused slots are parked far
+    return np.asarray(d.min(axis=1) - radius_m)
 
 
 def replay_velocities(world: WorldConfig, episode: Episode) -> F64:
@@ -79,22 +79,23 @@ def fatal_forward(
     return every_hits
 
 
-def flags_of(run: Path, world: WorldConfig | None = None, folder: str = "imitation") -> NDArray[np.bool_]:
-    """The flags of a run's stored rounds (or of a folder of rounds in `world`), cached."""
-    cache = Path(f"/tmp/g/fatal-{run.name}.npy")
+def cached_flags(
+    name: str, world: WorldConfig, episodes: list[Episode], layout_of_episode: bool = False
+) -> NDArray[np.bool_]:
+    """The episodes' flags, in their order, kept in /tmp/g/fatal-NAME.npy (each episode's layout
+    found from its start pose, or with `layout_of_episode` its index: a validation round of
+    order "cycle" runs layout i in episode i)."""
+    cache = Path(f"/tmp/g/fatal-{name}.npy")
     if cache.exists():
         return np.load(cache)
-    from qnav.training.run_folder import read_settings
-
-    world = world or read_settings(run).world
     layouts = layouts_of(world.layout)
     assert layouts is not None
-    rounds = read_rounds(run / folder if folder else run)
-    flags = [fatal_forward(world, layouts, e) for r in rounds for e in r]
-    out = np.concatenate(flags)
+    flags = np.concatenate(
+        [fatal_forward(world, layouts, e, i if layout_of_episode else None) for i, e in enumerate(episodes)]
+    )
     cache.parent.mkdir(parents=True, exist_ok=True)
-    np.save(cache, out)
-    return out
+    np.save(cache, flags)
+    return flags
 
 
 def agreement(weights: Path, world: WorldConfig, episodes: list[Episode], flags: NDArray[np.bool_]) -> str:
@@ -133,36 +134,27 @@ def agreement(weights: Path, world: WorldConfig, episodes: list[Episode], flags:
 def main() -> None:
     from dataclasses import replace
 
+    import torch
+
     from qnav.training.run_folder import read_settings
 
-    torch_threads()
+    torch.set_num_threads(1)
     runs = [Path(r) for r in sys.argv[1].split(",")]
     weights = Path(sys.argv[2]) if len(sys.argv) > 2 else None
     for run in runs:
-        flags = flags_of(run)
+        world = read_settings(run).world
+        episodes = [e for r in read_rounds(run / "imitation") for e in r]
+        flags = cached_flags(run.name, world, episodes)
         print(f"{run.name}: {flags.size} states, fatal for forward {flags.sum()} ({flags.mean():.4f})", flush=True)
         if weights:
-            world = read_settings(run).world
-            episodes = [e for r in read_rounds(run / "imitation") for e in r]
             print("  train:", agreement(weights, world, episodes, flags), flush=True)
     if weights:
         world = read_settings(runs[0]).world
         val = replace(world, layout=replace(world.layout, split="validation", worlds=128, order="cycle"))
         rounds = read_rounds(Path("/tmp/g/valset"))
         for index, name in ((0, "the network's paths"), (1, "the planner's paths")):
-            cache = Path(f"/tmp/g/fatal-valset{index}.npy")
-            if not cache.exists():
-                layouts = layouts_of(val.layout)
-                assert layouts is not None
-                np.save(cache, np.concatenate([fatal_forward(val, layouts, e, i) for i, e in enumerate(rounds[index])]))
-            flags = np.load(cache)
+            flags = cached_flags(f"valset{index}", val, rounds[index], layout_of_episode=True)
             print(f"  validation, {name}: fatal {flags.sum()};", agreement(weights, val, rounds[index], flags), flush=True)
-
-
-def torch_threads() -> None:
-    import torch
-
-    torch.set_num_threads(1)
 
 
 if __name__ == "__main__":

@@ -12,9 +12,9 @@ from qnav.sim.world import reset
 from qnav.training.episode_log import read_rounds
 from qnav.training.run_folder import read_settings
 
-def episode_margins(planner, world, e, lay):
+def pose_margins(planner, world, pose, lay):
+    """| |heading error| - forward threshold | (rad) of the planner at poses (N, 3) in layout `lay`."""
     st = planner.settings
-    pose = e.pose[:-1]
     grid = planner.grid(int(lay))
     pts = pose[:, None, :2] + st.lookahead_m * planner._offsets[None]
     costs = grid.at(pts.reshape(-1, 2)).reshape(pose.shape[0], -1)
@@ -25,6 +25,9 @@ def episode_margins(planner, world, e, lay):
     gap = np.sqrt(((centres[None] - pose[:, None, :2]) ** 2).sum(-1)).min(1) - planner.layouts.cylinder_radius_m - world.robot_radius_m
     aligned = np.where(gap > st.open_m, st.open_aligned_rad, st.aligned_rad)
     return np.abs(np.abs(err) - aligned)
+
+def episode_margins(planner, world, e, lay):
+    return pose_margins(planner, world, e.pose[:-1], lay)
 
 if __name__ == "__main__":
     out = {}

@@ -16,7 +16,6 @@ the planner's cost-to-go (the share of the start's cost left at its best, and at
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from collections import Counter
@@ -28,9 +27,12 @@ from numpy.typing import NDArray
 
 from qnav.contracts.motion import Outcome
 from qnav.sim.config import WorldConfig, scenario
-from qnav.sim.mapplan import DIRECTIONS, MapPlanner
+from qnav.sim.mapplan import MapPlanner
 from qnav.sim.world import WorldState, concatenate_rows, observe, reset, scatter, step, take_rows
 from qnav.stack import file_agent
+
+sys.path.insert(0, str(Path(__file__).parent))
+from barn_label_margins import pose_margins  # noqa: E402
 
 BUDGET_STEPS = 500
 """The planner's fresh budget from a state (the test protocol's episode length)."""
@@ -87,18 +89,6 @@ def after_each_action(world: WorldConfig, states: WorldState) -> list[WorldState
     return [step(world, states, np.full(n, a, dtype=np.int64))[0] for a in range(3)]
 
 
-def label_margin(planner: MapPlanner, pose: NDArray[np.float64], layout: int) -> float:
-    """How far (rad) the planner's wanted heading is from its forward/turn threshold."""
-    grid = planner.grid(layout)
-    angles = np.linspace(0.0, 2 * math.pi, DIRECTIONS, endpoint=False)
-    ahead = pose[:2] + planner.settings.lookahead_m * np.stack([np.cos(angles), np.sin(angles)], -1)
-    wanted = float(angles[int(np.argmin(grid.at(ahead)))])
-    error = abs((wanted - pose[2] + math.pi) % (2 * math.pi) - math.pi)
-    # open or not, take the nearer of the two thresholds: an upper bound on the tie's margin
-    s = planner.settings
-    return min(abs(error - s.aligned_rad), abs(error - s.open_aligned_rad))
-
-
 def main() -> None:
     policy = Path(sys.argv[1])
     count = int(sys.argv[2]) if len(sys.argv) > 2 else 256
@@ -138,7 +128,7 @@ def main() -> None:
             table.append(dict(
                 episode=e, before_crash=int(length[e] - t), did=NAMES[did],
                 label=NAMES[int(labels[i])], keeps="".join(NAMES[a][0] for a in range(3) if keep[a][i]),
-                margin=label_margin(planner, at.pose[i], int(at.layout[i])),
+                margin=float(pose_margins(planner, world, at.pose[i : i + 1], int(at.layout[i]))[0]),
                 preference=float(prefs[t, e, did]),
                 label_preference=float(prefs[t, e, int(labels[i])]),
                 clearance=float(observe(world, take_rows(at, np.array([i]))).clearance_m[0]),

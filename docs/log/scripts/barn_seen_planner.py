@@ -14,6 +14,7 @@ imitator with that information can reach; the network's agreement on these state
 
 from __future__ import annotations
 
+import copy
 import sys
 import time
 from dataclasses import replace
@@ -55,8 +56,7 @@ def planner_on(world, planner: MapPlanner, layouts: Layouts, layout: int, keep: 
         goal_xy=layouts.goal_xy[layout][None], path_length_m=np.array([np.nan]), world_id=np.array([0]),
     )
     grid = cost_to_go(one, 0, world.robot_radius_m, world.reach_m, planner.settings)
-    sub = MapPlanner.__new__(MapPlanner)
-    sub.__dict__.update(planner.__dict__)
+    sub = copy.copy(planner)  # the same settings and directions, this one map
     sub.layouts, sub._grids = one, {0: grid}
     return int(sub.act_at(pose[None], np.array([0]))[0])
 
